@@ -1,0 +1,207 @@
+"""The fakenect recording format (libfreenect's ``fakenect-record``), read and written in Python.
+
+A folder holds ``INDEX.txt`` (one file name per line, in playback order), depth frames
+``d-<time_s>-<device_ts>.pgm`` (header ``P5 640 480 65535\\n`` then 640x480 little-endian 11-bit
+disparity, 2047 = no reading), colour frames ``r-...ppm`` (ignored here) and accelerometer dumps
+``a-<time_s>-<device_ts>.dump`` (12 bytes, ``<hhhbxi``: x, y, z counts, tilt half-degrees, status).
+
+Disparity converts to millimetres with libfreenect's own zero-plane formula (src/registration.c,
+``freenect_raw_to_mm``) and the usual Kinect 360 constants; pass the device's ``const_shift`` when
+known. Unlike libfreenect, which clamps far values to 10000 mm, values outside 1..9999 mm become 0.
+"""
+
+from __future__ import annotations
+
+import functools
+import logging
+import os
+import re
+import struct
+from collections.abc import Iterable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import numpy.typing as npt
+
+from drivers.base import Frame
+from drivers.errors import RecordingError
+from drivers.kinect_axes import camera_to_accel_counts
+
+log = logging.getLogger(__name__)
+
+WIDTH, HEIGHT = 640, 480
+PGM_HEADER = b"P5 640 480 65535\n"
+NO_DISPARITY = 2047
+MAX_MM = 10000
+ACCEL_DUMP = struct.Struct("<hhhbxi")
+_NAME = re.compile(r"([dra])-(\d+(?:\.\d*)?)-(\d+)(?:-.*)?\.(pgm|ppm|dump)\Z")
+
+# Kinect 360 zero-plane constants as libfreenect reads them from the device; typical values.
+CONST_SHIFT = 200.0
+REFERENCE_DISTANCE = 120.0       # zero-plane distance, cm
+REFERENCE_PIXEL_SIZE = 0.1042    # zero-plane pixel size, mm
+DCMOS_EMITTER_DIST = 7.5         # emitter to IR camera baseline, cm
+
+
+@functools.lru_cache(maxsize=8)
+def disparity_to_mm_table(const_shift: float = CONST_SHIFT) -> npt.NDArray[np.uint16]:
+    """Millimetres for each raw 11-bit disparity value, libfreenect's formula.
+
+    Returns:
+        (2048,) uint16, read-only; 0 where there is no reading.
+    """
+    raw = np.arange(2048, dtype=np.float64)
+    fixed_ref_x = (raw - 4.0 * const_shift) / 4.0 - 0.375
+    metric = fixed_ref_x * REFERENCE_PIXEL_SIZE
+    with np.errstate(divide="ignore", invalid="ignore"):
+        mm = 10.0 * (metric * REFERENCE_DISTANCE / (DCMOS_EMITTER_DIST - metric) + REFERENCE_DISTANCE)
+    valid = (metric < DCMOS_EMITTER_DIST) & (mm >= 1.0) & (mm < MAX_MM)
+    table = np.where(valid, np.trunc(np.where(valid, mm, 0.0)), 0.0).astype(np.uint16)  # C truncates
+    table[NO_DISPARITY] = 0
+    table.setflags(write=False)
+    return table
+
+
+def disparity_to_mm(raw: npt.NDArray[np.uint16], const_shift: float = CONST_SHIFT) -> npt.NDArray[np.uint16]:
+    """(H, W) raw disparity to (H, W) uint16 millimetres, 0 = no reading."""
+    return disparity_to_mm_table(const_shift)[np.minimum(raw, NO_DISPARITY)]
+
+
+def mm_to_disparity(depth_mm: npt.NDArray[np.uint16], const_shift: float = CONST_SHIFT) -> npt.NDArray[np.uint16]:
+    """(H, W) millimetres to the raw disparity whose depth is nearest; 0 mm -> 2047."""
+    table = disparity_to_mm_table(const_shift)
+    raws = np.flatnonzero(table)                      # valid raw values, depth increasing
+    depths = table[raws].astype(np.float64)
+    mm = np.asarray(depth_mm, dtype=np.float64)
+    idx = np.clip(np.searchsorted(depths, mm), 1, len(raws) - 1)
+    nearer_low = (mm - depths[idx - 1]) <= (depths[idx] - mm)
+    out = raws[np.where(nearer_low, idx - 1, idx)].astype(np.uint16)
+    out[mm <= 0] = NO_DISPARITY
+    return out
+
+
+@dataclass(frozen=True, slots=True)
+class Entry:
+    """One line of INDEX.txt."""
+
+    kind: str          # "d", "r" or "a"
+    time_s: float      # host time when recorded, seconds
+    device_ts: int     # device timestamp (depth) or last frame timestamp seen (accel)
+    path: Path
+
+
+def read_index(folder: Path) -> list[Entry]:
+    """Parse and check INDEX.txt; every named file must exist."""
+    index = folder / "INDEX.txt"
+    try:
+        lines = index.read_text(encoding="ascii").splitlines()
+    except FileNotFoundError:
+        raise RecordingError(f"{folder}: not a fakenect recording (no INDEX.txt)") from None
+    except UnicodeDecodeError:
+        raise RecordingError(f"{index}: not a text file") from None
+    entries = []
+    for number, line in enumerate(lines, 1):
+        name = line.strip()
+        if not name:
+            continue
+        match = _NAME.match(name)
+        if not match or "/" in name:
+            raise RecordingError(
+                f"{index}:{number}: {name!r} is not a fakenect file name (d-/r-/a-<time>-<ts>.<ext>)"
+            )
+        path = folder / name
+        if not path.is_file():
+            raise RecordingError(f"{index}:{number}: names {name}, which is missing", hint="the recording is incomplete")
+        entries.append(Entry(match.group(1), float(match.group(2)), int(match.group(3)), path))
+    if not any(e.kind == "d" for e in entries):
+        raise RecordingError(f"{index}: lists no depth frames (d-*.pgm)")
+    return entries
+
+
+def read_depth_pgm(path: Path) -> npt.NDArray[np.uint16]:
+    """Read one fakenect depth file as (480, 640) raw disparity."""
+    data = path.read_bytes()
+    if not data.startswith(PGM_HEADER):
+        raise RecordingError(f"{path}: header is not {PGM_HEADER[:-1].decode()!r}; only 640x480 11-bit depth is supported")
+    expected = len(PGM_HEADER) + WIDTH * HEIGHT * 2
+    if len(data) != expected:
+        raise RecordingError(f"{path}: {len(data)} bytes, expected {expected} (truncated or corrupt)")
+    raw = np.frombuffer(data, dtype="<u2", offset=len(PGM_HEADER)).reshape(HEIGHT, WIDTH)
+    if int(raw.max()) > NO_DISPARITY:
+        raise RecordingError(f"{path}: values above 2047; not 11-bit disparity")
+    return raw.astype(np.uint16)
+
+
+def read_accel_dump(path: Path) -> tuple[int, int, int, int, int] | None:
+    """(x, y, z counts, tilt half-degrees, status) from an a-*.dump, or None if its size is wrong."""
+    data = path.read_bytes()
+    if len(data) != ACCEL_DUMP.size:
+        log.warning("%s: %d bytes, expected %d; ignoring it", path, len(data), ACCEL_DUMP.size)
+        return None
+    return ACCEL_DUMP.unpack(data)
+
+
+def iter_fakenect(
+    folder: Path, const_shift: float = CONST_SHIFT
+) -> Iterator[tuple[float, npt.NDArray[np.uint16], tuple[int, int, int, int, int] | None]]:
+    """Yield (time_s from the first record, depth_mm (480, 640), accel dump or None).
+
+    fakenect-record snapshots the accelerometer right after a depth frame, so a frame gets the
+    first ``a-`` dump before the next depth frame, else the last one seen before it.
+    """
+    entries = read_index(folder)
+    t0 = entries[0].time_s
+    accel = None
+    for i, entry in enumerate(entries):
+        if entry.kind == "a":
+            accel = read_accel_dump(entry.path)
+        elif entry.kind == "d":
+            for later in entries[i + 1 :]:
+                if later.kind == "d":
+                    break
+                if later.kind == "a":
+                    accel = read_accel_dump(later.path) or accel
+                    break
+            yield entry.time_s - t0, disparity_to_mm(read_depth_pgm(entry.path), const_shift), accel
+
+
+def write_fakenect(
+    folder: str | os.PathLike[str], frames: Iterable[Frame], const_shift: float = CONST_SHIFT,
+    start_time_s: float = 1_000_000.0,
+) -> int:
+    """Write frames as a fakenect recording (depth quantised to 11-bit disparity).
+
+    Each frame with an accelerometer vector gets an ``a-`` dump after its depth file, as
+    fakenect-record does; the tilt angle is written as 0 and the status as stopped.
+
+    Returns:
+        The number of depth frames written.
+
+    Raises:
+        RecordingError: a frame that is not 640x480, or a folder that is not empty.
+    """
+    out = Path(folder)
+    if out.exists() and any(out.iterdir()):
+        raise RecordingError(f"{out}: folder is not empty; refusing to overwrite")
+    out.mkdir(parents=True, exist_ok=True)
+    names = []
+    count = 0
+    for frame in frames:
+        if frame.depth_mm.shape != (HEIGHT, WIDTH):
+            raise RecordingError(f"{out}: fakenect holds 640x480 depth only, frame {frame.seq} is "
+                                 f"{frame.depth_mm.shape[1]}x{frame.depth_mm.shape[0]}")
+        t = start_time_s + frame.timestamp_s
+        ts = int(round(frame.timestamp_s * 1e6)) & 0xFFFFFFFF
+        name = f"d-{t:.6f}-{ts}.pgm"
+        raw = mm_to_disparity(frame.depth_mm, const_shift).astype("<u2")
+        (out / name).write_bytes(PGM_HEADER + raw.tobytes())
+        names.append(name)
+        if frame.accel_mps2 is not None:
+            x, y, z = camera_to_accel_counts(frame.accel_mps2)
+            aname = f"a-{t:.6f}-{ts}.dump"
+            (out / aname).write_bytes(ACCEL_DUMP.pack(x, y, z, 0, 0))
+            names.append(aname)
+        count += 1
+    (out / "INDEX.txt").write_text("".join(n + "\n" for n in names), encoding="ascii")
+    return count

@@ -1,0 +1,254 @@
+"""The fake driver: replays recorded frames as if a sensor were attached.
+
+Spec: ``replay:PATH[?rate=realtime|max&loop=0|1&fps=F&fx=..&fy=..&cx=..&cy=..&scale=S&const_shift=C]``
+
+PATH is one of (detected when opened):
+- a depthnav recording folder (``recording.toml`` + ``frames.npz``) or a bare ``.npz``;
+- a folder of 16-bit PNG depth images (see drivers/png_folder.py; ``scale`` units per metre,
+  default from ``camera.toml`` or 5000; intrinsics from ``camera.toml`` or ``fx, fy, cx, cy``);
+- a fakenect recording (``INDEX.txt``; disparity converted with ``const_shift``, default 200);
+- an ``.oni`` file, played by OpenNI2's libOniFile (see drivers/openni.py).
+
+Options: ``rate`` realtime (default; sleep to the recorded timestamps) or max (no sleeping);
+``loop`` 1 to start again at the end (timestamps keep increasing); ``fps`` frame rate for sources
+without timestamps (default 30); ``fx, fy, cx, cy`` override the intrinsics (pixels).
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from drivers import fakenect_format, png_folder
+from drivers.base import KINECT_V1, DeviceInfo, Driver, Frame, Intrinsics
+from drivers.errors import DriverError, RecordingError
+from drivers.kinect_axes import accel_counts_to_camera, tilt_status_name
+from drivers.base import TiltState
+from drivers.recording import read_recording
+from drivers.spec import Spec, bool_option, check_options, choice_option, float_option
+
+log = logging.getLogger(__name__)
+
+GRAMMAR = "replay:PATH[?rate=realtime|max&loop=0|1&fps=F&fx=..&fy=..&cx=..&cy=..&scale=S&const_shift=C]"
+OPTIONS = ("rate", "loop", "fps", "fx", "fy", "cx", "cy", "scale", "const_shift")
+
+Item = tuple[float, npt.NDArray[np.uint16], tuple[float, float, float] | None, TiltState | None]
+
+
+class ReplayDriver:
+    """Replays a recording. Construction does no I/O; ``open()`` checks the recording."""
+
+    open_count = 0  # drivers open right now, for leak checks in tests
+    _count_lock = threading.Lock()
+
+    def __init__(
+        self, path: str | Path, *, realtime: bool = True, loop: bool = False, fps: float = 30.0,
+        intrinsics_override: dict[str, float] | None = None, scale: float | None = None,
+        const_shift: float = fakenect_format.CONST_SHIFT, spec_text: str = "",
+    ) -> None:
+        self.path = Path(path)
+        self.realtime = realtime
+        self.loop = loop
+        self.fps = fps
+        self.overrides = dict(intrinsics_override or {})
+        self.scale = scale
+        self.const_shift = const_shift
+        self.spec_text = spec_text or f"replay:{path}"
+        self._items: Iterator[Item] | None = None
+        self._inner: Driver | None = None
+        self._intrinsics: Intrinsics | None = None
+        self._seq = 0
+        self._t_offset_s = 0.0
+        self._last_t_s = 0.0
+        self._wall0: float | None = None
+        self._is_open = False
+
+    @classmethod
+    def from_spec(cls, spec: Spec) -> ReplayDriver:
+        """Build from ``replay:PATH?...``."""
+        check_options(spec, OPTIONS, GRAMMAR)
+        if not spec.target:
+            raise RecordingError(f"{spec.text!r} names no recording", hint=f"write {GRAMMAR}")
+        overrides = {}
+        for key in ("fx", "fy", "cx", "cy"):
+            value = float_option(spec, key, None, -0.5, 1e5)
+            if value is not None:
+                overrides[key] = value
+        return cls(
+            spec.target,
+            realtime=choice_option(spec, "rate", ("realtime", "max"), "realtime") == "realtime",
+            loop=bool_option(spec, "loop", False),
+            fps=float_option(spec, "fps", 30.0, 0.1, 1000.0) or 30.0,
+            intrinsics_override=overrides,
+            scale=float_option(spec, "scale", None, 1.0, 1e6),
+            const_shift=float_option(spec, "const_shift", fakenect_format.CONST_SHIFT, 0.0, 1000.0)
+            or fakenect_format.CONST_SHIFT,
+            spec_text=spec.text,
+        )
+
+    # --- sources -------------------------------------------------------------------------
+    def _intrinsics_with(self, base: Intrinsics | None, shape: tuple[int, int] | None) -> Intrinsics:
+        height, width = shape if shape else ((base.height, base.width) if base else (0, 0))
+        if base is None:
+            missing = [k for k in ("fx", "fy", "cx", "cy") if k not in self.overrides]
+            if missing:
+                raise RecordingError(
+                    f"{self.path}: no intrinsics ({', '.join(missing)} unknown)",
+                    hint=f"add a {png_folder.SIDECAR} with an [intrinsics] table, or ?fx=..&fy=..&cx=..&cy=..",
+                )
+            values = dict(self.overrides)
+        else:
+            values = {"fx": base.fx, "fy": base.fy, "cx": base.cx, "cy": base.cy, **self.overrides}
+        try:
+            return Intrinsics(width, height, values["fx"], values["fy"], values["cx"], values["cy"])
+        except ValueError as exc:
+            raise RecordingError(f"{self.path}: bad intrinsics: {exc}") from None
+
+    def _depthnav_items(self) -> tuple[Iterator[Item], Intrinsics, str]:
+        rec = read_recording(self.path, default_fps=self.fps)
+        intr = self._intrinsics_with(rec.intrinsics, None)
+
+        def items() -> Iterator[Item]:
+            for i in range(len(rec.depth_mm)):
+                accel = None if rec.accel_mps2 is None else tuple(map(float, rec.accel_mps2[i]))
+                yield float(rec.timestamp_s[i]), rec.depth_mm[i], accel, None  # type: ignore[misc]
+
+        return items(), intr, rec.description or self.path.name
+
+    def _png_items(self) -> tuple[Iterator[Item], Intrinsics, str]:
+        side = png_folder.read_sidecar(self.path)
+        scale = self.scale or float(side.get("depth_scale", 5000.0))
+        frames = png_folder.list_frames(self.path, self.fps)
+        first = png_folder.read_depth_png(frames[0][1], scale)
+        base = None
+        table = side.get("intrinsics")
+        if isinstance(table, dict):
+            try:
+                base = Intrinsics(first.shape[1], first.shape[0], float(table["fx"]), float(table["fy"]),
+                                  float(table["cx"]), float(table["cy"]))
+            except (KeyError, TypeError, ValueError) as exc:
+                raise RecordingError(f"{self.path / png_folder.SIDECAR}: bad [intrinsics]: {exc}") from None
+        intr = self._intrinsics_with(base, first.shape)
+
+        def items() -> Iterator[Item]:
+            for stamp, depth in png_folder.iter_png_folder(self.path, intr, scale, self.fps):
+                yield stamp, depth, None, None
+
+        return items(), intr, self.path.name
+
+    def _fakenect_items(self) -> tuple[Iterator[Item], Intrinsics, str]:
+        fakenect_format.read_index(self.path)  # fail at open, not at the first frame
+        intr = self._intrinsics_with(KINECT_V1, None)
+
+        def items() -> Iterator[Item]:
+            for stamp, depth, dump in fakenect_format.iter_fakenect(self.path, self.const_shift):
+                accel = tilt = None
+                if dump is not None:
+                    accel = accel_counts_to_camera(*dump[:3])
+                    tilt = TiltState(dump[3] / 2.0, tilt_status_name(dump[4]))
+                yield stamp, depth, accel, tilt
+
+        return items(), intr, self.path.name
+
+    def _start(self) -> None:
+        if self.path.is_dir():
+            if (self.path / "recording.toml").exists():
+                self._items, intr, name = self._depthnav_items()
+            elif (self.path / "INDEX.txt").exists():
+                self._items, intr, name = self._fakenect_items()
+            elif png_folder.is_png_folder(self.path):
+                self._items, intr, name = self._png_items()
+            else:
+                raise RecordingError(
+                    f"{self.path}: not a recording folder (no recording.toml, INDEX.txt, depth.txt or *.png)",
+                    hint="record one with `depthnav record`",
+                )
+        elif self.path.suffix.lower() == ".npz":
+            self._items, intr, name = self._depthnav_items()
+        elif not self.path.exists():
+            raise RecordingError(f"{self.path}: no such file or folder", hint="check the path")
+        else:
+            raise RecordingError(
+                f"{self.path}: unknown recording type {self.path.suffix or '(no suffix)'!r}",
+                hint="replay takes a recording folder, .npz, PNG folder, fakenect folder or .oni",
+            )
+        if self._intrinsics is not None and intr != self._intrinsics:
+            raise RecordingError(f"{self.path}: intrinsics changed while looping")
+        self._intrinsics = intr
+        self._name = name
+
+    # --- Driver protocol -----------------------------------------------------------------
+    def open(self) -> DeviceInfo:
+        """Check the recording and get ready to replay it."""
+        if self._is_open:
+            raise DriverError(f"replay {self.path} is already open")
+        if self.path.suffix.lower() == ".oni" and self.path.is_file():
+            from drivers.openni import OpenNIDriver  # only .oni replay needs OpenNI2
+
+            self._inner = OpenNIDriver.for_file(self.path, realtime=self.realtime, loop=self.loop,
+                                                spec_text=self.spec_text)
+            info = self._inner.open()
+        else:
+            self._start()
+            assert self._intrinsics is not None
+            info = DeviceInfo(name=f"replay: {self._name}", serial=None, spec=self.spec_text,
+                              intrinsics=self._intrinsics, has_accel=False)
+        self._is_open = True
+        with ReplayDriver._count_lock:
+            ReplayDriver.open_count += 1
+        return info
+
+    def read_frame(self, timeout_s: float = 1.0) -> Frame | None:
+        """The next recorded frame, paced when ``rate=realtime``; None at the end."""
+        if not self._is_open:
+            raise DriverError(f"replay {self.path} is not open", hint="call open() first")
+        if self._inner is not None:
+            return self._inner.read_frame(timeout_s)
+        assert self._items is not None and self._intrinsics is not None
+        item = next(self._items, None)
+        if item is None and self.loop and self._seq > 0:
+            self._t_offset_s = self._last_t_s + 1.0 / self.fps
+            self._start()
+            item = next(self._items, None)
+        if item is None:
+            return None
+        stamp, depth, accel, tilt = item
+        t_s = stamp + self._t_offset_s
+        if self.realtime:
+            now = time.monotonic()
+            if self._wall0 is None:
+                self._wall0 = now - t_s
+            delay = self._wall0 + t_s - now
+            # Never sleep past the caller's timeout: a long gap in a recording is not a hang.
+            if delay > timeout_s:
+                time.sleep(max(timeout_s, 0.0))
+                self._wall0 -= delay - timeout_s
+            elif delay > 0:
+                time.sleep(delay)
+        frame = Frame(seq=self._seq, timestamp_s=t_s, depth_mm=np.array(depth, dtype=np.uint16),
+                      intrinsics=self._intrinsics, accel_mps2=accel, tilt=tilt)
+        self._seq += 1
+        self._last_t_s = t_s
+        return frame
+
+    def close(self) -> None:
+        """Stop replaying. Safe to call twice."""
+        if self._inner is not None:
+            self._inner.close()
+            self._inner = None
+        self._items = None
+        if self._is_open:
+            self._is_open = False
+            with ReplayDriver._count_lock:
+                ReplayDriver.open_count -= 1
+
+    def describe(self) -> dict[str, Any]:
+        """Settings, for logs."""
+        return {"path": str(self.path), "realtime": self.realtime, "loop": self.loop}

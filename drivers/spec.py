@@ -1,0 +1,144 @@
+"""Device specs: one string names a device, ``scheme[://target][?key=value&...]``.
+
+``scheme:target`` is accepted as shorthand for ``scheme://target``. Each driver checks its own
+options with :func:`check_options`, which rejects unknown keys and lists the valid ones.
+"""
+
+from __future__ import annotations
+
+import re
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass, field
+from urllib.parse import unquote
+
+from drivers.errors import DeviceSpecError
+
+_SCHEME = re.compile(r"[a-z][a-z0-9+.-]*\Z")
+
+
+@dataclass(frozen=True, slots=True)
+class Spec:
+    """A parsed device spec.
+
+    Attributes:
+        text: the spec as given.
+        scheme: lower-case backend key, e.g. "kinect".
+        target: what follows ``scheme:`` or ``scheme://`` up to ``?``; "" when absent.
+        options: query options in the order given.
+    """
+
+    text: str
+    scheme: str
+    target: str = ""
+    options: Mapping[str, str] = field(default_factory=dict)
+
+
+def parse_spec(text: str) -> Spec:
+    """Split a device spec into scheme, target and options.
+
+    Raises:
+        DeviceSpecError: empty spec, bad scheme, malformed or repeated option.
+    """
+    if not isinstance(text, str) or not text.strip():
+        raise DeviceSpecError("empty device spec", hint="e.g. kinect, openni://, replay:PATH")
+    text = text.strip()
+    body, sep, query = text.partition("?")
+    scheme, colon, target = body.partition(":")
+    scheme = scheme.lower()
+    if not _SCHEME.match(scheme):
+        raise DeviceSpecError(
+            f"device spec {text!r} does not start with a scheme",
+            hint="write scheme[://target][?key=value&...], e.g. replay:fixtures/x?rate=max",
+        )
+    if colon and target.startswith("//"):
+        target = target[2:]
+    options: dict[str, str] = {}
+    if sep:
+        for part in query.split("&"):
+            if not part:
+                continue
+            key, eq, value = part.partition("=")
+            key = unquote(key).strip().lower()
+            if not key or not eq:
+                raise DeviceSpecError(
+                    f"option {part!r} in device spec {text!r} is not key=value",
+                    hint="separate options with '&', e.g. ?rate=max&loop=1",
+                )
+            if key in options:
+                raise DeviceSpecError(f"option {key!r} is given twice in device spec {text!r}")
+            options[key] = unquote(value)
+    return Spec(text=text, scheme=scheme, target=unquote(target), options=options)
+
+
+def check_options(spec: Spec, valid: Iterable[str], grammar: str) -> None:
+    """Reject options the driver does not know.
+
+    Args:
+        spec: the parsed spec.
+        valid: option names the driver accepts.
+        grammar: the driver's spec grammar, quoted in the hint.
+
+    Raises:
+        DeviceSpecError: naming the unknown option and listing the valid ones.
+    """
+    allowed = set(valid)
+    for key in spec.options:
+        if key not in allowed:
+            names = ", ".join(sorted(allowed)) or "none"
+            raise DeviceSpecError(
+                f"unknown option {key!r} for {spec.scheme!r} in {spec.text!r}; valid options: {names}",
+                hint=f"the {spec.scheme} spec is {grammar}",
+            )
+
+
+def choice_option(spec: Spec, key: str, choices: Iterable[str], default: str) -> str:
+    """An option whose value must be one of ``choices``."""
+    value = spec.options.get(key, default).lower()
+    allowed = list(choices)
+    if value not in allowed:
+        raise DeviceSpecError(
+            f"option {key}={value!r} in {spec.text!r} is not one of {', '.join(allowed)}"
+        )
+    return value
+
+
+def bool_option(spec: Spec, key: str, default: bool) -> bool:
+    """An on/off option: 1/0, true/false, yes/no, on/off."""
+    if key not in spec.options:
+        return default
+    value = spec.options[key].lower()
+    if value in ("1", "true", "yes", "on"):
+        return True
+    if value in ("0", "false", "no", "off"):
+        return False
+    raise DeviceSpecError(f"option {key}={value!r} in {spec.text!r} is not 0 or 1")
+
+
+def float_option(
+    spec: Spec, key: str, default: float | None, low: float = -1e12, high: float = 1e12
+) -> float | None:
+    """A finite number option within [low, high]."""
+    if key not in spec.options:
+        return default
+    raw = spec.options[key]
+    try:
+        value = float(raw)
+    except ValueError:
+        raise DeviceSpecError(f"option {key}={raw!r} in {spec.text!r} is not a number") from None
+    if not low <= value <= high:  # also false for NaN
+        raise DeviceSpecError(f"option {key}={raw!r} in {spec.text!r} is outside {low:g}..{high:g}")
+    return value
+
+
+def int_option(spec: Spec, key: str, default: int, low: int = 0, high: int = 2**31) -> int:
+    """An integer option within [low, high]."""
+    if key not in spec.options:
+        return default
+    raw = spec.options[key]
+    try:
+        value = int(raw)
+    except ValueError:
+        raise DeviceSpecError(f"option {key}={raw!r} in {spec.text!r} is not an integer") from None
+    if not low <= value <= high:
+        raise DeviceSpecError(f"option {key}={raw!r} in {spec.text!r} is outside {low}..{high}")
+    return value
