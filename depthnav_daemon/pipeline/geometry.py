@@ -1,0 +1,183 @@
+"""Camera model and sensor mount: rays, rotations into the level frame, depth checks.
+
+Frames (DEVELOPERS.md, pinned by tests/pipeline/test_conventions.py):
+- camera (RDF): x right, y down, z forward; pixel (0, 0) is the centre of the top-left pixel;
+- level frame at the sensor (FLU, REP 103): x forward, y left, z up; the floor is z = -height_m.
+A camera point p maps to the level frame as Ry(tilt) Rx(roll) M p, M: (right, down, forward) ->
+(forward, left, up). Tilt positive = pitched down; roll positive = left side up.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import numpy.typing as npt
+
+from depthnav_daemon.errors import ConfigError, FrameError
+from drivers.base import Intrinsics
+
+F32 = npt.NDArray[np.float32]
+F64 = npt.NDArray[np.float64]
+
+# (right, down, forward) -> (forward, left, up)
+M_CAM_TO_FLU: F64 = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
+M_CAM_TO_FLU.setflags(write=False)
+
+MAX_MOUNT_HEIGHT_M = 10.0
+MAX_TILT_DEG = 89.0
+MAX_ROLL_DEG = 45.0
+
+
+def check_range(name: str, value: float, lo: float, hi: float, unit: str = "") -> float:
+    """Return ``value`` as float, or raise ConfigError naming it and the accepted range."""
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        raise ConfigError(f"{name}={value!r} is not a number (accepted: {lo:g}..{hi:g}{unit})") from None
+    if not (math.isfinite(v) and lo <= v <= hi):
+        raise ConfigError(f"{name}={value!r} is out of range (accepted: {lo:g}..{hi:g}{unit})")
+    return v
+
+
+def check_int(name: str, value: int, lo: int, hi: int) -> int:
+    """Return ``value`` as int, or raise ConfigError naming it and the accepted range."""
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or not lo <= value <= hi:
+        raise ConfigError(f"{name}={value!r} is out of range (accepted: integers {lo}..{hi})")
+    return int(value)
+
+
+@dataclass(frozen=True, slots=True)
+class Mount:
+    """Pose of the depth sensor over the floor.
+
+    Attributes:
+        height_m: height of the optical centre above the floor, metres (0 < h <= 10).
+        tilt_deg: pitch, positive = pitched down toward the floor, degrees (|tilt| <= 89).
+        roll_deg: roll about the optical axis, positive = left side up, degrees (|roll| <= 45).
+    """
+
+    height_m: float = 0.5
+    tilt_deg: float = 0.0
+    roll_deg: float = 0.0
+
+    def __post_init__(self) -> None:
+        check_range("mount height_m", self.height_m, 0.01, MAX_MOUNT_HEIGHT_M, " m")
+        check_range("mount tilt_deg", self.tilt_deg, -MAX_TILT_DEG, MAX_TILT_DEG, " deg")
+        check_range("mount roll_deg", self.roll_deg, -MAX_ROLL_DEG, MAX_ROLL_DEG, " deg")
+
+    @property
+    def tilt_rad(self) -> float:
+        return math.radians(self.tilt_deg)
+
+    @property
+    def roll_rad(self) -> float:
+        return math.radians(self.roll_deg)
+
+
+def rot_x(angle_rad: float) -> F64:
+    """Right-hand rotation about x, (3, 3)."""
+    c, s = math.cos(angle_rad), math.sin(angle_rad)
+    return np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
+
+
+def rot_y(angle_rad: float) -> F64:
+    """Right-hand rotation about y, (3, 3)."""
+    c, s = math.cos(angle_rad), math.sin(angle_rad)
+    return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
+
+
+def cam_to_level(tilt_rad: float, roll_rad: float) -> F64:
+    """Rotation taking camera (RDF) vectors to the level frame (FLU), (3, 3)."""
+    return rot_y(tilt_rad) @ rot_x(roll_rad) @ M_CAM_TO_FLU
+
+
+@functools.lru_cache(maxsize=8)
+def pixel_rays(intr: Intrinsics) -> F64:
+    """Camera rays per unit depth: ((u - cx)/fx, (v - cy)/fy, 1) for every pixel, (H, W, 3), read-only."""
+    u = (np.arange(intr.width, dtype=np.float64) - intr.cx) / intr.fx
+    v = (np.arange(intr.height, dtype=np.float64) - intr.cy) / intr.fy
+    rays = np.empty((intr.height, intr.width, 3))
+    rays[..., 0] = u[None, :]
+    rays[..., 1] = v[:, None]
+    rays[..., 2] = 1.0
+    rays.setflags(write=False)
+    return rays
+
+
+@functools.lru_cache(maxsize=8)
+def level_rays(intr: Intrinsics, tilt_rad: float, roll_rad: float) -> F64:
+    """Level-frame (FLU) displacement per metre of optical-axis depth for every pixel, (H, W, 3).
+
+    A pixel with depth z (metres) sees the point ``z * level_rays[v, u]`` relative to the sensor.
+    """
+    out = pixel_rays(intr) @ cam_to_level(tilt_rad, roll_rad).T
+    out.setflags(write=False)
+    return out
+
+
+def check_depth(depth: np.ndarray, intr: Intrinsics) -> None:
+    """Raise FrameError unless ``depth`` is a (H, W) uint16 (mm) or float32 (m) image of ``intr``."""
+    if not isinstance(depth, np.ndarray):
+        raise FrameError(f"depth must be a numpy array, got {type(depth).__name__}")
+    if depth.dtype not in (np.uint16, np.float32):
+        raise FrameError(
+            f"depth dtype {depth.dtype} is not accepted (accepted: uint16 millimetres or float32 metres)"
+        )
+    if depth.shape != (intr.height, intr.width):
+        raise FrameError(
+            f"depth shape {depth.shape} does not match the intrinsics "
+            f"({intr.height}, {intr.width}) (rows, columns)",
+            hint="give the intrinsics of this image (scale them with Intrinsics.scaled for another resolution)",
+        )
+
+
+def depth_to_mm(depth: np.ndarray, intr: Intrinsics) -> npt.NDArray[np.uint16]:
+    """Checked depth as uint16 millimetres, (H, W); float32 metres are converted, NaN/inf/<=0 -> 0."""
+    check_depth(depth, intr)
+    if depth.dtype == np.uint16:
+        return depth
+    with np.errstate(invalid="ignore"):
+        mm = np.rint(depth * 1000.0)
+        ok = np.isfinite(mm) & (mm > 0) & (mm <= 65535)
+    return np.where(ok, mm, 0).astype(np.uint16)
+
+
+def depth_to_m(depth: np.ndarray, intr: Intrinsics) -> F32:
+    """Checked depth as float32 metres, (H, W), NaN where there is no valid reading."""
+    check_depth(depth, intr)
+    if depth.dtype == np.uint16:
+        out = depth.astype(np.float32) * np.float32(0.001)
+        out[depth == 0] = np.nan
+        return out
+    out = depth.copy()
+    with np.errstate(invalid="ignore"):
+        out[~(np.isfinite(out) & (out > 0))] = np.nan
+    return out
+
+
+def paper_vertical_fov_rad(intr: Intrinsics) -> float:
+    """Vertical field of view as depth_nav_tools computes it: angle(top, centre) + angle(centre, bottom)."""
+    return math.atan(intr.cy / intr.fy) + math.atan((intr.height - 1 - intr.cy) / intr.fy)
+
+
+def paper_row_angles_rad(intr: Intrinsics) -> F64:
+    """Eq. 3: the paper's linear row angle delta_j = theta (j - cy - 1/2) / (n - 1), (H,), radians.
+
+    Positive below the centre row (the ray points further down than the optical axis).
+    """
+    j = np.arange(intr.height, dtype=np.float64)
+    return paper_vertical_fov_rad(intr) * (j - intr.cy - 0.5) / (intr.height - 1)
+
+
+def paper_floor_depth_m(height_m: float, tilt_rad: float, delta_rad: F64) -> F64:
+    """Eqs. 5, 6, 9, 10: optical-axis depth of the floor seen at row angle delta, (H,), metres.
+
+    h sin(pi/2 - delta) / cos(pi/2 - delta - alpha) = h cos(delta) / sin(delta + alpha), with
+    alpha positive = pitched down; +inf where the row's ray does not reach the floor.
+    """
+    s = np.sin(delta_rad + tilt_rad)
+    with np.errstate(divide="ignore"):
+        return np.where(s > 0, height_m * np.cos(delta_rad) / np.where(s > 0, s, 1.0), np.inf)

@@ -1,0 +1,349 @@
+"""Synthetic depth scenes with exact ground truth: floor, boxes, walls, table tops, steps down, holes.
+
+The world frame is the level frame at the sensor's foot: x forward, y left, z up, floor at z = 0,
+sensor optical centre at (0, 0, height_m). A scene is ray-cast for a camera at any height, tilt and
+roll (drivers.base / pipeline.geometry conventions); optional Kinect-like noise comes from a seeded
+``numpy.random.Generator``. Used by the tests, the benchmark and the bundled fixtures.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+import numpy.typing as npt
+
+from depthnav_daemon.pipeline.geometry import Mount, level_rays
+from drivers.base import Intrinsics
+
+F64 = npt.NDArray[np.float64]
+
+LABEL_NONE = 0    # the ray hit nothing within the sensor's range
+LABEL_FLOOR = 1
+LABEL_HOLE = 2    # the bottom or a wall of a hole / the lower floor beyond a step
+LABEL_BOX0 = 3    # box i has label LABEL_BOX0 + i
+
+
+@dataclass(frozen=True, slots=True)
+class Box:
+    """A solid box, axis-aligned up to a yaw about z.
+
+    Attributes:
+        x_m, y_m: centre of the footprint in the world frame, metres.
+        length_m, width_m: footprint size along the box's own x and y (before yaw), metres.
+        top_m: height of the top face above the floor, metres.
+        base_m: height of the bottom face (0 = standing on the floor; > 0 for a table top).
+        yaw_deg: rotation of the footprint about z, degrees, counter-clockwise.
+    """
+
+    x_m: float
+    y_m: float
+    length_m: float
+    width_m: float
+    top_m: float
+    base_m: float = 0.0
+    yaw_deg: float = 0.0
+
+
+@dataclass(frozen=True, slots=True)
+class Hole:
+    """A rectangular region of the floor cut down to ``depth_m`` below it (a step down when large).
+
+    Attributes:
+        x_min_m, x_max_m, y_min_m, y_max_m: footprint in the world frame, metres.
+        depth_m: how far the bottom lies below the floor, metres (> 0).
+    """
+
+    x_min_m: float
+    x_max_m: float
+    y_min_m: float
+    y_max_m: float
+    depth_m: float
+
+
+def wall(distance_m: float, height_m: float = 2.5, thickness_m: float = 0.1, half_width_m: float = 50.0) -> Box:
+    """A wall across the view, its face ``distance_m`` ahead of the sensor."""
+    return Box(distance_m + thickness_m / 2, 0.0, thickness_m, 2 * half_width_m, height_m)
+
+
+def table(x_m: float, y_m: float, length_m: float, width_m: float, top_m: float, thickness_m: float = 0.03) -> Box:
+    """A table top (without legs) whose upper face is ``top_m`` above the floor."""
+    return Box(x_m, y_m, length_m, width_m, top_m, base_m=top_m - thickness_m)
+
+
+def step_down(distance_m: float, drop_m: float, half_width_m: float = 50.0, far_m: float = 100.0) -> Hole:
+    """A step down across the view: beyond ``distance_m`` ahead the floor is ``drop_m`` lower."""
+    return Hole(distance_m, far_m, -half_width_m, half_width_m, drop_m)
+
+
+@dataclass(frozen=True, slots=True)
+class Scene:
+    """What stands on (and is cut into) a flat floor."""
+
+    boxes: tuple[Box, ...] = ()
+    holes: tuple[Hole, ...] = ()
+    floor: bool = True
+
+
+@dataclass(frozen=True, slots=True)
+class KinectNoise:
+    """Kinect-like depth errors, applied in disparity space like the structured-light sensor.
+
+    Depth noise grows with z^2 through a Gaussian disparity error, disparity is quantised to
+    1/``subpixel`` pixel, pixels at depth edges and toward far range go missing.
+    """
+
+    focal_px: float = 580.0
+    baseline_m: float = 0.075
+    disparity_sigma_px: float = 0.07
+    subpixel: int = 8
+    edge_dropout: float = 0.5        # probability that a pixel on a depth discontinuity reads 0
+    edge_jump: float = 0.04          # relative depth jump to a neighbour that counts as an edge
+    far_dropout_start_m: float = 4.0 # dropout rises linearly from here to the sensor's max range
+    random_dropout: float = 0.002
+
+
+@dataclass(frozen=True, slots=True)
+class SyntheticView:
+    """A rendered depth image with its ground truth.
+
+    Attributes:
+        depth_mm: (H, W) uint16 sensor output, millimetres, 0 = no reading (noise applied).
+        depth_true_m: (H, W) float64 exact optical-axis depth of the hit, +inf where nothing is hit.
+        points_m: (H, W, 3) float64 exact hit points in the world frame, NaN where nothing is hit.
+        height_m: (H, W) float64 exact height of the hit above the floor (negative in holes), NaN none.
+        label: (H, W) int16, LABEL_* per pixel.
+    """
+
+    depth_mm: npt.NDArray[np.uint16]
+    depth_true_m: F64
+    points_m: F64
+    height_m: F64
+    label: npt.NDArray[np.int16]
+    intrinsics: Intrinsics
+    mount: Mount
+    scene: Scene = field(repr=False)
+
+
+def _box_local(box: Box, origin: F64, dirs: F64) -> tuple[F64, F64]:
+    """Ray origin and directions in the box's frame (centre of footprint, yaw removed)."""
+    c, s = math.cos(math.radians(box.yaw_deg)), math.sin(math.radians(box.yaw_deg))
+    rot = np.array([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]])  # world -> box
+    o = rot @ (origin - np.array([box.x_m, box.y_m, 0.0]))
+    return o, dirs @ rot.T
+
+
+def _slab(o: F64, d: F64, lo: F64, hi: F64) -> tuple[F64, F64]:
+    """Entry and exit ray parameters of an axis-aligned box, per ray (..., ); entry > exit = miss."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inv = 1.0 / d
+        t1 = (lo - o) * inv
+        t2 = (hi - o) * inv
+    tmin = np.where(np.isnan(t1), -np.inf, np.minimum(t1, t2))
+    tmax = np.where(np.isnan(t2), np.inf, np.maximum(t1, t2))
+    # rays parallel to a slab: inside it -> unbounded, outside -> miss
+    par = d == 0
+    inside = (o >= lo) & (o <= hi)
+    tmin = np.where(par, np.where(inside, -np.inf, np.inf), tmin)
+    tmax = np.where(par, np.where(inside, np.inf, -np.inf), tmax)
+    return tmin.max(axis=-1), tmax.min(axis=-1)
+
+
+def cast(scene: Scene, origin: F64, dirs: F64) -> tuple[F64, npt.NDArray[np.int16]]:
+    """Nearest hit of each ray; (N,) ray parameters (+inf = miss) and (N,) labels.
+
+    Args:
+        scene: what to hit.
+        origin: (3,) ray origin in the world frame.
+        dirs: (N, 3) ray directions (any length; the parameter is in units of that length).
+    """
+    n = dirs.shape[0]
+    t_best = np.full(n, np.inf)
+    label = np.full(n, LABEL_NONE, dtype=np.int16)
+    if scene.floor:
+        dz = dirs[:, 2]
+        down = dz < 0
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t_floor = np.where(down, -origin[2] / np.where(down, dz, -1.0), np.inf)
+        with np.errstate(invalid="ignore"):
+            hit = origin[None, :] + t_floor[:, None] * dirs
+        t_best = t_floor.copy()
+        label[down] = LABEL_FLOOR
+        for hole in scene.holes:
+            inside = (
+                down
+                & (hit[:, 0] >= hole.x_min_m) & (hit[:, 0] <= hole.x_max_m)
+                & (hit[:, 1] >= hole.y_min_m) & (hit[:, 1] <= hole.y_max_m)
+            )
+            lo = np.array([hole.x_min_m, hole.y_min_m, -hole.depth_m])
+            hi = np.array([hole.x_max_m, hole.y_max_m, 0.0])
+            _, t_exit = _slab(origin[None, :], dirs[inside], lo, hi)
+            t_best[inside] = t_exit
+            label[inside] = LABEL_HOLE
+    for i, box in enumerate(scene.boxes):
+        o, d = _box_local(box, origin, dirs)
+        lo = np.array([-box.length_m / 2, -box.width_m / 2, box.base_m])
+        hi = np.array([box.length_m / 2, box.width_m / 2, box.top_m])
+        t_in, t_out = _slab(o[None, :], d, lo, hi)
+        hit = (t_in <= t_out) & (t_in > 0) & (t_in < t_best)
+        t_best[hit] = t_in[hit]
+        label[hit] = LABEL_BOX0 + i
+    return t_best, label
+
+
+def render(
+    scene: Scene,
+    intr: Intrinsics,
+    mount: Mount,
+    noise: KinectNoise | None = None,
+    rng: np.random.Generator | None = None,
+    min_range_m: float = 0.35,
+    max_range_m: float = 8.0,
+) -> SyntheticView:
+    """Ray-cast ``scene`` for a sensor at ``mount``.
+
+    Args:
+        scene: floor, boxes and holes.
+        intr: camera intrinsics (any resolution).
+        mount: sensor height, tilt (positive down) and roll (positive left side up).
+        noise: Kinect-like noise model, or None for exact depth.
+        rng: randomness for the noise; required when ``noise`` is given.
+        min_range_m, max_range_m: the sensor reads 0 outside this optical-axis depth range.
+
+    Returns:
+        The depth image and its ground truth.
+    """
+    dirs = level_rays(intr, mount.tilt_rad, mount.roll_rad).reshape(-1, 3)  # per unit optical depth
+    origin = np.array([0.0, 0.0, mount.height_m])
+    t, label = cast(scene, origin, dirs)
+    shape = (intr.height, intr.width)
+    t = t.reshape(shape)
+    label = label.reshape(shape)
+    with np.errstate(invalid="ignore"):
+        points = origin + t[..., None] * dirs.reshape(*shape, 3)
+    points[~np.isfinite(t)] = np.nan
+    label[~np.isfinite(t)] = LABEL_NONE
+
+    z = t.copy()
+    if noise is not None:
+        if rng is None:
+            raise ValueError("render() with noise needs an rng (numpy.random.Generator)")
+        z = _apply_noise(z, noise, rng, max_range_m)
+    in_range = np.isfinite(z) & (z >= min_range_m) & (z <= max_range_m)
+    depth_mm = np.where(in_range, np.rint(np.where(in_range, z, 0) * 1000.0), 0).astype(np.uint16)
+    label = np.where(np.isfinite(t) & (t <= max_range_m), label, LABEL_NONE).astype(np.int16)
+    return SyntheticView(depth_mm, t, points, points[..., 2].copy(), label, intr, mount, scene)
+
+
+def _apply_noise(z: F64, noise: KinectNoise, rng: np.random.Generator, max_range_m: float) -> F64:
+    """Kinect-like noise on exact depth ``z`` (H, W) metres; dropped pixels become NaN."""
+    fb = noise.focal_px * noise.baseline_m
+    with np.errstate(divide="ignore"):
+        disp = fb / z
+    disp = disp + rng.normal(0.0, noise.disparity_sigma_px, z.shape)
+    disp = np.round(disp * noise.subpixel) / noise.subpixel
+    with np.errstate(divide="ignore", invalid="ignore"):
+        out = np.where(disp > 0, fb / disp, np.nan)
+    out[~np.isfinite(z)] = np.nan
+    # depth discontinuities: compare with the 4-neighbours of the exact image
+    zf = np.where(np.isfinite(z), z, 1e6)
+    jump = np.zeros(z.shape, dtype=bool)
+    rel = noise.edge_jump
+    dv = np.abs(np.diff(zf, axis=0)) > rel * np.minimum(zf[1:], zf[:-1])
+    dh = np.abs(np.diff(zf, axis=1)) > rel * np.minimum(zf[:, 1:], zf[:, :-1])
+    jump[1:] |= dv
+    jump[:-1] |= dv
+    jump[:, 1:] |= dh
+    jump[:, :-1] |= dh
+    drop = jump & (rng.random(z.shape) < noise.edge_dropout)
+    far = np.clip((z - noise.far_dropout_start_m) / max(max_range_m - noise.far_dropout_start_m, 1e-6), 0, 1)
+    drop |= rng.random(z.shape) < np.nan_to_num(far, nan=1.0)
+    drop |= rng.random(z.shape) < noise.random_dropout
+    out[drop] = np.nan
+    return out
+
+
+# --- ground truth in the horizontal plane ---------------------------------------------------------
+
+
+def _ray_rect_2d(bearings: F64, x0: F64, x1: F64, y0: F64, y1: F64, origin: F64, yaw_rad: float) -> F64:
+    """Horizontal distance from ``origin`` (2,) along each bearing (N,) to a rectangle; +inf = miss."""
+    c, s = math.cos(yaw_rad), math.sin(yaw_rad)
+    d = np.stack([np.cos(bearings), np.sin(bearings)], axis=-1)
+    rot = np.array([[c, s], [-s, c]])
+    d = d @ rot.T
+    o = rot @ origin
+    t_in, t_out = _slab(o[None, :], d, np.array([x0, y0]), np.array([x1, y1]))
+    return np.where((t_in <= t_out) & (t_out >= 0), np.maximum(t_in, 0.0), np.inf)
+
+
+def truth_obstacle_ranges(
+    scene: Scene, bearings_rad: F64, min_height_m: float, max_height_m: float
+) -> F64:
+    """True horizontal range to the nearest box side per bearing, (N,) metres, +inf where none.
+
+    Only boxes whose vertical extent overlaps [min_height_m, max_height_m] count; bearings are
+    counter-clockwise from forward, measured at the sensor's foot.
+    """
+    best = np.full(np.shape(bearings_rad), np.inf)
+    for box in scene.boxes:
+        if box.top_m < min_height_m or box.base_m > max_height_m:
+            continue
+        origin = -np.array([box.x_m, box.y_m])
+        r = _ray_rect_2d(
+            np.asarray(bearings_rad, dtype=np.float64),
+            -box.length_m / 2, box.length_m / 2, -box.width_m / 2, box.width_m / 2,
+            origin, math.radians(box.yaw_deg),
+        )
+        best = np.minimum(best, r)
+    return best
+
+
+def truth_drop_ranges(scene: Scene, bearings_rad: F64) -> F64:
+    """True horizontal range to the nearest drop-off (hole or step edge) per bearing, (N,), +inf none."""
+    best = np.full(np.shape(bearings_rad), np.inf)
+    for hole in scene.holes:
+        r = _ray_rect_2d(
+            np.asarray(bearings_rad, dtype=np.float64),
+            hole.x_min_m, hole.x_max_m, hole.y_min_m, hole.y_max_m, np.zeros(2), 0.0,
+        )
+        best = np.minimum(best, r)
+    return best
+
+
+def in_drop_off(scene: Scene, x_m: F64, y_m: F64, margin_m: float = 0.0) -> npt.NDArray[np.bool_]:
+    """True where the floor location (x, y) lies within ``margin_m`` of a hole's footprint."""
+    x = np.asarray(x_m)
+    y = np.asarray(y_m)
+    out = np.zeros(np.broadcast(x, y).shape, dtype=bool)
+    for h in scene.holes:
+        out |= (
+            (x >= h.x_min_m - margin_m) & (x <= h.x_max_m + margin_m)
+            & (y >= h.y_min_m - margin_m) & (y <= h.y_max_m + margin_m)
+        )
+    return out
+
+
+def truth_obstacle_interval(
+    scene: Scene,
+    bearings_rad: F64,
+    half_width_rad: float,
+    min_height_m: float,
+    max_height_m: float,
+    samples: int = 17,
+) -> tuple[F64, F64]:
+    """Lowest and highest true obstacle range over [b - half_width, b + half_width] per bearing b.
+
+    A scan bin collects every pixel whose footprint overlaps it, so its honest truth is an interval:
+    on a face seen at a grazing angle the range changes by centimetres within one bin.
+
+    Returns:
+        (lo, hi), each (N,) metres; lo is +inf where no obstacle lies in the interval, hi is +inf
+        where the obstacle does not cover the whole interval.
+    """
+    b = np.asarray(bearings_rad, dtype=np.float64)
+    offsets = np.linspace(-half_width_rad, half_width_rad, samples)
+    r = truth_obstacle_ranges(scene, (b[:, None] + offsets[None, :]).ravel(), min_height_m, max_height_m)
+    r = r.reshape(b.size, samples)
+    return r.min(axis=1), r.max(axis=1)
