@@ -1,0 +1,175 @@
+"""The OpenNI ``.oni`` container: a small uncompressed writer and a structural checker.
+
+Layout (OpenNI2 Source/Core/OniDataRecords.cpp, all little-endian, packed): a 24-byte header
+``NI10``, version 1.0.1.0, max timestamp u64, max node id u32; then records, each a 28-byte
+header (magic ``NIR\\0``, type, node id, fieldsSize incl. the header, payloadSize, undo position
+u64) followed by its fields and payload. The writer emits one depth node with the ``NONE`` codec,
+which libOniFile plays back bit-exact; the checker walks the records so a truncated or foreign
+file fails with a message instead of reaching the native player.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import struct
+from collections.abc import Iterable
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from drivers.base import Frame
+from drivers.errors import RecordingError
+
+MAGIC_FILE = b"NI10"
+MAGIC_RECORD = 0x0052494E
+FILE_HEADER = struct.Struct("<4sBBHIQI")  # magic, version 1.0.1.0 (u8 u8 u16 u32), max ts, max node id
+RECORD_HEADER = struct.Struct("<IIIIIQ")
+
+INT_PROPERTY, REAL_PROPERTY, GENERAL_PROPERTY = 0x03, 0x04, 0x06
+NODE_REMOVED, NODE_DATA_BEGIN, NODE_STATE_READY = 0x07, 0x08, 0x09
+NEW_DATA, SEEK_TABLE, END, NODE_ADDED = 0x0A, 0x0E, 0x0B, 0x0D
+KNOWN_TYPES = {0x02, INT_PROPERTY, REAL_PROPERTY, 0x05, GENERAL_PROPERTY, NODE_REMOVED,
+               NODE_DATA_BEGIN, NODE_STATE_READY, NEW_DATA, END, 0x0C, NODE_ADDED, SEEK_TABLE}
+NODE_TYPE_DEPTH = 2
+PIXEL_FORMAT_DEPTH_1_MM = 100
+XN_PIXEL_FORMAT_GRAYSCALE_16 = 4
+
+
+def _string(text: str) -> bytes:
+    data = text.encode("ascii") + b"\0"
+    return struct.pack("<I", len(data)) + data
+
+
+class _Writer:
+    def __init__(self, fh) -> None:  # noqa: ANN001 - a binary file object
+        self.fh = fh
+
+    def record(self, rtype: int, fields: bytes = b"", payload: bytes = b"", undo: int = 0, node: int = 1) -> int:
+        pos = self.fh.tell()
+        self.fh.write(RECORD_HEADER.pack(MAGIC_RECORD, rtype, node, RECORD_HEADER.size + len(fields),
+                                         len(payload), undo))
+        self.fh.write(fields)
+        self.fh.write(payload)
+        return pos
+
+    def prop(self, rtype: int, name: str, data: bytes) -> None:
+        self.record(rtype, _string(name) + struct.pack("<I", len(data)) + data)
+
+
+def _node_added(n_frames: int, max_ts: int, seek_pos: int) -> bytes:
+    return _string("Depth") + struct.pack("<I4sIQQQ", NODE_TYPE_DEPTH, b"NONE", n_frames, 0, max_ts, seek_pos)
+
+
+def write_oni(path: str | os.PathLike[str], frames: Iterable[Frame], fps: int = 30) -> int:
+    """Write depth frames to an uncompressed ``.oni`` file (DEPTH_1_MM).
+
+    The field of view is derived from the first frame's fx, fy; OpenNI has no principal point, so
+    playback recovers intrinsics with the principal point at the image centre.
+
+    Returns:
+        The number of frames written.
+    """
+    items = list(frames)
+    if not items:
+        raise RecordingError(f"{path}: no frames to write")
+    intr = items[0].intrinsics
+    hfov = 2.0 * math.atan(intr.width / (2.0 * intr.fx))
+    vfov = 2.0 * math.atan(intr.height / (2.0 * intr.fy))
+    t0 = items[0].timestamp_s
+    stamps = [max(0, round((f.timestamp_s - t0) * 1e6)) for f in items]
+    with open(path, "wb") as fh:
+        w = _Writer(fh)
+        fh.write(FILE_HEADER.pack(MAGIC_FILE, 1, 0, 1, 0, stamps[-1], 1))
+        added = w.record(NODE_ADDED, _node_added(len(items), stamps[-1], 0))
+        w.prop(INT_PROPERTY, "oniRequiredFrameSize", struct.pack("<Q", intr.width * intr.height * 2))
+        w.prop(INT_PROPERTY, "xnIsGenerating", struct.pack("<Q", 1))
+        w.prop(INT_PROPERTY, "xnDeviceMaxDepth", struct.pack("<Q", 65535))
+        w.prop(GENERAL_PROPERTY, "xnMapOutputMode", struct.pack("<III", intr.width, intr.height, fps))
+        w.prop(INT_PROPERTY, "xnPixelFormat", struct.pack("<Q", XN_PIXEL_FORMAT_GRAYSCALE_16))
+        w.prop(INT_PROPERTY, "oniPixelFormat", struct.pack("<Q", PIXEL_FORMAT_DEPTH_1_MM))
+        w.prop(GENERAL_PROPERTY, "xnFOV", struct.pack("<dd", hfov, vfov))
+        # libOniFile silently drops every frame of a stream without a cropping record.
+        w.prop(GENERAL_PROPERTY, "xnCropping", struct.pack("<iHHHH", 0, 0, 0, 0, 0))
+        w.prop(INT_PROPERTY, "xnMirror", struct.pack("<Q", 0))
+        w.record(NODE_STATE_READY)
+        w.record(NODE_DATA_BEGIN, struct.pack("<IQ", len(items), stamps[-1]))
+        seek: list[tuple[int, int]] = []
+        last = 0
+        for number, (frame, ts) in enumerate(zip(items, stamps, strict=True), 1):
+            if frame.intrinsics.width != intr.width or frame.intrinsics.height != intr.height:
+                raise RecordingError(f"{path}: frame {frame.seq} changes the image size")
+            payload = np.ascontiguousarray(frame.depth_mm, dtype="<u2").tobytes()
+            last = w.record(NEW_DATA, struct.pack("<QI", ts, number), payload, undo=last)
+            seek.append((ts, last))
+        w.record(NODE_REMOVED, undo=added)
+        seek_pos = w.record(SEEK_TABLE, payload=b"\0" * 20 + b"".join(
+            struct.pack("<QIQ", ts, 0, pos) for ts, pos in seek))
+        w.record(END, node=0)
+        fh.seek(added + RECORD_HEADER.size)
+        fh.write(_node_added(len(items), stamps[-1], seek_pos))
+    return len(items)
+
+
+@dataclass(frozen=True, slots=True)
+class OniSummary:
+    """What :func:`check_oni` found."""
+
+    depth_nodes: int
+    frames: int
+    has_end: bool
+
+
+def check_oni(path: Path) -> OniSummary:
+    """Walk the records of an ``.oni`` file without decoding frames.
+
+    Raises:
+        RecordingError: not an .oni file, a broken or truncated record, or no depth frames.
+    """
+    try:
+        size = path.stat().st_size
+        fh = open(path, "rb")
+    except FileNotFoundError:
+        raise RecordingError(f"{path}: no such file", hint="check the path") from None
+    except OSError as exc:
+        raise RecordingError(f"{path}: cannot read it ({exc.strerror})") from None
+    with fh:
+        head = fh.read(FILE_HEADER.size)
+        if len(head) < FILE_HEADER.size or not head.startswith(MAGIC_FILE):
+            raise RecordingError(f"{path}: not an .oni file (no NI10 header)")
+        version = struct.unpack_from("<BBHI", head, 4)
+        if version < (1, 0, 1, 0):
+            raise RecordingError(f"{path}: .oni version {'.'.join(map(str, version))} is too old; "
+                                 "OpenNI2 reads 1.0.1.0 and later")
+        pos, depth_nodes, frames, has_end = FILE_HEADER.size, 0, 0, False
+        while pos + RECORD_HEADER.size <= size:
+            fh.seek(pos)
+            magic, rtype, _, fields, payload, _ = RECORD_HEADER.unpack(fh.read(RECORD_HEADER.size))
+            if magic != MAGIC_RECORD:
+                if magic == 0 and has_end:
+                    break  # the OpenNI recorder leaves zero padding after END
+                raise RecordingError(f"{path}: corrupt record at byte {pos} (bad magic {magic:#x})")
+            if rtype not in KNOWN_TYPES or fields < RECORD_HEADER.size:
+                raise RecordingError(f"{path}: corrupt record at byte {pos} (type {rtype:#x})")
+            if pos + fields + payload > size:
+                raise RecordingError(
+                    f"{path}: truncated: record at byte {pos} needs {fields + payload} bytes, "
+                    f"the file ends at {size}", hint="the recording was cut short; re-record it")
+            if rtype == NODE_ADDED:
+                fh.seek(pos + RECORD_HEADER.size)
+                (name_len,) = struct.unpack("<I", fh.read(4))
+                fh.seek(pos + RECORD_HEADER.size + 4 + name_len)
+                if struct.unpack("<I", fh.read(4))[0] == NODE_TYPE_DEPTH:
+                    depth_nodes += 1
+            elif rtype == NEW_DATA:
+                frames += 1
+            elif rtype == END:
+                has_end = True
+                break
+            pos += fields + payload
+        if not has_end and pos != size:
+            raise RecordingError(f"{path}: truncated inside a record header at byte {pos}")
+    if depth_nodes == 0:
+        raise RecordingError(f"{path}: has no depth stream")
+    return OniSummary(depth_nodes, frames, has_end)

@@ -1,0 +1,320 @@
+"""OpenNI2 depth: live devices (Xtion, Carmine, any PS1080/PSLink sensor) and ``.oni`` playback.
+
+Spec: ``openni://[URI][?mode=WxH@FPS]`` for a live device (first device when URI is empty;
+``openni://Dummy`` is OpenNI's built-in test device), or ``openni:FILE.oni[?rate=realtime|max&loop=0|1]``
+for a recording. ``rate=max`` (default for files) plays every frame in order as fast as it is read.
+
+Uses PyPI ``openni`` over the system libOpenNI2 (Debian: ``apt-get install libopenni2-0``), found
+without user setup: a private folder of two symlinks is built next to the system library, because
+``openni2.initialize()`` wants ``libOpenNI2.so`` and the library looks for drivers relative to
+itself. ``DEPTHNAV_OPENNI2_REDIST`` may name another folder holding ``libOpenNI2.so`` and
+``OpenNI2/Drivers``. Known traps avoided: ``PlaybackSupport.seek`` hangs this build (never called;
+looping uses the player's repeat), the Dummy device crashes if a stream is destroyed within 33 ms of
+``stop()`` (we wait), and frame buffers are reused after ``close()`` (we copy).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+import tempfile
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from drivers.base import DeviceInfo, Frame, Intrinsics
+from drivers.errors import (DeviceLost, DeviceOpenError, DriverError, DriverNotAvailable, FrameTimeout,
+                            OpenFailure, RecordingError)
+from drivers.oni_format import check_oni
+from drivers.spec import Spec, bool_option, check_options, choice_option
+
+log = logging.getLogger(__name__)
+
+GRAMMAR = "openni://[URI][?mode=WxH@FPS] or openni:FILE.oni[?rate=realtime|max&loop=0|1]"
+LIVE_OPTIONS = ("mode",)
+FILE_OPTIONS = ("rate", "loop")
+LIB_NAME = "libOpenNI2.so.0"
+LIB_DIRS = ("/usr/lib/x86_64-linux-gnu", "/usr/lib/aarch64-linux-gnu", "/usr/lib/arm-linux-gnueabihf",
+            "/usr/lib", "/usr/local/lib")
+# PrimeSense PS1080 nominal field of view, used when a device does not report one (Dummy).
+DEFAULT_HFOV_DEG, DEFAULT_VFOV_DEG = 58.0, 45.0
+STOP_SETTLE_S = 0.1  # > 33 ms: DummyDevice's stream thread outlives stop() by one frame period
+
+_init_lock = threading.Lock()
+_initialized_from: str | None = None
+
+
+def find_library() -> tuple[Path, Path] | None:
+    """(libOpenNI2 path, its OpenNI2 folder with Drivers/), or None if not installed."""
+    redist = os.environ.get("DEPTHNAV_OPENNI2_REDIST")
+    if redist:
+        lib = Path(redist) / "libOpenNI2.so"
+        return (lib, Path(redist) / "OpenNI2") if lib.exists() else None
+    for folder in LIB_DIRS:
+        lib = Path(folder) / LIB_NAME
+        if lib.exists() and (Path(folder) / "OpenNI2" / "Drivers").is_dir():
+            return lib, Path(folder) / "OpenNI2"
+    return None
+
+
+def _private_dir(lib: Path, drivers_dir: Path) -> str:
+    """A folder where ``libOpenNI2.so`` and ``OpenNI2`` point at the system copies."""
+    folder = Path(tempfile.gettempdir()) / f"depthnav-openni2-{os.getuid()}"
+    folder.mkdir(mode=0o700, exist_ok=True)
+    for name, target in (("libOpenNI2.so", lib), ("OpenNI2", drivers_dir)):
+        link = folder / name
+        if link.is_symlink() and os.readlink(link) == str(target):
+            continue
+        tmp = folder / f".{name}.{os.getpid()}"
+        tmp.unlink(missing_ok=True)
+        os.symlink(target, tmp)
+        os.replace(tmp, link)  # atomic, so two processes starting at once both succeed
+    return str(folder)
+
+
+def initialize() -> Any:
+    """Load libOpenNI2 once per process and return the ``openni2`` module.
+
+    Raises:
+        DriverNotAvailable: the library or the ``openni`` package is missing or fails to load.
+    """
+    global _initialized_from
+    try:
+        from openni import openni2
+    except ImportError as exc:
+        raise DriverNotAvailable("the Python package 'openni' is not installed",
+                                 hint="pip install openni") from exc
+    with _init_lock:
+        if _initialized_from is not None:
+            return openni2
+        found = find_library()
+        if found is None:
+            raise DriverNotAvailable(
+                f"libOpenNI2 not found (looked for {LIB_NAME} in {', '.join(LIB_DIRS)})",
+                hint="apt-get install libopenni2-0, or set DEPTHNAV_OPENNI2_REDIST to an OpenNI2 Redist folder",
+            )
+        lib, drivers_dir = found
+        folder = str(lib.parent) if os.environ.get("DEPTHNAV_OPENNI2_REDIST") else _private_dir(lib, drivers_dir)
+        try:
+            openni2.initialize(folder)  # note: chdir()s while loading; done once, under the lock
+        except Exception as exc:
+            raise DriverNotAvailable(f"libOpenNI2 at {lib} failed to initialise: {exc}",
+                                     hint="reinstall libopenni2-0") from exc
+        _initialized_from = str(lib)
+        log.debug("OpenNI2 initialised from %s", lib)
+    return openni2
+
+
+def _message(exc: Exception) -> str:
+    """The text of an ``OpenNIError`` (args: code, message bytes, logfile)."""
+    args = getattr(exc, "args", ())
+    text = args[1] if len(args) > 1 else exc
+    return text.decode(errors="replace") if isinstance(text, bytes) else str(text)
+
+
+def _parse_mode(spec: Spec) -> tuple[int, int, int] | None:
+    text = spec.options.get("mode")
+    if text is None:
+        return None
+    try:
+        size, _, fps = text.partition("@")
+        width, _, height = size.lower().partition("x")
+        return int(width), int(height), int(fps or 30)
+    except ValueError:
+        from drivers.errors import DeviceSpecError
+
+        raise DeviceSpecError(f"mode={text!r} in {spec.text!r} is not WxH@FPS, e.g. 640x480@30") from None
+
+
+class OpenNIDriver:
+    """OpenNI2 depth stream from a live device or an ``.oni`` file."""
+
+    def __init__(self, uri: str | None = None, *, file: Path | None = None, mode: tuple[int, int, int] | None = None,
+                 realtime: bool = False, loop: bool = False, spec_text: str = "") -> None:
+        self.uri = uri
+        self.file = file
+        self.mode = mode
+        self.realtime = realtime
+        self.loop = loop
+        self.spec_text = spec_text or (f"openni:{file}" if file else f"openni://{uri or ''}")
+        self._dev: Any = None
+        self._stream: Any = None
+        self._openni2: Any = None
+        self._intrinsics: Intrinsics | None = None
+        self._n_frames = 0
+        self._read = 0
+        self._seq = 0
+        self._t_offset_s = 0.0
+        self._last_raw_t_s = -1.0
+
+    @classmethod
+    def from_spec(cls, spec: Spec) -> OpenNIDriver:
+        """Build from ``openni://...`` or ``openni:FILE.oni``."""
+        if spec.target.lower().endswith(".oni"):
+            check_options(spec, FILE_OPTIONS, GRAMMAR)
+            return cls.for_file(Path(spec.target),
+                                realtime=choice_option(spec, "rate", ("realtime", "max"), "max") == "realtime",
+                                loop=bool_option(spec, "loop", False), spec_text=spec.text)
+        check_options(spec, LIVE_OPTIONS, GRAMMAR)
+        return cls(spec.target or None, mode=_parse_mode(spec), spec_text=spec.text)
+
+    @classmethod
+    def for_file(cls, path: Path, *, realtime: bool = False, loop: bool = False, spec_text: str = "") -> OpenNIDriver:
+        """A driver playing an ``.oni`` file."""
+        return cls(None, file=Path(path), realtime=realtime, loop=loop, spec_text=spec_text)
+
+    @staticmethod
+    def detect() -> list[tuple[str, str]]:
+        """Attached OpenNI2 devices as (spec, description)."""
+        openni2 = initialize()
+        return [(f"openni://{info.uri.decode()}", f"{info.vendor.decode()} {info.name.decode()}")
+                for info in openni2.Device.enumerate_devices() if info.uri]
+
+    @staticmethod
+    def backend_status() -> list[tuple[str, str]]:
+        """Where libOpenNI2 is, or what is missing."""
+        found = find_library()
+        if found is None:
+            return [("openni", f"missing: {LIB_NAME} (apt-get install libopenni2-0)")]
+        drivers = sorted(p.name for p in (found[1] / "Drivers").glob("lib*.so*"))
+        return [("openni", f"libOpenNI2 found at {found[0]} (drivers: {', '.join(drivers) or 'none'})")]
+
+    def _open_device(self, openni2: Any) -> Any:
+        from openni.utils import OpenNIError
+
+        try:
+            if self.file is not None:
+                summary = check_oni(self.file)
+                self._n_frames = summary.frames
+                return openni2.Device.open_file(str(self.file).encode())
+            if self.uri:
+                return openni2.Device.open_any() if self.uri == "" else openni2.Device(self.uri.encode())
+            return openni2.Device.open_any()
+        except OpenNIError as exc:
+            if self.file is not None:
+                raise RecordingError(f"{self.file}: OpenNI2 cannot play it ({_message(exc)})") from exc
+            what = f"OpenNI2 device {self.uri!r}" if self.uri else "an OpenNI2 device"
+            raise DeviceOpenError(f"could not open {what}: {_message(exc)}",
+                                  hint="plugged in? udev rules (libopenni2-0)? run `depthnav devices`",
+                                  reason=OpenFailure.NOT_FOUND) from exc
+
+    def open(self) -> DeviceInfo:
+        """Open the device or file and start the depth stream."""
+        if self._dev is not None:
+            raise DriverError(f"{self.spec_text} is already open")
+        openni2 = self._openni2 = initialize()
+        from openni.utils import OpenNIError
+
+        self._dev = self._open_device(openni2)
+        try:
+            if self._dev.playback is not None:
+                self._dev.playback.set_repeat_enabled(self.loop)
+                self._dev.playback.set_speed(1.0 if self.realtime else -1.0)  # -1: manual, every frame
+            self._stream = self._dev.create_depth_stream()
+            if self._stream is None:
+                raise DeviceOpenError(f"{self.spec_text}: no depth stream", reason=OpenFailure.UNSUPPORTED)
+            if self.mode is not None:
+                self._set_mode(openni2)
+            vm = self._stream.get_video_mode()
+            self._intrinsics = self._intrinsics_for(vm.resolutionX, vm.resolutionY)
+            self._stream.start()
+            info = self._dev.get_device_info()
+        except OpenNIError as exc:
+            self.close()
+            raise DeviceOpenError(f"{self.spec_text}: starting the depth stream failed: {_message(exc)}") from exc
+        except BaseException:
+            self.close()
+            raise
+        name = f"OpenNI file {self.file.name}" if self.file else f"{info.vendor.decode()} {info.name.decode()}".strip()
+        return DeviceInfo(name=name, serial=None, spec=self.spec_text, intrinsics=self._intrinsics)
+
+    def _set_mode(self, openni2: Any) -> None:
+        assert self.mode is not None
+        width, height, fps = self.mode
+        for vm in self._stream.get_sensor_info().videoModes:
+            if (vm.resolutionX, vm.resolutionY, vm.fps) == (width, height, fps) and vm.pixelFormat in (
+                    openni2.PIXEL_FORMAT_DEPTH_1_MM, openni2.PIXEL_FORMAT_DEPTH_100_UM):
+                self._stream.set_video_mode(vm)
+                return
+        modes = sorted({f"{vm.resolutionX}x{vm.resolutionY}@{vm.fps}"
+                        for vm in self._stream.get_sensor_info().videoModes})
+        raise DeviceOpenError(f"{self.spec_text}: mode {width}x{height}@{fps} not supported",
+                              hint=f"supported: {', '.join(modes)}", reason=OpenFailure.UNSUPPORTED)
+
+    def _intrinsics_for(self, width: int, height: int) -> Intrinsics:
+        try:
+            hfov, vfov = self._stream.get_horizontal_fov(), self._stream.get_vertical_fov()
+        except Exception:  # noqa: BLE001 - Dummy and some drivers lack the FOV property
+            log.info("%s reports no field of view; assuming %.0f x %.0f deg", self.spec_text,
+                     DEFAULT_HFOV_DEG, DEFAULT_VFOV_DEG)
+            return Intrinsics.from_fov(width, height, DEFAULT_HFOV_DEG, DEFAULT_VFOV_DEG)
+        return Intrinsics.from_fov(width, height, math.degrees(hfov), math.degrees(vfov))
+
+    def read_frame(self, timeout_s: float = 1.0) -> Frame | None:
+        """The next depth frame; None at the end of a non-looping file."""
+        if self._stream is None or self._intrinsics is None:
+            raise DriverError(f"{self.spec_text} is not open", hint="call open() first")
+        from openni.utils import OpenNIError
+
+        if self.file is not None and not self.loop and self._read >= self._n_frames:
+            return None  # saves waiting out a timeout at the end of the file
+        try:
+            ready = self._openni2.wait_for_any_stream([self._stream], timeout=max(timeout_s, 0.001))
+            if not ready:
+                if self.file is not None and not self.loop:
+                    return None
+                raise FrameTimeout(f"{self.spec_text}: no frame within {timeout_s:g} s",
+                                   hint="is the sensor covered or the USB bus overloaded?")
+            raw = self._stream.read_frame()
+            try:
+                depth, t_s = self._copy(raw)
+            finally:
+                raw.close()
+        except OpenNIError as exc:
+            raise DeviceLost(f"{self.spec_text}: depth stream failed: {_message(exc)}",
+                             hint="check the cable; run `depthnav devices`") from exc
+        self._read += 1
+        if t_s < self._last_raw_t_s:  # the file looped: keep time increasing
+            self._t_offset_s += self._last_raw_t_s - t_s + 1.0 / 30.0
+        self._last_raw_t_s = t_s
+        frame = Frame(seq=self._seq, timestamp_s=t_s + self._t_offset_s, depth_mm=depth,
+                      intrinsics=self._intrinsics)
+        self._seq += 1
+        return frame
+
+    def _copy(self, raw: Any) -> tuple[np.ndarray, float]:
+        intr = self._intrinsics
+        assert intr is not None
+        if (raw.width, raw.height) != (intr.width, intr.height):
+            raise DeviceLost(f"{self.spec_text}: frame is {raw.width}x{raw.height}, "
+                             f"stream was {intr.width}x{intr.height} (cropping or mode change)")
+        buf = np.frombuffer(raw.get_buffer_as_uint16(), dtype=np.uint16)
+        rows = buf[: raw.height * (raw.stride // 2)].reshape(raw.height, raw.stride // 2)
+        depth = np.array(rows[:, : raw.width], dtype=np.uint16)  # copy: the buffer is reused
+        if raw.videoMode.pixelFormat == self._openni2.PIXEL_FORMAT_DEPTH_100_UM:
+            depth = ((depth.astype(np.uint32) + 5) // 10).astype(np.uint16)
+        elif raw.videoMode.pixelFormat != self._openni2.PIXEL_FORMAT_DEPTH_1_MM:
+            raise DeviceLost(f"{self.spec_text}: pixel format {raw.videoMode.pixelFormat} is not depth")
+        return depth, raw.timestamp / 1e6
+
+    def close(self) -> None:
+        """Stop and release the stream and device. Safe to call twice."""
+        stream, dev = self._stream, self._dev
+        self._stream = self._dev = None
+        if stream is not None:
+            try:
+                stream.stop()
+                if self.file is None:
+                    time.sleep(STOP_SETTLE_S)
+                stream.close()
+            except Exception:  # noqa: BLE001 - closing must not raise
+                log.debug("closing OpenNI2 stream failed", exc_info=True)
+        if dev is not None:
+            try:
+                dev.close()
+            except Exception:  # noqa: BLE001
+                log.debug("closing OpenNI2 device failed", exc_info=True)
