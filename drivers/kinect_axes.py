@@ -24,7 +24,7 @@ def accel_counts_to_camera(x: int, y: int, z: int) -> tuple[float, float, float]
     """Raw accelerometer counts (device axes) to specific force in the camera frame, m/s^2."""
     scale = STANDARD_GRAVITY_MPS2 / COUNTS_PER_G
     sx, sy, sz = AXIS_SIGNS
-    return (sx * x * scale, sy * y * scale, sz * z * scale)
+    return (sx * x * scale + 0.0, sy * y * scale + 0.0, sz * z * scale + 0.0)  # + 0.0: no -0.0
 
 
 def camera_to_accel_counts(accel_mps2: tuple[float, float, float]) -> tuple[int, int, int]:
