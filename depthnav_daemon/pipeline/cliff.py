@@ -1,0 +1,318 @@
+"""Negative obstacles (steps down, holes): the paper's eq. 6-8 with an exact per-pixel floor depth.
+
+A *drop-off sample* is a pixel that sees farther than the floor should be: its ray goes below the
+floor plane. Samples are taken on a grid (``row_step`` x ``col_step``) inside square blocks of
+``block_size`` pixels over the bottom ``used_depth_height`` rows (eq. 7); a block with at least
+``block_points_thresh`` samples is a negative obstacle (eq. 8).
+
+``exact`` (the default, the fix): a sample counts when its reading lies more than ``ground_margin_m``
+*below the floor plane*, with tilt AND roll, from ``level_rays``: the floor depth of a pixel is
+``h / -kz`` (kz = level-frame z per metre of optical depth), so the test is
+``depth > (h + margin) / -kz``. A vertical margin keeps Kinect quantisation (centimetres of depth
+at 4 m, but millimetres of height along a grazing ray) from faking drops. Only pixels whose ray
+meets the floor within [range_min_m, range_max_m] of horizontal range are used; rays at or above
+the horizon never count.
+
+``paper``: eq. 6 as published: per-row floor depth with the linear row angle (eq. 3), no roll,
+margin in optical depth, ``range_min_m < depth < range_max_m`` (ROS 1 cliff_detector).
+
+With either method a 0/NaN reading never counts, every detected block is reported once at the point
+where the ray through its centre meets the floor plane (tilt and roll included: that is where the
+drop begins or the hole is), and the cliff scan holds, per bearing of the given scan layout, the
+nearest horizontal range of the floor point of a drop-off sample inside a detected block (REP 117:
++inf = valid readings but no drop-off, NaN = no valid reading).
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import numpy.typing as npt
+
+from depthnav_daemon.errors import ConfigError
+from depthnav_daemon.pipeline.geometry import (
+    F32,
+    F64,
+    Mount,
+    cam_to_level,
+    check_int,
+    check_range,
+    depth_to_mm,
+    paper_floor_depth_m,
+    paper_row_angles_rad,
+)
+from depthnav_daemon.pipeline.scan import LaserScan
+from drivers.base import Intrinsics
+
+METHODS = ("exact", "paper")
+MAX_SPAN_BINS = 64  # a sample looking almost straight down covers many bearings; cap its footprint
+NEVER_MM = 65535    # a lower bound no uint16 reading exceeds: the sample never counts
+
+
+@dataclass(frozen=True, slots=True)
+class CliffParams:
+    """Cliff detector parameters; defaults are cliff_detector's shipped params.yaml values.
+
+    Attributes:
+        method: "exact" (per-pixel floor with tilt and roll, the default) or "paper" (eq. 6).
+        range_min_m, range_max_m: exact: horizontal range of the pixel's floor point, metres;
+            paper: optical depth of the reading, metres (as the original).
+        used_depth_height: rows used, counted from the image bottom (clamped to the image height).
+        block_size: side of the square blocks, pixels.
+        block_points_thresh: drop-off samples a block needs to be a negative obstacle (eq. 8).
+        row_step, col_step: sample strides inside a block, pixels.
+        ground_margin_m: e_g; exact: metres below the floor plane; paper: metres of optical depth.
+    """
+
+    method: str = "exact"
+    range_min_m: float = 0.5
+    range_max_m: float = 5.0
+    used_depth_height: int = 400
+    block_size: int = 16
+    block_points_thresh: int = 3
+    row_step: int = 8
+    col_step: int = 8
+    ground_margin_m: float = 0.05
+
+    def __post_init__(self) -> None:
+        if self.method not in METHODS:
+            raise ConfigError(f"cliff.method={self.method!r} is not known (accepted: {', '.join(METHODS)})")
+        check_range("cliff.range_min_m", self.range_min_m, 0.0, 100.0, " m")
+        check_range("cliff.range_max_m", self.range_max_m, 0.01, 100.0, " m")
+        if self.range_min_m >= self.range_max_m:
+            raise ConfigError(
+                f"cliff.range_min_m ({self.range_min_m}) must be below cliff.range_max_m ({self.range_max_m})"
+            )
+        check_int("cliff.used_depth_height", self.used_depth_height, 1, 8192)
+        check_int("cliff.block_size", self.block_size, 1, 256)
+        check_int("cliff.row_step", self.row_step, 1, self.block_size)
+        check_int("cliff.col_step", self.col_step, 1, self.block_size)
+        check_int("cliff.block_points_thresh", self.block_points_thresh, 1, self.samples_per_block)
+        check_range("cliff.ground_margin_m", self.ground_margin_m, 0.0, 10.0, " m")
+
+    @property
+    def samples_per_block(self) -> int:
+        """Samples one block holds: ceil(bs / row_step) * ceil(bs / col_step)."""
+        return -(-self.block_size // self.row_step) * -(-self.block_size // self.col_step)
+
+
+@dataclass(frozen=True, slots=True)
+class CliffResult:
+    """Drop-offs found in one frame.
+
+    Attributes:
+        points_m: (K, 2) float32 floor points (x forward, y left), metres, in the level frame at the
+            sensor's foot: where each detected block's centre ray meets the floor.
+        blocks: (K, 2) int64 (row, col) of each detected block's top-left pixel (for drawing).
+        block_size: block side in pixels (for drawing).
+        scan: nearest drop-off per bearing, in the layout the caller asked for (REP 117).
+    """
+
+    points_m: F32
+    blocks: npt.NDArray[np.int64]
+    block_size: int
+    scan: LaserScan
+
+
+@dataclass(frozen=True, slots=True)
+class _CliffTable:
+    """Sample grid and thresholds for one (intrinsics, mount, params, layout); read-only arrays."""
+
+    rows: npt.NDArray[np.intp]       # (nbr * nj,) image row of every sample row, bottom block first
+    cols: npt.NDArray[np.intp]       # (nbc * ni,) image column of every sample column
+    shape4: tuple[int, int, int, int]  # (nbr, nj, nbc, ni)
+    lo_mm: npt.NDArray[np.uint16]    # (nbr * nj, nbc * ni) sample counts iff lo < d < hi
+    hi_mm: npt.NDArray[np.uint16]
+    range_m: F32                     # (nbr * nj, nbc * ni) horizontal range of the floor point, +inf none
+    block_xy_m: F32                  # (nbr, nbc, 2) floor point of each block's centre ray, NaN none
+    src: npt.NDArray[np.intp]        # (M,) flat sample index, grouped by scan bin
+    offsets: npt.NDArray[np.intp]    # (N,) start of each bin's group in src
+    covered: npt.NDArray[np.bool_]   # (N,) bins that some sample covers
+
+
+def _floor_hits(intr: Intrinsics, rot: F64, u: F64, v: F64) -> tuple[F64, F64, F64]:
+    """Level-frame ray per metre of optical depth through pixel coordinates (u, v): (kx, ky, kz)."""
+    x = (u - intr.cx) / intr.fx
+    y = (v - intr.cy) / intr.fy
+    return (
+        rot[0, 0] * x + rot[0, 1] * y + rot[0, 2],
+        rot[1, 0] * x + rot[1, 1] * y + rot[1, 2],
+        rot[2, 0] * x + rot[2, 1] * y + rot[2, 2],
+    )
+
+
+def _bin_groups(
+    lo_b: F64, hi_b: F64, angle_min: float, inc: float, n: int
+) -> tuple[npt.NDArray[np.intp], npt.NDArray[np.intp], npt.NDArray[np.bool_]]:
+    """Group items by the scan bins their bearing interval [lo_b, hi_b] (radians) overlaps.
+
+    Bin i covers [angle_min + (i - 1/2) inc, angle_min + (i + 1/2) inc). Items with a NaN interval or
+    one that crosses the +-pi seam are left out.
+
+    Returns:
+        (src, offsets, covered): item indices grouped by bin, (M,); start of each bin's group, (n,);
+        bins with at least one item, (n,).
+    """
+    lo = lo_b.ravel()
+    hi = hi_b.ravel()
+    with np.errstate(invalid="ignore"):
+        sane = np.isfinite(lo) & np.isfinite(hi) & ((hi - lo) < math.pi)
+        first = np.floor((np.where(sane, lo, angle_min) - angle_min) / inc + 0.5)
+        last = np.floor((np.where(sane, hi, angle_min) - angle_min) / inc + 0.5)
+    sane &= (last >= 0) & (first <= n - 1)
+    first = np.clip(first, 0, n - 1).astype(np.int64)
+    last = np.clip(np.minimum(last, first + MAX_SPAN_BINS - 1), 0, n - 1).astype(np.int64)
+    span = np.where(sane, last - first + 1, 0)
+    item = np.repeat(np.arange(span.size), span)
+    within = np.arange(item.size) - np.repeat(np.cumsum(span) - span, span)
+    bins = first[item] + within
+    order = np.argsort(bins, kind="stable")
+    counts = np.bincount(bins, minlength=n)
+    offsets = np.minimum(np.cumsum(counts) - counts, max(item.size - 1, 0)).astype(np.intp)
+    return item[order].astype(np.intp), offsets, counts > 0
+
+
+@functools.lru_cache(maxsize=16)
+def _cliff_table(
+    intr: Intrinsics, mount: Mount, params: CliffParams, angle_min: float, inc: float, n_bins: int
+) -> _CliffTable:
+    bs = params.block_size
+    used = min(params.used_depth_height, intr.height)
+    nbr, nbc = used // bs, intr.width // bs
+    if nbr == 0 or nbc == 0:
+        raise ConfigError(
+            f"cliff.block_size={bs} does not fit the used {used}x{intr.width} pixels of this image "
+            f"(accepted: 1..{min(used, intr.width)})"
+        )
+    j = np.arange(0, bs, params.row_step)
+    i = np.arange(0, bs, params.col_step)
+    # rows counted from the image bottom, as the original: block row 0 is the lowest
+    rows = (intr.height - 1 - (np.arange(nbr)[:, None] * bs + j[None, :])).ravel()
+    cols = (np.arange(nbc)[:, None] * bs + i[None, :]).ravel()
+    h = mount.height_m
+    rot = cam_to_level(mount.tilt_rad, mount.roll_rad)
+    u = cols.astype(np.float64)[None, :]
+    v = rows.astype(np.float64)[:, None]
+    kx, ky, kz = _floor_hits(intr, rot, u, v)
+    down = kz < 0
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t_floor = np.where(down, h / np.where(down, -kz, 1.0), np.inf)    # floor depth, m
+        range_m = np.where(down, t_floor * np.hypot(kx, ky), np.inf)       # (nr, nc)
+    if params.method == "exact":
+        in_range = down & (range_m >= params.range_min_m) & (range_m <= params.range_max_m)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            lo = np.where(in_range, (h + params.ground_margin_m) / np.where(down, -kz, 1.0), np.inf)
+        hi = np.full(lo.shape, float(NEVER_MM))
+    else:
+        delta = paper_row_angles_rad(intr)[rows][:, None]
+        ground = paper_floor_depth_m(h, mount.tilt_rad, delta) + params.ground_margin_m  # eq. 6
+        lo = np.broadcast_to(np.maximum(ground, params.range_min_m), range_m.shape)
+        hi = np.full(lo.shape, math.ceil(params.range_max_m * 1000.0))
+    # integer readings: d > lo_m * 1000 <=> d > floor(lo_m * 1000)
+    with np.errstate(invalid="ignore"):
+        lo_mm = np.where(np.isfinite(lo), np.clip(np.floor(lo * 1000.0), 0, NEVER_MM), NEVER_MM)
+    lo_mm = lo_mm.astype(np.uint16)
+    hi_mm = np.clip(hi, 0, NEVER_MM).astype(np.uint16)
+
+    # floor point of every block's centre ray (sub-pixel centre)
+    half = (bs - 1) / 2.0
+    bu = (np.arange(nbc) * bs + half)[None, :]
+    bv = (intr.height - (np.arange(nbr) + 1) * bs + half)[:, None]
+    bx, by, bz = _floor_hits(intr, rot, bu, bv)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        bt = np.where(bz < 0, h / -bz, np.nan)
+    block_xy = np.stack([bt * bx, bt * by], axis=-1).astype(np.float32)  # (nbr, nbc, 2)
+
+    # each sample covers the bearings between the left and right edges of its col_step footprint
+    e = params.col_step / 2.0
+    lx, ly, _ = _floor_hits(intr, rot, u - e, v)
+    rx, ry, _ = _floor_hits(intr, rot, u + e, v)
+    b_l = np.arctan2(ly, lx)
+    b_r = np.arctan2(ry, rx)
+    src, offsets, covered = _bin_groups(np.minimum(b_l, b_r), np.maximum(b_l, b_r), angle_min, inc, n_bins)
+
+    range32 = range_m.astype(np.float32)
+    for arr in (rows, cols, lo_mm, hi_mm, range32, block_xy, src, offsets, covered):
+        arr.setflags(write=False)
+    return _CliffTable(
+        rows, cols, (nbr, j.size, nbc, i.size), lo_mm, hi_mm, range32, block_xy, src, offsets, covered
+    )
+
+
+def drop_samples(
+    depth_mm: npt.NDArray[np.uint16], rows: npt.NDArray[np.intp], cols: npt.NDArray[np.intp],
+    lo_mm: npt.NDArray[np.uint16], hi_mm: npt.NDArray[np.uint16],
+) -> tuple[npt.NDArray[np.uint16], npt.NDArray[np.bool_]]:
+    """Gather the sample grid and mark drop-off samples (the stage's core, kept compilable).
+
+    Args:
+        depth_mm: (H, W) uint16 millimetres.
+        rows, cols: (R,) and (C,) image rows and columns of the samples.
+        lo_mm, hi_mm: (R, C) a sample is a drop-off iff lo_mm < depth < hi_mm.
+
+    Returns:
+        The sampled depth (R, C) and the drop-off mask (R, C).
+    """
+    d = depth_mm[np.ix_(rows, cols)]
+    return d, (d > lo_mm) & (d < hi_mm)
+
+
+def block_counts(mask: npt.NDArray[np.bool_], shape4: tuple[int, int, int, int]) -> npt.NDArray[np.int32]:
+    """Eq. 7: drop-off samples per block, (nbr, nbc), from the (nbr * nj, nbc * ni) sample mask."""
+    return mask.reshape(shape4).sum(axis=(1, 3), dtype=np.int32)
+
+
+def detect_cliffs(
+    depth: np.ndarray,
+    intr: Intrinsics,
+    mount: Mount,
+    params: CliffParams,
+    angle_min: float,
+    angle_increment: float,
+    n_bins: int,
+) -> CliffResult:
+    """Find steps down and holes in one depth image.
+
+    Args:
+        depth: (H, W) uint16 millimetres (0 = no reading) or float32 metres (NaN = none).
+        intr: intrinsics of ``depth``.
+        mount: sensor height, tilt (positive down) and roll (positive left side up).
+        params: detector parameters.
+        angle_min, angle_increment, n_bins: layout of the cliff scan (radians, radians, count);
+            pass the obstacle scan's layout (``scan.scan_layout``) so the two line up.
+
+    Returns:
+        Floor points and blocks of the detected negative obstacles, and the cliff scan.
+
+    Raises:
+        FrameError: wrong dtype or shape. ConfigError: a layout or block size that does not fit.
+    """
+    check_range("cliff angle_min", angle_min, -math.pi - 1e-9, math.pi, " rad")
+    check_range("cliff angle_increment", angle_increment, 1e-6, math.pi, " rad")
+    check_int("cliff n_bins", n_bins, 1, 1_000_000)
+    mm = depth_to_mm(depth, intr)
+    t = _cliff_table(intr, mount, params, float(angle_min), float(angle_increment), int(n_bins))
+    d, mask = drop_samples(mm, t.rows, t.cols, t.lo_mm, t.hi_mm)
+    counts = block_counts(mask, t.shape4)
+    found = (counts >= params.block_points_thresh) & np.isfinite(t.block_xy_m[..., 0])  # eq. 8
+    bj, bi = np.nonzero(found)
+    bs = params.block_size
+    blocks = np.stack([intr.height - (bj + 1) * bs, bi * bs], axis=-1).astype(np.int64)
+    points = t.block_xy_m[bj, bi].reshape(-1, 2)
+
+    marked = (mask.reshape(t.shape4) & found[:, None, :, None]).reshape(mask.shape)
+    vals = np.where(d > 0, np.float32(np.inf), np.float32(np.nan))
+    vals[marked] = t.range_m[marked]
+    if t.src.size:
+        ranges = np.fmin.reduceat(vals.ravel()[t.src], t.offsets).astype(np.float32, copy=False)
+    else:
+        ranges = np.full(n_bins, np.nan, dtype=np.float32)
+    ranges[~t.covered] = np.nan
+    scan = LaserScan(
+        float(angle_min), float(angle_min + (n_bins - 1) * angle_increment), float(angle_increment),
+        params.range_min_m, params.range_max_m, ranges,
+    )
+    return CliffResult(points.astype(np.float32), blocks, bs, scan)

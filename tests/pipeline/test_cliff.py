@@ -1,0 +1,220 @@
+"""The cliff stage against the scene generator's exact ground truth."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from depthnav_daemon.errors import ConfigError, FrameError
+from depthnav_daemon.pipeline.cliff import CliffParams, CliffResult, detect_cliffs
+from depthnav_daemon.pipeline.geometry import Mount, level_rays
+from depthnav_daemon.pipeline.scan import ScanParams, scan_layout
+from depthnav_daemon.synthetic import (
+    Box,
+    Hole,
+    KinectNoise,
+    Scene,
+    SyntheticView,
+    in_drop_off,
+    render,
+    step_down,
+    truth_drop_ranges,
+)
+from drivers.base import Intrinsics
+from tests.pipeline.scenes import ASYM_640, random_boxes_in_view
+
+PARAMS = CliffParams()  # the shipped params.yaml: block 16, strides 8, threshold 3, 400 rows
+
+
+def run(view: SyntheticView, params: CliffParams = PARAMS, depth: np.ndarray | None = None) -> CliffResult:
+    lay = scan_layout(view.intrinsics, view.mount, ScanParams())
+    return detect_cliffs(view.depth_mm if depth is None else depth, view.intrinsics, view.mount, params, *lay)
+
+
+def block_footprints_m(intr: Intrinsics, mount: Mount, blocks: np.ndarray, bs: int, centre: np.ndarray) -> np.ndarray:
+    """(K,) largest floor distance from each block's reported point to its corner pixels' floor points.
+
+    The floor point of a pixel is where its ray meets z = -h in the level frame (independent of the
+    stage's code: straight from level_rays). A corner above the horizon gives +inf.
+    """
+    rays = level_rays(intr, mount.tilt_rad, mount.roll_rad)
+    out = np.zeros(len(blocks))
+    for k, (r, c) in enumerate(blocks):
+        for dv in (0, bs - 1):
+            for du in (0, bs - 1):
+                d = rays[r + dv, c + du]
+                if d[2] >= 0:
+                    out[k] = math.inf
+                    continue
+                t = mount.height_m / -d[2]
+                out[k] = max(out[k], math.hypot(t * d[0] - centre[k, 0], t * d[1] - centre[k, 1]))
+    return out
+
+
+def assert_points_on_drop_offs(view: SyntheticView, res: CliffResult) -> None:
+    """Every detected block lies on a true drop-off within one block's floor footprint."""
+    fp = block_footprints_m(view.intrinsics, view.mount, res.blocks, res.block_size, res.points_m)
+    x, y = res.points_m[:, 0], res.points_m[:, 1]
+    ok = np.array([in_drop_off(view.scene, x[k], y[k], margin_m=fp[k]) for k in range(len(x))], dtype=bool)
+    assert ok.all(), f"blocks off every drop-off at {res.points_m[~ok][:5]} (footprints {fp[~ok][:5]})"
+
+
+STEP_MOUNTS = [Mount(0.55, 15.0, 0.0), Mount(0.3, 5.0, -6.0), Mount(1.0, 35.0, 8.0), Mount(0.8, 25.0, 0.0)]
+
+
+@pytest.mark.parametrize("drop_m", [0.10, 0.30])
+@pytest.mark.parametrize("mount", STEP_MOUNTS, ids=lambda m: f"h{m.height_m}_t{m.tilt_deg:.0f}_r{m.roll_deg:.0f}")
+def test_step_down_found_at_its_floor_position_and_range(mount: Mount, drop_m: float) -> None:
+    # the step edge sits where the image centre column meets the floor at 70 % of the used rows' depth
+    rays = level_rays(ASYM_640, mount.tilt_rad, mount.roll_rad)
+    d = rays[int(ASYM_640.height * 0.55), int(ASYM_640.cx)]
+    edge_m = round(mount.height_m / -d[2] * d[0], 2)
+    scene = Scene(holes=(step_down(edge_m, drop_m),))
+    view = render(scene, ASYM_640, mount, KinectNoise(), np.random.default_rng(11), min_range_m=0.05)
+    res = run(view)
+    assert len(res.points_m) >= 10, f"step {drop_m} m at {edge_m} m: {len(res.points_m)} blocks"
+    assert_points_on_drop_offs(view, res)
+    # the cliff scan: the nearest drop-off per bearing is the step edge, edge / cos(bearing)
+    truth = truth_drop_ranges(scene, res.scan.angles)
+    got = res.scan.ranges.astype(np.float64)
+    seen = np.isfinite(got)
+    assert seen.sum() > 0.5 * np.isfinite(truth).sum(), f"{seen.sum()} of {np.isfinite(truth).sum()} bins hold the step"
+    # a drop-off sample's floor point lies beyond the edge (minus noise) and within the first block
+    # past it that reaches the threshold. One block's radial footprint: ray length L, block angle
+    # bs/fy -> L^2 (bs/fy) / h (derivative of r = h cot(depression) w.r.t. the ray angle), taken at
+    # the reported range. The block row straddling the edge may miss the threshold (few samples
+    # beyond the edge, Kinect dropout on the edge), so single bins may be up to two footprints out.
+    length2 = got[seen] ** 2 + mount.height_m ** 2
+    footprint = length2 * (PARAMS.block_size / ASYM_640.fy) / mount.height_m
+    err = got[seen] - truth[seen]
+    assert err.min() >= -0.02, f"drop reported {-err.min():.3f} m in front of the edge"
+    assert np.median(err / footprint) <= 1.0, f"median error {np.median(err):.3f} m"
+    worst = np.argmax(err / footprint)
+    assert err[worst] <= 2 * footprint[worst], f"{err[worst]:.3f} m past the edge (footprint {footprint[worst]:.3f})"
+
+
+@pytest.mark.parametrize("mount", [Mount(0.55, 15.0, 0.0), Mount(0.7, 30.0, -5.0)], ids=str)
+def test_20cm_hole_found_inside_its_footprint(mount: Mount) -> None:
+    hole = Hole(1.3, 1.5, -0.35, 0.25, 0.25)  # 20 cm along the view, 60 cm across, 25 cm deep
+    scene = Scene(holes=(hole,))
+    view = render(scene, ASYM_640, mount, KinectNoise(), np.random.default_rng(3), min_range_m=0.05)
+    res = run(view)
+    assert len(res.points_m) >= 3
+    assert_points_on_drop_offs(view, res)
+    inside = in_drop_off(scene, res.points_m[:, 0], res.points_m[:, 1])
+    assert inside.any(), "no block centre inside the hole itself"
+    # nothing is reported beyond the hole: the floor continues there
+    assert res.points_m[:, 0].max() < hole.x_max_m + 0.15
+
+
+@pytest.mark.parametrize(
+    "mount", [Mount(0.55, 15.0, 0.0), Mount(0.3, 0.0, 10.0), Mount(1.2, 45.0, -10.0), Mount(0.8, 25.0, 4.0)], ids=str
+)
+def test_flat_floor_with_noise_and_boxes_has_no_cliff(mount: Mount) -> None:
+    rng = np.random.default_rng(int(mount.tilt_deg) + 100)
+    scene = random_boxes_in_view(rng, ASYM_640, mount, count=3)
+    view = render(scene, ASYM_640, mount, KinectNoise(), rng, min_range_m=0.05)
+    res = run(view)
+    assert len(res.points_m) == 0, f"false cliffs at {res.points_m[:5]}"
+    assert not np.isfinite(res.scan.ranges).any()
+    assert np.isposinf(res.scan.ranges).sum() > 0.5 * res.scan.ranges.size  # valid floor, no drop
+
+
+def test_paper_method_finds_a_step_but_exact_is_the_one_that_ignores_roll_and_noise() -> None:
+    level = Mount(0.55, 15.0, 0.0)
+    view = render(Scene(holes=(step_down(1.5, 0.3),)), ASYM_640, level)
+    res = run(view, CliffParams(method="paper"))
+    assert len(res.points_m) >= 10
+    assert_points_on_drop_offs(view, res)
+    # the paper's per-row floor ignores roll: on a rolled flat floor one side reads "below the floor"
+    rolled = Mount(0.55, 15.0, 8.0)
+    flat = render(Scene(), ASYM_640, rolled)
+    assert len(run(flat, CliffParams(method="paper")).points_m) > 0
+    assert len(run(flat).points_m) == 0
+
+
+def test_missing_readings_never_count_and_give_nan() -> None:
+    mount = Mount(0.55, 15.0, 0.0)
+    view = render(Scene(holes=(step_down(1.5, 0.3),)), ASYM_640, mount)
+    depth = view.depth_mm.copy()
+    depth[view.height_m < -0.01] = 0         # the sensor sees nothing where the step is
+    res = run(view, depth=depth)
+    assert len(res.points_m) == 0
+    assert not np.isfinite(res.scan.ranges).any()
+    blank = run(view, depth=np.zeros_like(depth))
+    assert np.isnan(blank.scan.ranges).all()
+
+
+def test_rays_above_the_horizon_never_count() -> None:
+    mount = Mount(0.5, 0.0, 0.0)
+    view = render(Scene(), ASYM_640, mount)
+    depth = view.depth_mm.copy()
+    depth[: int(ASYM_640.cy) + 1] = 60000  # 60 m readings at and above the horizon row
+    assert len(run(view, CliffParams(used_depth_height=480), depth=depth).points_m) == 0
+
+
+def test_float_metres_equal_uint16_millimetres() -> None:
+    mount = Mount(0.7, 25.0, 3.0)
+    view = render(Scene(holes=(step_down(1.8, 0.2),)), ASYM_640, mount)
+    metres = np.where(view.depth_mm > 0, view.depth_mm / 1000.0, np.nan).astype(np.float32)
+    for method in ("exact", "paper"):
+        a = run(view, CliffParams(method=method))
+        b = run(view, CliffParams(method=method), depth=metres)
+        np.testing.assert_array_equal(a.points_m, b.points_m)
+        np.testing.assert_array_equal(a.scan.ranges, b.scan.ranges)
+
+
+def test_block_points_are_the_block_centre_rays_floor_points() -> None:
+    # level sensor 0.5 m high, tilt 0, symmetric 64x48 camera: block size 8 at the bottom-left,
+    # top-left pixel (40, 0), centre (u, v) = (3.5, 43.5); ray (-28/50, 19.5/50) per metre of depth
+    # -> floor at depth 0.5 / 0.39 = 1.2821 m: forward 1.2821, left 28/50 * 1.2821 = 0.7179 m
+    intr = Intrinsics(64, 48, 50.0, 50.0, 31.5, 24.0)
+    mount = Mount(0.5, 0.0, 0.0)
+    depth = np.full((48, 64), 9000, np.uint16)  # everything far below the floor
+    p = CliffParams(block_size=8, row_step=1, col_step=1, block_points_thresh=64, range_min_m=0.1)
+    res = detect_cliffs(depth, intr, mount, p, -0.6, 0.01, 121)
+    k = np.flatnonzero((res.blocks[:, 0] == 40) & (res.blocks[:, 1] == 0))
+    assert k.size == 1
+    np.testing.assert_allclose(res.points_m[k[0]], [0.5 / 0.39, 28 / 50 * 0.5 / 0.39], rtol=1e-5)
+    # every reported block has all its 64 samples counted and lies below the horizon row 24
+    assert (res.blocks[:, 0] >= 24).all()
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "text"),
+    [
+        ({"method": "fast"}, "cliff.method='fast'"),
+        ({"block_size": 0}, "cliff.block_size=0"),
+        ({"row_step": 20}, "cliff.row_step=20 is out of range (accepted: integers 1..16)"),
+        ({"block_points_thresh": 5}, "cliff.block_points_thresh=5 is out of range (accepted: integers 1..4)"),
+        ({"ground_margin_m": -0.1}, "cliff.ground_margin_m=-0.1"),
+        ({"range_min_m": 6.0}, "cliff.range_min_m (6.0) must be below"),
+        ({"used_depth_height": 0}, "cliff.used_depth_height=0"),
+    ],
+)
+def test_bad_parameters_name_value_and_range(kwargs: dict, text: str) -> None:
+    with pytest.raises(ConfigError) as e:
+        CliffParams(**kwargs)
+    assert text in str(e.value) and "\n" not in str(e.value)
+
+
+def test_bad_frame_and_layout_are_rejected() -> None:
+    mount = Mount(0.5, 10.0, 0.0)
+    with pytest.raises(FrameError):
+        detect_cliffs(np.zeros((10, 10), np.uint16), ASYM_640, mount, PARAMS, -0.5, 0.01, 100)
+    with pytest.raises(ConfigError, match="angle_increment"):
+        detect_cliffs(np.zeros((480, 640), np.uint16), ASYM_640, mount, PARAMS, -0.5, 0.0, 100)
+    with pytest.raises(ConfigError, match="block_size=256"):
+        detect_cliffs(np.zeros((48, 64), np.uint16), Intrinsics(64, 48, 50.0, 50.0, 31.5, 24.0), mount,
+                      CliffParams(block_size=256, row_step=8, col_step=8), -0.5, 0.01, 100)
+
+
+def test_box_in_front_of_a_step_hides_only_what_it_covers() -> None:
+    mount = Mount(0.55, 15.0, 0.0)
+    scene = Scene(boxes=(Box(1.2, 0.0, 0.3, 0.4, 0.5),), holes=(step_down(1.8, 0.2),))
+    view = render(scene, ASYM_640, mount, KinectNoise(), np.random.default_rng(5), min_range_m=0.05)
+    res = run(view)
+    assert len(res.points_m) >= 10
+    assert_points_on_drop_offs(view, res)
