@@ -1,0 +1,251 @@
+"""The Sink interface every output implements, the context handed to ``open()``, and spec parsing.
+
+A sink spec is one string, ``scheme[://target][?key=value&...]`` (``scheme:target`` is shorthand),
+the same grammar as device specs. Constructing a sink does no I/O; ``open()`` touches the network,
+file or port; ``write()`` is called once per processed frame and must return quickly; ``close()``
+flushes and is safe to call twice.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import re
+import time
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Protocol, runtime_checkable
+from urllib.parse import unquote
+
+from depthnav_daemon.errors import ConfigError
+
+if TYPE_CHECKING:
+    from depthnav_daemon.pipeline import Result
+    from depthnav_daemon.pipeline.scan import ScanParams
+    from drivers.base import DeviceInfo, Frame
+
+log = logging.getLogger(__name__)
+
+_SCHEME = re.compile(r"[a-z][a-z0-9+.-]*\Z")
+
+
+@dataclass(frozen=True)
+class SinkContext:
+    """Everything a sink may need besides the per-frame data; handed to ``Sink.open()``.
+
+    Attributes:
+        device: what the opened driver says about its device.
+        scan_params: the scan parameters in use (to draw the used rows and obstacle pixels).
+        cliff_block_size: side of a cliff-detection block, pixels (to draw the blocks).
+        version: the depthnav version string.
+    """
+
+    device: DeviceInfo
+    scan_params: ScanParams
+    cliff_block_size: int
+    version: str
+
+
+@runtime_checkable
+class Sink(Protocol):
+    """Receives every processed frame.
+
+    Attributes:
+        name: the spec the sink was made from, for messages.
+    """
+
+    name: str
+
+    def open(self, context: SinkContext) -> None:
+        """Connect, create the file or open the port.
+
+        Raises:
+            SinkError: the output cannot be opened; the message says which and ``hint`` what to do.
+        """
+        ...
+
+    def write(self, frame: Frame, result: Result) -> None:
+        """Send one processed frame. Must not block the frame loop for long.
+
+        Raises:
+            SinkError: the output failed for good; the daemon closes and drops this sink.
+        """
+        ...
+
+    def close(self) -> None:
+        """Flush and release the output. Safe to call twice, and after a failed ``open()``."""
+        ...
+
+
+@dataclass(frozen=True, slots=True)
+class SinkSpec:
+    """A parsed sink spec.
+
+    Attributes:
+        text: the spec as given.
+        scheme: lower-case sink key, e.g. "udp" or "rerun+grpc".
+        target: what follows ``scheme:`` or ``scheme://`` up to ``?``; "" when absent.
+        options: query options in the order given (keys lower-case).
+    """
+
+    text: str
+    scheme: str
+    target: str = ""
+    options: Mapping[str, str] = field(default_factory=dict)
+
+
+def parse_sink_spec(text: str) -> SinkSpec:
+    """Split a sink spec into scheme, target and options.
+
+    Raises:
+        ConfigError: empty spec, bad scheme, malformed or repeated option.
+    """
+    if not isinstance(text, str) or not text.strip():
+        raise ConfigError("empty sink spec", hint="e.g. stdout, udp://127.0.0.1:5600, rerun:run.rrd")
+    text = text.strip()
+    body, sep, query = text.partition("?")
+    scheme, colon, target = body.partition(":")
+    scheme = scheme.lower()
+    if not _SCHEME.match(scheme):
+        raise ConfigError(
+            f"sink spec {text!r} does not start with a scheme",
+            hint="write scheme[://target][?key=value&...], e.g. udp://127.0.0.1:5600",
+        )
+    if colon and target.startswith("//"):
+        target = target[2:]
+    options: dict[str, str] = {}
+    if sep:
+        for part in query.split("&"):
+            if not part:
+                continue
+            key, eq, value = part.partition("=")
+            key = unquote(key).strip().lower()
+            if not key or not eq:
+                raise ConfigError(
+                    f"option {part!r} in sink spec {text!r} is not key=value",
+                    hint="separate options with '&', e.g. ?rate=10&sysid=1",
+                )
+            if key in options:
+                raise ConfigError(f"option {key!r} is given twice in sink spec {text!r}")
+            options[key] = unquote(value)
+    return SinkSpec(text=text, scheme=scheme, target=unquote(target), options=options)
+
+
+def check_options(spec: SinkSpec, valid: Iterable[str], grammar: str) -> None:
+    """Reject options the sink does not know, listing the valid ones.
+
+    Raises:
+        ConfigError: naming the unknown option and the valid ones; the hint quotes ``grammar``.
+    """
+    allowed = set(valid)
+    for key in spec.options:
+        if key not in allowed:
+            names = ", ".join(sorted(allowed)) or "none"
+            raise ConfigError(
+                f"unknown option {key!r} for sink {spec.scheme!r} in {spec.text!r}; valid options: {names}",
+                hint=f"the {spec.scheme} sink spec is {grammar}",
+            )
+
+
+def number_option(
+    spec: SinkSpec, key: str, default: float, low: float, high: float, *, integer: bool = False
+) -> float:
+    """A numeric option within [low, high] (an integer when ``integer``), or ``default``.
+
+    Raises:
+        ConfigError: not a number, not finite, not an integer when required, or out of range.
+    """
+    if key not in spec.options:
+        return default
+    raw = spec.options[key].strip()
+    try:
+        value = int(raw, 10) if integer else float(raw)
+    except ValueError:
+        kind = "an integer" if integer else "a number"
+        raise ConfigError(
+            f"option {key}={raw!r} in sink spec {spec.text!r} is not {kind} (accepted: {low:g}..{high:g})"
+        ) from None
+    if not (math.isfinite(value) and low <= value <= high):
+        raise ConfigError(f"option {key}={raw!r} in sink spec {spec.text!r} is out of range (accepted: {low:g}..{high:g})")
+    return value
+
+
+def bool_option(spec: SinkSpec, key: str, default: bool) -> bool:
+    """An on/off option: 1/0, true/false, yes/no, on/off.
+
+    Raises:
+        ConfigError: any other value.
+    """
+    if key not in spec.options:
+        return default
+    value = spec.options[key].strip().lower()
+    if value in ("1", "true", "yes", "on"):
+        return True
+    if value in ("0", "false", "no", "off"):
+        return False
+    raise ConfigError(f"option {key}={value!r} in sink spec {spec.text!r} is not 0 or 1")
+
+
+def parse_host_port(spec: SinkSpec, default_host: str, default_port: int | None) -> tuple[str, int]:
+    """``HOST:PORT``, ``:PORT``, ``PORT``, ``HOST``, ``[v6addr]:PORT`` or "" from the spec's target.
+
+    Args:
+        spec: the parsed spec.
+        default_host: used when the host part is empty.
+        default_port: used when the port is absent; None makes the port required.
+
+    Raises:
+        ConfigError: a missing or invalid port.
+    """
+    target = spec.target.strip().rstrip("/")
+    host, port_text = target, ""
+    if target.startswith("["):                      # [::1]:5600
+        end = target.find("]")
+        if end < 0:
+            raise ConfigError(f"unclosed '[' in sink spec {spec.text!r}")
+        host, rest = target[1:end], target[end + 1:]
+        if rest:
+            if not rest.startswith(":"):
+                raise ConfigError(f"expected ':PORT' after ']' in sink spec {spec.text!r}")
+            port_text = rest[1:]
+    elif target.count(":") == 1:
+        host, port_text = target.split(":")
+    elif target.isdigit():                           # udp:5600
+        host, port_text = "", target
+    host = host.strip() or default_host
+    if not port_text:
+        if default_port is None:
+            raise ConfigError(
+                f"sink spec {spec.text!r} has no port",
+                hint=f"write {spec.scheme}://HOST:PORT, e.g. {spec.scheme}://127.0.0.1:5600",
+            )
+        return host, default_port
+    if not port_text.isdigit() or not 1 <= int(port_text) <= 65535:
+        raise ConfigError(f"port {port_text!r} in sink spec {spec.text!r} is not 1..65535")
+    return host, int(port_text)
+
+
+class RateLimitedLog:
+    """Counts repeated failures and logs them at most once per ``period_s`` (with the count).
+
+    Used where a failure must never stop the frame loop (a UDP receiver that went away) but the
+    user should still hear about it without a log line per frame.
+    """
+
+    def __init__(self, logger: logging.Logger, period_s: float = 10.0) -> None:
+        self._log = logger
+        self._period_s = period_s
+        self._last = -math.inf
+        self.count = 0          # failures since the sink opened
+        self._unreported = 0
+
+    def failed(self, message: str, *args: object) -> None:
+        """Count one failure; log it (with how many happened since the last line) when due."""
+        self.count += 1
+        self._unreported += 1
+        now = time.monotonic()
+        if now - self._last >= self._period_s:
+            self._log.warning(message + " (%d failure(s) since the last report, %d in total)",
+                              *args, self._unreported, self.count)
+            self._last = now
+            self._unreported = 0

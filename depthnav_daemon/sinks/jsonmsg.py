@@ -1,0 +1,197 @@
+"""The JSON object of one frame, shared by the ``stdout`` and ``udp`` sinks (docs/json_schema.md).
+
+Strict JSON (no NaN/Infinity literals). Scan ranges keep the three REP 117 special values apart:
+a finite range is a number in metres rounded to 1 mm, NaN (no valid reading) is ``null``, +inf (no
+obstacle within range_max) is the string ``"Infinity"`` and -inf (an obstacle closer than
+range_min) is ``"-Infinity"``. Python's ``float()`` and JavaScript's ``Number()`` both read those
+strings; :func:`decode_ranges` is the reference decoder.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+from collections.abc import Sequence
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+if TYPE_CHECKING:
+    from depthnav_daemon.pipeline import Result
+    from depthnav_daemon.pipeline.scan import LaserScan
+    from drivers.base import Frame
+
+log = logging.getLogger(__name__)
+
+SCHEMA_VERSION = 1
+POS_INF = "Infinity"
+NEG_INF = "-Infinity"
+MM = 3        # decimals for metres (1 mm)
+RAD = 6       # decimals for radians (1 microradian)
+DEG = 3       # decimals for degrees
+SEC = 6       # decimals for seconds (1 microsecond)
+
+
+def _num(value: float | None, decimals: int) -> float | None:
+    """A finite number rounded to ``decimals``, or None for None/NaN/inf (scalars have no inf code)."""
+    if value is None:
+        return None
+    v = float(value)
+    return round(v, decimals) if math.isfinite(v) else None
+
+
+def encode_ranges(ranges: np.ndarray) -> list[float | str | None]:
+    """REP 117 ranges (N,) metres -> JSON list: mm-rounded numbers, null, "Infinity", "-Infinity"."""
+    r = np.asarray(ranges, dtype=np.float64)
+    out: list[float | str | None] = np.round(r, MM).tolist()
+    # the special values are rare next to finite ones: patch them in place rather than branch per item
+    for i in np.flatnonzero(~np.isfinite(r)).tolist():
+        v = r[i]
+        out[i] = None if math.isnan(v) else (POS_INF if v > 0 else NEG_INF)
+    return out
+
+
+def decode_ranges(values: Sequence[float | str | None]) -> np.ndarray:
+    """The inverse of :func:`encode_ranges`: a JSON ranges list -> (N,) float64 with NaN/+inf/-inf.
+
+    Raises:
+        ValueError: an element that is none of number, null, "Infinity", "-Infinity".
+    """
+    out = np.empty(len(values), dtype=np.float64)
+    for i, v in enumerate(values):
+        if v is None:
+            out[i] = math.nan
+        elif v == POS_INF:
+            out[i] = math.inf
+        elif v == NEG_INF:
+            out[i] = -math.inf
+        elif isinstance(v, (int, float)) and not isinstance(v, bool):
+            out[i] = float(v)
+        else:
+            raise ValueError(f"ranges[{i}]={v!r} is not a number, null, {POS_INF!r} or {NEG_INF!r}")
+    return out
+
+
+def scan_to_json(scan: LaserScan) -> dict[str, Any]:
+    """A LaserScan as a dict with sensor_msgs/LaserScan field names (radians, metres)."""
+    return {
+        "angle_min": _num(scan.angle_min, RAD),
+        "angle_max": _num(scan.angle_max, RAD),
+        "angle_increment": _num(scan.angle_increment, RAD + 3),
+        "range_min": _num(scan.range_min, MM),
+        "range_max": _num(scan.range_max, MM),
+        "ranges": encode_ranges(scan.ranges),
+    }
+
+
+def _cliff_to_json(cliff: Any, max_points: int | None) -> dict[str, Any]:
+    """The cliff object; keeps the ``max_points`` floor points nearest the sensor when capped."""
+    pts = np.asarray(cliff.points_m, dtype=np.float64).reshape(-1, 2)
+    total = int(pts.shape[0])
+    if max_points is not None and total > max_points:
+        # the nearest drop-offs matter most to a robot that has to stop in time
+        keep = np.argsort(np.hypot(pts[:, 0], pts[:, 1]), kind="stable")[:max_points]
+        pts = pts[np.sort(keep)]
+    pts = pts[np.isfinite(pts).all(axis=1)]
+    return {
+        "points_m": np.round(pts, MM).tolist(),
+        "points_total": total,
+        "points_dropped": total - int(pts.shape[0]),
+        "scan": scan_to_json(cliff.scan),
+    }
+
+
+def _pose_to_json(result: Result) -> dict[str, Any]:
+    """The mount used for this frame, where it came from, and this frame's floor estimate if any."""
+    m = result.mount
+    out: dict[str, Any] = {
+        "height_m": _num(m.height_m, MM),
+        "tilt_deg": _num(m.tilt_deg, DEG),
+        "roll_deg": _num(m.roll_deg, DEG),
+        "source": result.mount_source,
+        "estimate": None,
+    }
+    est = result.pose
+    if est is not None:
+        out["estimate"] = {
+            "ok": bool(est.ok),
+            "height_m": _num(est.height_m, MM),
+            "tilt_deg": _num(est.tilt_deg, DEG),
+            "roll_deg": _num(est.roll_deg, DEG),
+            "inliers": int(est.inliers),
+            "inlier_ratio": _num(est.inlier_ratio, 4),
+            "residual_m": _num(est.residual_m, 5),
+            "candidates": int(est.candidates),
+            "reason": str(est.reason),
+        }
+    return out
+
+
+def frame_message(
+    frame: Frame,
+    result: Result,
+    version: str,
+    wall_time_s: float,
+    *,
+    max_cliff_points: int | None = None,
+    message: str | None = None,
+) -> dict[str, Any]:
+    """The JSON object for one processed frame (see docs/json_schema.md).
+
+    Args:
+        frame: the depth frame (only its seq and timestamp are used).
+        result: what the pipeline computed for it.
+        version: depthnav version string.
+        wall_time_s: host UNIX time when the message is made, seconds.
+        max_cliff_points: keep at most this many cliff floor points (the nearest); None = all.
+        message: a note from the sink about this message (e.g. points dropped), or None.
+
+    Returns:
+        A dict ready for :func:`dumps`.
+    """
+    return {
+        "v": SCHEMA_VERSION,
+        "version": version,
+        "seq": int(result.seq),
+        "t_s": _num(result.timestamp_s, SEC),
+        "wall_s": _num(wall_time_s, SEC),
+        "scan": scan_to_json(result.scan),
+        "cliff": None if result.cliff is None else _cliff_to_json(result.cliff, max_cliff_points),
+        "pose": _pose_to_json(result),
+        "timings_s": {k: _num(v, SEC) for k, v in sorted(result.timings_s.items())},
+        "warning": result.warning,
+        "message": message,
+    }
+
+
+def dumps(msg: dict[str, Any]) -> str:
+    """Compact strict JSON, one line (raises ValueError if a NaN/inf slipped through)."""
+    return json.dumps(msg, allow_nan=False, separators=(",", ":"), ensure_ascii=False)
+
+
+def fit_message(
+    frame: Frame, result: Result, version: str, wall_time_s: float, max_bytes: int
+) -> bytes | None:
+    """The frame's JSON as UTF-8, with cliff points dropped (nearest kept) until it fits ``max_bytes``.
+
+    Returns:
+        The encoded message, or None when even the message without any cliff points is too big.
+    """
+    data = dumps(frame_message(frame, result, version, wall_time_s)).encode()
+    if len(data) <= max_bytes:
+        return data
+    if result.cliff is None:
+        return None
+    total = int(np.asarray(result.cliff.points_m).reshape(-1, 2).shape[0])
+    cap = total
+    while cap > 0:
+        # scale by the overshoot, then shave 10 % more: a couple of rounds at most in practice
+        cap = min(cap - 1, int(cap * max_bytes / len(data) * 0.9))
+        cap = max(cap, 0)
+        note = f"cliff points capped to the nearest {cap} of {total} to fit one {max_bytes}-byte datagram"
+        data = dumps(frame_message(frame, result, version, wall_time_s,
+                                   max_cliff_points=cap, message=note)).encode()
+        if len(data) <= max_bytes:
+            return data
+    return None

@@ -1,0 +1,375 @@
+"""``mavlink``: OBSTACLE_DISTANCE (72 sectors) and HEARTBEAT for ArduPilot / PX4 avoidance.
+
+Specs:
+    ``mavlink:SERIALPORT[?baud=N&...]``      e.g. ``mavlink:/dev/ttyUSB0?baud=921600``
+    ``mavlink+udp://HOST:PORT[?...]``        e.g. ``mavlink+udp://127.0.0.1:14550`` (the default)
+
+Options (all optional):
+    baud: serial only, bits per second (default 57600, ArduPilot's SERIALn_BAUD default).
+    rate: OBSTACLE_DISTANCE messages per second, 1..50 (default 10). The newest scan is sent at this
+        rate from a thread, decoupled from the frame rate; a scan older than ``stale`` is not
+        repeated, so the autopilot times out (ArduPilot: 500 ms) instead of trusting old data.
+    stale: seconds a scan may be repeated (default 0.5).
+    sysid, compid: MAVLink source system / component (default 1 / 196 MAV_COMP_ID_OBSTACLE_AVOIDANCE).
+    sensor: laser | ultrasound | infrared | radar | unknown (default infrared: structured light / ToF).
+    cliff: 1 = also report drop-offs (the cliff scan) as obstacles, sector-wise minimum (default 0).
+
+Sectors (pinned by tests/sinks/test_mavlink.py): the 72 sectors split the scan's field of view
+evenly. Our scan is counter-clockwise from forward (left positive, index 0 = right-most); MAVLink's
+element 0 is the left-most sector and bearings grow clockwise (MAV_FRAME_BODY_FRD), so
+``angle_offset`` (the centre of element 0) = -degrees(left edge of the scan) + increment_f / 2.
+Each sector is the minimum over every scan bin whose footprint overlaps it (no resampling, so a
+one-bin obstacle is never lost and a coarse scan leaves no holes). Per bin: a finite range ->
+floor(cm) clipped to [min_distance, max_distance]; -inf (closer than range_min) -> min_distance;
++inf (no obstacle) -> max_distance + 1; NaN (no data) is skipped; a sector without any data ->
+65535 (UINT16_MAX, "unknown").
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import socket
+import threading
+import time
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+import numpy.typing as npt
+
+from depthnav_daemon.errors import ConfigError, SinkError
+from depthnav_daemon.sinks.base import (
+    RateLimitedLog,
+    SinkContext,
+    SinkSpec,
+    bool_option,
+    check_options,
+    number_option,
+    parse_host_port,
+)
+
+if TYPE_CHECKING:
+    from depthnav_daemon.pipeline import Result
+    from depthnav_daemon.pipeline.scan import LaserScan
+    from drivers.base import Frame
+
+log = logging.getLogger(__name__)
+
+GRAMMAR = ("mavlink:SERIALPORT[?baud=N&rate=HZ&stale=S&sysid=N&compid=N&sensor=KIND&cliff=0|1] or "
+           "mavlink+udp://HOST:PORT[?rate=HZ&stale=S&sysid=N&compid=N&sensor=KIND&cliff=0|1]")
+COMMON_OPTIONS = ("rate", "stale", "sysid", "compid", "sensor", "cliff")
+SECTORS = 72
+UNKNOWN = 65535                     # UINT16_MAX: no data in this sector
+SENSOR_TYPES = {"laser": 0, "ultrasound": 1, "infrared": 2, "radar": 3, "unknown": 4}  # MAV_DISTANCE_SENSOR
+MAV_COMP_ID_OBSTACLE_AVOIDANCE = 196
+MAV_FRAME_BODY_FRD = 12
+DEFAULT_UDP = ("127.0.0.1", 14550)
+HEARTBEAT_PERIOD_S = 1.0
+MESSAGE_BYTES = 180                 # a packed MAVLink 2 OBSTACLE_DISTANCE, for the baud-rate check
+
+
+@dataclass(frozen=True, slots=True)
+class Sectors:
+    """One OBSTACLE_DISTANCE payload.
+
+    Attributes:
+        distances_cm: (72,) uint16, element 0 = left-most sector (see the module docstring).
+        increment_f_deg: sector width, degrees, clockwise.
+        angle_offset_deg: bearing of element 0's centre, degrees clockwise from forward (FRD).
+        min_cm, max_cm: the sensor's range limits, centimetres.
+    """
+
+    distances_cm: npt.NDArray[np.uint16]
+    increment_f_deg: float
+    angle_offset_deg: float
+    min_cm: int
+    max_cm: int
+
+
+def range_limits_cm(scan: LaserScan) -> tuple[int, int]:
+    """(min_distance, max_distance) in cm for a scan; min >= 1 because ArduPilot drops 0."""
+    min_cm = max(1, round(scan.range_min * 100.0))
+    max_cm = min(UNKNOWN - 2, max(min_cm + 1, round(scan.range_max * 100.0)))
+    return min_cm, max_cm
+
+
+def bins_to_cm(ranges: np.ndarray, min_cm: int, max_cm: int) -> npt.NDArray[np.float64]:
+    """REP 117 ranges (N,) metres -> per-bin distances in cm (float, NaN = no data)."""
+    r = np.asarray(ranges, dtype=np.float64)
+    with np.errstate(invalid="ignore"):
+        cm = np.clip(np.floor(r * 100.0), min_cm, max_cm)   # floor: report an obstacle slightly near
+    cm[r == np.inf] = max_cm + 1
+    cm[r == -np.inf] = min_cm
+    cm[np.isnan(r)] = np.nan
+    return cm
+
+
+def _footprints_deg(scan: LaserScan) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]:
+    """Clockwise-degree footprint [lo, hi) of every bin of a CCW scan, (N,) each."""
+    m = int(scan.ranges.size)
+    inc = abs(float(scan.angle_increment)) if m > 1 else 0.0
+    if inc == 0.0 or not math.isfinite(inc):
+        inc = math.radians(1.0)     # a single bin: give it a nominal 1 degree footprint
+    theta = scan.angle_min + float(scan.angle_increment) * np.arange(m)
+    return -np.degrees(theta + inc / 2.0), -np.degrees(theta - inc / 2.0)
+
+
+def _pool_min(out: npt.NDArray[np.float64], lo: np.ndarray, hi: np.ndarray, cm: np.ndarray,
+              left: float, width: float) -> None:
+    """out[j] = min(out[j], cm of every bin whose footprint [lo, hi) overlaps sector j); NaN skipped."""
+    n = out.size
+    eps = 1e-6      # footprints that only touch a sector boundary do not count as overlapping
+    first = np.floor((lo - left) / width + eps).astype(np.int64)
+    last = np.ceil((hi - left) / width - eps).astype(np.int64) - 1
+    last = np.maximum(last, first)
+    keep = ~np.isnan(cm) & (last >= 0) & (first <= n - 1)
+    first, last, cm = np.clip(first[keep], 0, n - 1), np.clip(last[keep], 0, n - 1), cm[keep]
+    span = last - first + 1
+    idx = np.repeat(first, span) + (np.arange(int(span.sum())) - np.repeat(np.cumsum(span) - span, span))
+    np.minimum.at(out, idx, np.repeat(cm, span))
+
+
+def obstacle_sectors(scan: LaserScan, n: int = SECTORS) -> Sectors:
+    """Pool a scan into ``n`` clockwise sectors over its field of view (module docstring).
+
+    Args:
+        scan: the REP 117 scan, counter-clockwise bearings (radians).
+        n: number of sectors (72 for OBSTACLE_DISTANCE).
+
+    Returns:
+        The payload; every sector is the minimum over the scan bins overlapping it.
+    """
+    min_cm, max_cm = range_limits_cm(scan)
+    out = np.full(n, float(UNKNOWN))
+    if scan.ranges.size == 0:
+        return Sectors(out.astype(np.uint16), 1.0, 0.0, min_cm, max_cm)
+    lo, hi = _footprints_deg(scan)
+    left = float(lo.min())
+    width = (float(hi.max()) - left) / n
+    _pool_min(out, lo, hi, bins_to_cm(scan.ranges, min_cm, max_cm), left, width)
+    return Sectors(out.astype(np.uint16), width, left + width / 2.0, min_cm, max_cm)
+
+
+def merge_cliff(obstacles: Sectors, cliff_scan: LaserScan) -> Sectors:
+    """Obstacle sectors with the drop-offs of a cliff scan folded in (sector-wise minimum).
+
+    Only detections count (finite ranges, and -inf = a drop-off closer than range_min): the cliff
+    scan's "no drop-off" (+inf) or "no data" (NaN) leave the obstacle scan's verdict unchanged.
+    Drop-offs outside the obstacle sectors' field of view are not reported.
+    """
+    out = obstacles.distances_cm.astype(np.float64)
+    if cliff_scan.ranges.size:
+        r = np.asarray(cliff_scan.ranges, dtype=np.float64)
+        cm = bins_to_cm(r, obstacles.min_cm, obstacles.max_cm)
+        cm[~(np.isfinite(r) | (r == -np.inf))] = np.nan
+        lo, hi = _footprints_deg(cliff_scan)
+        left = obstacles.angle_offset_deg - obstacles.increment_f_deg / 2.0
+        _pool_min(out, lo, hi, cm, left, obstacles.increment_f_deg)
+    return Sectors(out.astype(np.uint16), obstacles.increment_f_deg, obstacles.angle_offset_deg,
+                   obstacles.min_cm, obstacles.max_cm)
+
+
+class _SerialLink:
+    """A serial port through pyserial; write failures other than timeouts are fatal."""
+
+    def __init__(self, port: str, baud: int) -> None:
+        import serial  # lazy: only this sink needs pyserial
+
+        self._serial_mod = serial
+        try:
+            self._port = serial.Serial(port, baudrate=baud, timeout=0, write_timeout=1.0)
+        except (serial.SerialException, OSError, ValueError) as exc:
+            raise SinkError(f"mavlink sink: cannot open serial port {port!r}: {exc}",
+                            hint="check the port name and that your user is in the dialout group") from exc
+        self._timeouts = RateLimitedLog(log)
+        self.describe = f"serial {port} at {baud} baud"
+
+    def write(self, data: bytes) -> None:
+        try:
+            self._port.write(data)
+        except self._serial_mod.SerialTimeoutException:
+            # the autopilot is not reading (flow control): drop, the next message is fresher anyway
+            self._timeouts.failed("mavlink sink: serial write timed out on %s", self.describe)
+
+    def close(self) -> None:
+        self._port.close()
+
+
+class _UdpLink:
+    """A connected non-blocking UDP socket; send failures are counted, never raised."""
+
+    def __init__(self, host: str, port: int) -> None:
+        try:
+            family, kind, proto, _, addr = socket.getaddrinfo(host, port, type=socket.SOCK_DGRAM)[0]
+            self._sock = socket.socket(family, kind, proto)
+            self._sock.setblocking(False)
+            self._sock.connect(addr)
+        except OSError as exc:
+            raise SinkError(f"mavlink sink: cannot send to {host}:{port}: {exc}") from exc
+        self._errors = RateLimitedLog(log)
+        self.describe = f"udp {host}:{port}"
+
+    def write(self, data: bytes) -> None:
+        try:
+            self._sock.send(data)
+        except OSError as exc:      # receiver gone (ICMP), buffer full, network down
+            self._errors.failed("mavlink sink: datagram to %s dropped: %s", self.describe, type(exc).__name__)
+
+    def close(self) -> None:
+        self._sock.close()
+
+
+class MavlinkSink:
+    """Sends OBSTACLE_DISTANCE at a fixed rate and HEARTBEAT at 1 Hz from a background thread.
+
+    ``write()`` only pools the scan into sectors and hands them over; the thread does the I/O, so a
+    slow serial link never blocks the frame loop. A fatal link error in the thread is raised as
+    SinkError by the next ``write()``.
+    """
+
+    def __init__(self, name: str, *, serial_port: str | None = None, baud: int = 57600,
+                 udp: tuple[str, int] | None = None, rate_hz: float = 10.0, stale_s: float = 0.5,
+                 sysid: int = 1, compid: int = MAV_COMP_ID_OBSTACLE_AVOIDANCE,
+                 sensor_type: int = SENSOR_TYPES["infrared"], cliff: bool = False) -> None:
+        self.name = name
+        self.serial_port, self.baud, self.udp = serial_port, baud, udp
+        self.rate_hz, self.stale_s = rate_hz, stale_s
+        self.sysid, self.compid, self.sensor_type, self.cliff = sysid, compid, sensor_type, cliff
+        self._link: _SerialLink | _UdpLink | None = None
+        self._mav: Any = None
+        self._lock = threading.Lock()
+        self._latest: tuple[Sectors, int, float] | None = None  # sectors, time_usec, arrival (monotonic)
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._error: BaseException | None = None
+        self.sent_obstacle = 0
+        self.sent_heartbeat = 0
+
+    @classmethod
+    def from_spec(cls, spec: SinkSpec) -> MavlinkSink:
+        """Build from a parsed spec (no I/O). Raises ConfigError for bad targets or options."""
+        kw: dict[str, Any] = {}
+        if spec.scheme == "mavlink":
+            check_options(spec, ("baud", *COMMON_OPTIONS), GRAMMAR)
+            if not spec.target:
+                raise ConfigError(f"sink spec {spec.text!r} names no serial port",
+                                  hint="write mavlink:/dev/ttyUSB0?baud=57600 or mavlink+udp://HOST:PORT")
+            kw["serial_port"] = spec.target
+            kw["baud"] = int(number_option(spec, "baud", 57600, 50, 4_000_000, integer=True))
+        else:
+            check_options(spec, COMMON_OPTIONS, GRAMMAR)
+            kw["udp"] = parse_host_port(spec, DEFAULT_UDP[0], DEFAULT_UDP[1] if not spec.target else None)
+        sensor = spec.options.get("sensor", "infrared").strip().lower()
+        if sensor not in SENSOR_TYPES:
+            raise ConfigError(f"option sensor={sensor!r} in {spec.text!r} is not one of {', '.join(SENSOR_TYPES)}")
+        return cls(
+            spec.text, **kw,
+            rate_hz=number_option(spec, "rate", 10.0, 1.0, 50.0),
+            stale_s=number_option(spec, "stale", 0.5, 0.05, 10.0),
+            sysid=int(number_option(spec, "sysid", 1, 1, 255, integer=True)),
+            compid=int(number_option(spec, "compid", MAV_COMP_ID_OBSTACLE_AVOIDANCE, 1, 255, integer=True)),
+            sensor_type=SENSOR_TYPES[sensor],
+            cliff=bool_option(spec, "cliff", False),
+        )
+
+    def open(self, context: SinkContext) -> None:
+        """Open the link, send a first HEARTBEAT and start the sender thread.
+
+        Raises:
+            SinkError: pymavlink missing, or the port / address cannot be opened.
+        """
+        try:
+            from pymavlink.dialects.v20 import common as mavlink2  # lazy: a large generated module
+        except ModuleNotFoundError as exc:
+            raise SinkError("the mavlink sink needs the 'pymavlink' package", hint="pip install pymavlink") from exc
+        if self.serial_port is not None:
+            self._link = _SerialLink(self.serial_port, self.baud)
+            need = (self.rate_hz * MESSAGE_BYTES + 20) * 10          # 10 bits per byte on the wire
+            if need > 0.8 * self.baud:
+                log.warning("mavlink sink: %.0f Hz of OBSTACLE_DISTANCE needs about %.0f baud; %d is too slow",
+                            self.rate_hz, need / 0.8, self.baud)
+        else:
+            assert self.udp is not None
+            self._link = _UdpLink(*self.udp)
+        self._mav = mavlink2.MAVLink(self._link, srcSystem=self.sysid, srcComponent=self.compid)
+        self._stop.clear()
+        self._thread = threading.Thread(target=self._run, name=f"sink {self.name}", daemon=True)
+        self._thread.start()
+        log.info("mavlink sink: OBSTACLE_DISTANCE at %g Hz on %s (sysid %d, compid %d)",
+                 self.rate_hz, self._link.describe, self.sysid, self.compid)
+
+    def write(self, frame: Frame, result: Result) -> None:
+        """Pool the scan into sectors and hand them to the sender thread.
+
+        Raises:
+            SinkError: the link failed in the sender thread.
+        """
+        if self._error is not None:
+            raise SinkError(f"mavlink sink: {self._link.describe if self._link else self.name} failed: {self._error}",
+                            hint="check the cable / port; the other sinks go on")
+        if self._thread is None:
+            raise SinkError(f"sink {self.name!r} is not open")
+        sectors = obstacle_sectors(result.scan)
+        if self.cliff and result.cliff is not None:
+            sectors = merge_cliff(sectors, result.cliff.scan)
+        now = time.monotonic()
+        with self._lock:
+            self._latest = (sectors, int(now * 1e6), now)
+
+    def latest_for(self, now: float) -> tuple[Sectors, int] | None:
+        """The sectors to send at monotonic time ``now``: the newest, unless older than ``stale_s``."""
+        with self._lock:
+            latest = self._latest
+        if latest is None or now - latest[2] > self.stale_s:
+            return None
+        return latest[0], latest[1]
+
+    def _send_heartbeat(self) -> None:
+        # MAV_TYPE_ONBOARD_CONTROLLER, MAV_AUTOPILOT_INVALID, base_mode, custom_mode, MAV_STATE_ACTIVE
+        self._mav.heartbeat_send(18, 8, 0, 0, 4)
+        self.sent_heartbeat += 1
+
+    def _send_obstacles(self, sectors: Sectors, time_usec: int) -> None:
+        inc_f = sectors.increment_f_deg
+        self._mav.obstacle_distance_send(
+            time_usec, self.sensor_type, sectors.distances_cm.tolist(),
+            max(1, min(255, round(inc_f))),      # legacy integer field; ignored since increment_f != 0
+            sectors.min_cm, sectors.max_cm, inc_f, sectors.angle_offset_deg, MAV_FRAME_BODY_FRD,
+        )
+        self.sent_obstacle += 1
+
+    def _run(self) -> None:
+        period = 1.0 / self.rate_hz
+        now = time.monotonic()
+        next_hb, next_obs = now, now
+        try:
+            while not self._stop.is_set():
+                now = time.monotonic()
+                if now >= next_hb:
+                    self._send_heartbeat()
+                    next_hb = max(next_hb + HEARTBEAT_PERIOD_S, now)   # never burst to catch up
+                if now >= next_obs:
+                    pending = self.latest_for(now)
+                    if pending is not None:
+                        self._send_obstacles(*pending)
+                    next_obs = max(next_obs + period, now)
+                self._stop.wait(max(0.0, min(next_hb, next_obs) - time.monotonic()))
+        except Exception as exc:     # a dead port: reported by the next write()
+            log.debug("mavlink sender thread failed", exc_info=True)
+            self._error = exc
+
+    def close(self) -> None:
+        """Stop the thread (joined, at most ~1 s) and close the link. Safe to call twice."""
+        self._stop.set()
+        thread, self._thread = self._thread, None
+        if thread is not None:
+            thread.join(timeout=2.0)
+            if thread.is_alive():
+                log.warning("mavlink sink: sender thread did not stop within 2 s")
+        link, self._link = self._link, None
+        if link is not None:
+            try:
+                link.close()
+            except Exception:   # closing a port that already went away
+                log.debug("closing the mavlink link failed", exc_info=True)

@@ -1,0 +1,272 @@
+"""``rerun``: stream every frame to the rerun viewer, or save it as an ``.rrd`` file.
+
+Specs:
+    ``rerun``                        spawn a native viewer (needs a display) and stream to it
+    ``rerun+grpc://HOST:PORT``       connect to a running viewer (default 127.0.0.1:9876)
+    ``rerun:FILE.rrd``               save to a file (``close()`` writes the footer: a complete .rrd)
+
+Options: ``every=N`` logs every Nth frame (default 1; depth images are ~0.6 MB each at 640x480),
+``image=0`` leaves out the depth image and its overlays.
+
+Entities (the world is the level frame at the sensor's foot, x forward, y left, z up, floor z=0):
+    /world                        ViewCoordinates RIGHT_HAND_Z_UP (static)
+    /world/floor                  a 1 m grid on the floor (static)
+    /world/sensor                 Transform3D: mount height, tilt (nose down) and roll
+    /world/sensor/depth           Pinhole (camera_xyz=FLU) + DepthImage (mm, meter=1000)
+    /world/sensor/depth/band      Boxes2D: the rows the scan uses
+    /world/sensor/depth/obstacles SegmentationImage: pixels the scan counts as obstacles (class 1)
+    /world/sensor/depth/cliffs    Boxes2D: detected cliff blocks
+    /world/scan                   Points3D: scan hits, drawn on the floor
+    /world/cliff/points           Points3D: cliff floor points;  /world/cliff/scan: nearest drop-offs
+    /stats/pose/{height_m,tilt_deg,roll_deg}, /stats/timing/<stage>_ms   Scalars
+    /log                          TextLog: per-frame warnings
+Timelines: ``frame`` (= seq) and ``sensor_time`` (the frame timestamp, seconds, as a duration).
+Every rerun call of depthnav lives in this module (the API moves between releases).
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import uuid
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from depthnav_daemon.errors import ConfigError, SinkError
+from depthnav_daemon.pipeline.geometry import rot_x, rot_y
+from depthnav_daemon.sinks.base import SinkContext, SinkSpec, bool_option, check_options, number_option, parse_host_port
+
+if TYPE_CHECKING:
+    from depthnav_daemon.pipeline import Result
+    from depthnav_daemon.pipeline.scan import LaserScan
+    from drivers.base import Frame, Intrinsics
+
+log = logging.getLogger(__name__)
+
+GRAMMAR = "rerun[?every=N&image=0|1], rerun+grpc://HOST:PORT[?...] or rerun:FILE.rrd[?...]"
+APP_ID = "depthnav"
+DEFAULT_GRPC = ("127.0.0.1", 9876)
+SCAN_Z_M = 0.01              # scan hits are drawn just above the floor, like a footprint map
+CLASS_OBSTACLE = 1
+STATS = "/stats"
+
+
+def _xy_to_points3d(x: np.ndarray, y: np.ndarray, z: float) -> np.ndarray:
+    return np.stack([x, y, np.full_like(x, z)], axis=1).astype(np.float32)
+
+
+def scan_points(scan: LaserScan, z: float = SCAN_Z_M) -> np.ndarray:
+    """(K, 3) float32 points of a scan's finite ranges, level frame at the sensor's foot."""
+    r = np.asarray(scan.ranges, dtype=np.float64)
+    ok = np.isfinite(r)
+    a = scan.angles[ok]
+    return _xy_to_points3d(r[ok] * np.cos(a), r[ok] * np.sin(a), z)
+
+
+def used_rows(intr: Intrinsics, params: Any) -> tuple[int, int]:
+    """[first, last) image rows the scan reads, for the method in ``params`` (ScanParams)."""
+    if params.method == "paper":
+        first = int(intr.cy - params.scan_height / 2.0)
+        return max(0, first), min(intr.height, first + params.scan_height)
+    stop = intr.height if params.row_stop == -1 else min(params.row_stop, intr.height)
+    return min(params.row_start, intr.height), stop
+
+
+def blueprint() -> Any:
+    """The default layout: depth + overlays and time series on the left, the 3-D view on the right."""
+    import rerun.blueprint as rrb
+
+    return rrb.Blueprint(
+        rrb.Horizontal(
+            rrb.Vertical(
+                rrb.Spatial2DView(name="Depth", origin="/world/sensor/depth"),
+                rrb.TimeSeriesView(name="Pose", origin=f"{STATS}/pose"),
+                rrb.TimeSeriesView(name="Timing [ms]", origin=f"{STATS}/timing"),
+                row_shares=[3, 1, 1],
+            ),
+            rrb.Vertical(
+                rrb.Spatial3DView(name="3D", origin="/world"),
+                rrb.TextLogView(name="Log", origin="/log"),
+                row_shares=[4, 1],
+            ),
+            column_shares=[2, 3],
+        ),
+        rrb.BlueprintPanel(state="collapsed"),
+        rrb.SelectionPanel(state="collapsed"),
+        rrb.TimePanel(timeline="frame"),
+    )
+
+
+class RerunSink:
+    """Logs frames to an explicit ``rr.RecordingStream`` (no global rerun state).
+
+    Args:
+        name: the spec, for messages.
+        mode: "spawn", "connect" or "save".
+        target: the gRPC URL (connect) or the file path (save); "" for spawn.
+        every: log every Nth frame.
+        image: log the depth image and its overlays.
+    """
+
+    def __init__(self, name: str, mode: str, target: str = "", every: int = 1, image: bool = True) -> None:
+        self.name, self.mode, self.target, self.every, self.image = name, mode, target, every, image
+        self._rec: Any = None
+        self._rr: Any = None
+        self._context: SinkContext | None = None
+        self._pinhole: Intrinsics | None = None
+        self._frames = 0
+        self.logged = 0
+
+    @classmethod
+    def from_spec(cls, spec: SinkSpec) -> RerunSink:
+        """Build from a parsed spec (no I/O). Raises ConfigError for a bad target or option."""
+        check_options(spec, ("every", "image"), GRAMMAR)
+        every = int(number_option(spec, "every", 1, 1, 10000, integer=True))
+        image = bool_option(spec, "image", True)
+        if spec.scheme == "rerun+grpc":
+            host, port = parse_host_port(spec, DEFAULT_GRPC[0], DEFAULT_GRPC[1])
+            host = f"[{host}]" if ":" in host else host
+            return cls(spec.text, "connect", f"rerun+http://{host}:{port}/proxy", every, image)
+        if not spec.target:
+            return cls(spec.text, "spawn", "", every, image)
+        if not spec.target.endswith(".rrd"):
+            raise ConfigError(f"rerun sink target {spec.target!r} is not an .rrd file",
+                              hint="write rerun:FILE.rrd to save, rerun+grpc://HOST:PORT to connect, rerun to spawn")
+        return cls(spec.text, "save", spec.target, every, image)
+
+    def open(self, context: SinkContext) -> None:
+        """Create the recording, attach the viewer/file, log the static scene.
+
+        Raises:
+            SinkError: rerun-sdk missing, no display to spawn on, or the file cannot be written.
+        """
+        try:
+            import rerun as rr  # absolute: this module is depthnav_daemon.sinks.rerun, not rerun
+        except ModuleNotFoundError as exc:
+            raise SinkError("the rerun sink needs the 'rerun-sdk' package",
+                            hint="pip install 'rerun-sdk>=0.41,<0.42'") from exc
+        self._rr, self._context = rr, context
+        rec = rr.RecordingStream(APP_ID, recording_id=uuid.uuid4())
+        try:
+            if self.mode == "save":
+                parent = os.path.dirname(os.path.abspath(self.target))
+                if not os.path.isdir(parent):
+                    raise SinkError(f"rerun sink: folder {parent!r} does not exist")
+                rec.save(self.target, default_blueprint=blueprint())
+            elif self.mode == "connect":
+                rec.connect_grpc(self.target, default_blueprint=blueprint())
+            else:
+                # without a display the viewer dies and spawn() blocks ~11 s, then drops data
+                if not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
+                    raise SinkError("rerun sink: no display to spawn a viewer on",
+                                    hint="use --sink rerun:FILE.rrd or --sink rerun+grpc://HOST:PORT on a headless robot")
+                rec.spawn(default_blueprint=blueprint())
+        except SinkError:
+            raise
+        except Exception as exc:   # rerun raises plain RuntimeError/OSError subclasses
+            raise SinkError(f"rerun sink ({self.mode} {self.target or 'viewer'}) failed: {exc}") from exc
+        self._rec = rec
+        self._log_static()
+        log.info("rerun sink: %s %s", self.mode, self.target or "viewer")
+
+    def _log_static(self) -> None:
+        rr, rec = self._rr, self._rec
+        rec.log("/world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
+        lines = [[[x, -4.0, 0.0], [x, 4.0, 0.0]] for x in range(0, 7)]
+        lines += [[[0.0, y, 0.0], [6.0, y, 0.0]] for y in range(-4, 5)]
+        rec.log("/world/floor", rr.LineStrips3D(lines, radii=0.004, colors=[110, 110, 110]), static=True)
+        rec.log("/world/sensor/depth/obstacles", rr.AnnotationContext(
+            [(CLASS_OBSTACLE, "obstacle", (255, 40, 40, 200))]), static=True)
+        series = {"height_m": (255, 128, 0), "tilt_deg": (0, 160, 255), "roll_deg": (160, 80, 255)}
+        for key, color in series.items():
+            rec.log(f"{STATS}/pose/{key}", rr.SeriesLines(colors=[color], names=key, widths=2), static=True)
+        rec.log("/meta", rr.AnyValues(version=self._context.version, device=self._context.device.name,
+                                      spec=self._context.device.spec), static=True)
+
+    def write(self, frame: Frame, result: Result) -> None:
+        """Log one frame (every Nth).
+
+        Raises:
+            SinkError: rerun failed to log (e.g. the file became unwritable).
+        """
+        if self._rec is None:
+            raise SinkError(f"sink {self.name!r} is not open")
+        self._frames += 1
+        if (self._frames - 1) % self.every:
+            return
+        try:
+            self._log_frame(frame, result)
+        except Exception as exc:
+            raise SinkError(f"rerun sink: logging frame {result.seq} failed: {exc}") from exc
+        self.logged += 1
+
+    def _log_frame(self, frame: Frame, result: Result) -> None:
+        rr, rec = self._rr, self._rec
+        rec.set_time("frame", sequence=int(result.seq))
+        rec.set_time("sensor_time", duration=float(result.timestamp_s))
+        m = result.mount
+        rot = rot_y(m.tilt_rad) @ rot_x(m.roll_rad)     # sensor body (FLU) -> level, geometry.py's order
+        rec.log("/world/sensor", rr.Transform3D(translation=[0.0, 0.0, m.height_m], mat3x3=rot))
+        if self.image:
+            self._log_image(frame, result)
+        rec.log("/world/scan", rr.Points3D(scan_points(result.scan), radii=0.02, colors=[0, 220, 0]))
+        cliff = result.cliff
+        if cliff is not None:
+            pts = np.asarray(cliff.points_m, dtype=np.float32).reshape(-1, 2)
+            rec.log("/world/cliff/points", rr.Points3D(_xy_to_points3d(pts[:, 0], pts[:, 1], 0.0),
+                                                       radii=0.015, colors=[255, 0, 200]))
+            rec.log("/world/cliff/scan", rr.Points3D(scan_points(cliff.scan, 0.02), radii=0.025,
+                                                     colors=[255, 60, 60]))
+        rec.log(f"{STATS}/pose/height_m", rr.Scalars(m.height_m))
+        rec.log(f"{STATS}/pose/tilt_deg", rr.Scalars(m.tilt_deg))
+        rec.log(f"{STATS}/pose/roll_deg", rr.Scalars(m.roll_deg))
+        for stage, seconds in result.timings_s.items():
+            rec.log(f"{STATS}/timing/{stage}_ms", rr.Scalars(seconds * 1000.0))
+        if result.warning:
+            rec.log("/log", rr.TextLog(f"frame {result.seq}: {result.warning}", level="WARN"))
+        if result.pose is not None and not result.pose.ok:
+            rec.log("/log", rr.TextLog(f"frame {result.seq}: floor estimate rejected: {result.pose.reason}",
+                                       level="INFO"))
+
+    def _log_image(self, frame: Frame, result: Result) -> None:
+        rr, rec, ctx = self._rr, self._rec, self._context
+        intr = frame.intrinsics
+        if intr != self._pinhole:     # intrinsics rarely change: log the pinhole again only then
+            rec.log("/world/sensor/depth", rr.Pinhole(
+                focal_length=[intr.fx, intr.fy], principal_point=[intr.cx, intr.cy], width=intr.width,
+                height=intr.height, camera_xyz=rr.ViewCoordinates.FLU, image_plane_distance=0.3), static=True)
+            self._pinhole = intr
+        far_mm = max(1000.0, ctx.scan_params.range_max_m * 1000.0)
+        rec.log("/world/sensor/depth", rr.DepthImage(frame.depth_mm, meter=1000.0, colormap="turbo",
+                                                     depth_range=[0.0, far_mm]))
+        first, stop = used_rows(intr, ctx.scan_params)
+        rec.log("/world/sensor/depth/band", rr.Boxes2D(mins=[[-0.5, first - 0.5]], sizes=[[intr.width, stop - first]],
+                                                       colors=[[255, 220, 0]], labels=["scan rows"]))
+        if ctx.scan_params.method == "exact":
+            from depthnav_daemon.pipeline.scan import obstacle_pixels
+
+            mask = obstacle_pixels(frame.depth_mm, intr, result.mount, ctx.scan_params)
+            rec.log("/world/sensor/depth/obstacles", rr.SegmentationImage(mask.astype(np.uint8) * CLASS_OBSTACLE,
+                                                                          opacity=0.6))
+        blocks = np.empty((0, 2)) if result.cliff is None else np.asarray(result.cliff.blocks).reshape(-1, 2)
+        size = float(ctx.cliff_block_size)
+        # blocks are (row, col) of the top-left pixel; Boxes2D wants (x, y) = (col, row) pixel edges
+        rec.log("/world/sensor/depth/cliffs", rr.Boxes2D(mins=blocks[:, ::-1].astype(np.float32) - 0.5,
+                                                         sizes=np.full((len(blocks), 2), size, np.float32),
+                                                         colors=[[255, 0, 200]]))
+
+    def close(self) -> None:
+        """Flush and disconnect (which writes the .rrd footer). Safe to call twice."""
+        rec, self._rec = self._rec, None
+        if rec is None:
+            return
+        try:
+            rec.flush(timeout_sec=5.0)
+        except Exception:
+            log.warning("rerun sink: flushing %s failed", self.target or "viewer", exc_info=True)
+        try:
+            rec.disconnect()
+        except Exception:
+            log.warning("rerun sink: disconnecting %s failed", self.target or "viewer", exc_info=True)
+        log.info("rerun sink: %d frames logged to %s", self.logged, self.target or "viewer")

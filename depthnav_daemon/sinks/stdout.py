@@ -1,0 +1,121 @@
+"""``stdout``: one JSON object per frame per line on standard output (docs/json_schema.md).
+
+Spec: ``stdout`` (no target, no options). Each line is flushed as soon as it is written so a
+consumer (or journald) sees every frame at once. Logs must go to stderr: ``open()`` refuses to run
+when a logging handler writes to stdout, since that would corrupt the stream. A closed reader
+(``depthnav run ... | head -1``) ends the sink with a SinkError rather than a traceback.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import sys
+import time
+from typing import TYPE_CHECKING, TextIO
+
+from depthnav_daemon.errors import ConfigError, SinkError
+from depthnav_daemon.sinks import jsonmsg
+from depthnav_daemon.sinks.base import SinkContext, SinkSpec, check_options
+
+if TYPE_CHECKING:
+    from depthnav_daemon.pipeline import Result
+    from drivers.base import Frame
+
+log = logging.getLogger(__name__)
+
+GRAMMAR = "stdout"
+
+
+class StdoutSink:
+    """Writes one strict-JSON line per frame to stdout (or to ``stream``, for tests and embedding).
+
+    Args:
+        name: the spec, for messages.
+        stream: a text stream to write to instead of ``sys.stdout`` (looked up at ``open()``).
+    """
+
+    def __init__(self, name: str = "stdout", stream: TextIO | None = None) -> None:
+        self.name = name
+        self._given_stream = stream
+        self._stream: TextIO | None = None
+        self._version = "unknown"
+        self.lines = 0
+
+    @classmethod
+    def from_spec(cls, spec: SinkSpec) -> StdoutSink:
+        """Build from a parsed spec (no I/O). Raises ConfigError for a target or any option."""
+        check_options(spec, (), GRAMMAR)
+        if spec.target:
+            raise ConfigError(f"the stdout sink takes no target, got {spec.text!r}", hint=f"write {GRAMMAR}")
+        return cls(spec.text)
+
+    def open(self, context: SinkContext) -> None:
+        """Pick the stream and check that no log handler shares it."""
+        stream = self._given_stream if self._given_stream is not None else sys.stdout
+        if stream is None:
+            raise SinkError("stdout is closed", hint="run depthnav with a standard output, or drop --sink stdout")
+        for handler in _all_handlers():
+            if isinstance(handler, logging.StreamHandler) and handler.stream is stream:
+                raise SinkError(
+                    "a log handler writes to stdout, which would corrupt the JSON lines",
+                    hint="send logs to stderr (logging.StreamHandler(sys.stderr))",
+                )
+        self._stream = stream
+        self._version = context.version
+
+    def write(self, frame: Frame, result: Result) -> None:
+        """Write and flush one line.
+
+        Raises:
+            SinkError: the reader went away (broken pipe) or the stream failed.
+        """
+        if self._stream is None:
+            raise SinkError(f"sink {self.name!r} is not open")
+        line = jsonmsg.dumps(jsonmsg.frame_message(frame, result, self._version, time.time()))
+        try:
+            print(line, file=self._stream, flush=True)
+        except BrokenPipeError:
+            self._detach_broken_stdout()
+            raise SinkError(
+                "stdout was closed by the reader (broken pipe)",
+                hint="keep the consumer of depthnav's stdout running, or drop --sink stdout",
+            ) from None
+        except (OSError, ValueError) as exc:   # ValueError: write to a closed file object
+            self._stream = None
+            raise SinkError(f"writing to stdout failed: {exc}") from exc
+        self.lines += 1
+
+    def close(self) -> None:
+        """Flush what is buffered. Safe to call twice; a broken pipe at this point is ignored."""
+        stream, self._stream = self._stream, None
+        if stream is None:
+            return
+        try:
+            stream.flush()
+        except BrokenPipeError:
+            self._detach_broken_stdout(stream)
+        except (OSError, ValueError):
+            log.debug("flushing stdout at close failed", exc_info=True)
+
+    def _detach_broken_stdout(self, stream: TextIO | None = None) -> None:
+        """After a broken pipe, point fd 1 at /dev/null so Python's exit-time flush cannot raise."""
+        stream = stream or self._stream
+        self._stream = None
+        if stream is sys.stdout:
+            # the Python docs' recipe (signal module, "Note on SIGPIPE")
+            try:
+                devnull = os.open(os.devnull, os.O_WRONLY)
+                os.dup2(devnull, sys.stdout.fileno())
+                os.close(devnull)
+            except (OSError, ValueError):
+                log.debug("could not redirect stdout to /dev/null", exc_info=True)
+
+
+def _all_handlers() -> list[logging.Handler]:
+    """Every handler attached to the root logger or any existing logger."""
+    handlers = list(logging.getLogger().handlers)
+    for logger in logging.Logger.manager.loggerDict.values():
+        if isinstance(logger, logging.Logger):
+            handlers.extend(logger.handlers)
+    return handlers
