@@ -56,3 +56,68 @@ def run_isolated(code: str, *args: str, env: dict[str, str] | None = None, timeo
         [sys.executable, "-c", code, *args], capture_output=True, text=True, timeout=timeout_s,
         env=full_env, cwd=str(REPO),
     )
+
+
+def contract_report(spec: str, max_frames: int = 8, timeout_s: float = 5.0) -> dict:
+    """Run one driver through the Driver contract and report what it did (no assertions here).
+
+    Kept free of pytest so it can run in a child process for native backends.
+    """
+    import hashlib
+
+    import drivers
+    from drivers.errors import DriverError
+
+    report: dict = {"spec": spec, "frames": [], "problems": []}
+    driver = drivers.create_driver(spec)
+    info = driver.open()
+    report["info"] = {"name": info.name, "spec": info.spec, "has_accel": info.has_accel,
+                      "intrinsics": None if info.intrinsics is None else list(
+                          (info.intrinsics.width, info.intrinsics.height))}
+    try:
+        for _ in range(max_frames):
+            frame = driver.read_frame(timeout_s)
+            if frame is None:
+                report["ended"] = True
+                report["after_end"] = driver.read_frame(timeout_s) is None
+                break
+            depth = frame.depth_mm
+            if depth.dtype != np.uint16 or depth.shape != (frame.intrinsics.height, frame.intrinsics.width):
+                report["problems"].append(f"frame {frame.seq}: {depth.dtype} {depth.shape}")
+            if depth.flags.writeable:
+                report["problems"].append(f"frame {frame.seq}: depth is writeable")
+            if info.intrinsics is not None and frame.intrinsics != info.intrinsics:
+                report["problems"].append(f"frame {frame.seq}: intrinsics differ from open()")
+            if frame.accel_mps2 is not None:
+                norm = math.sqrt(sum(a * a for a in frame.accel_mps2))
+                if len(frame.accel_mps2) != 3 or not 5.0 <= norm <= 15.0:
+                    report["problems"].append(f"frame {frame.seq}: implausible accel {frame.accel_mps2}")
+            report["frames"].append({"seq": frame.seq, "t": frame.timestamp_s,
+                                     "sha": hashlib.sha256(depth.tobytes()).hexdigest()[:16],
+                                     "accel": frame.accel_mps2 is not None})
+    finally:
+        driver.close()
+        driver.close()
+    try:
+        driver.read_frame(0.1)
+        report["problems"].append("read_frame after close() did not raise")
+    except DriverError:
+        pass
+    return report
+
+
+CONTRACT_CHILD = """
+import json, sys
+from driverkit import contract_report
+print(json.dumps(contract_report(sys.argv[1], int(sys.argv[2]))))
+"""
+
+
+def contract_report_isolated(spec: str, max_frames: int = 8) -> dict:
+    """:func:`contract_report` in a child process (for native backends)."""
+    import json
+
+    proc = run_isolated(CONTRACT_CHILD, spec, str(max_frames), timeout_s=120.0)
+    if proc.returncode != 0:
+        raise AssertionError(f"{spec}: child exited {proc.returncode}: {proc.stderr[-2000:]}")
+    return json.loads(proc.stdout.strip().splitlines()[-1])
