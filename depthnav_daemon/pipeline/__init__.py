@@ -6,15 +6,19 @@ such as the smoothed mount and when to re-estimate the pose.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
+import numpy as np
+
 from depthnav_daemon.pipeline.geometry import Mount
-from depthnav_daemon.pipeline.scan import LaserScan
+from depthnav_daemon.pipeline.scan import LaserScan, ScanParams, depth_to_scan
+from drivers.base import Frame
 
 if TYPE_CHECKING:
-    from depthnav_daemon.pipeline.cliff import CliffResult
-    from depthnav_daemon.pipeline.pose import PoseEstimate
+    from depthnav_daemon.pipeline.cliff import CliffParams, CliffResult
+    from depthnav_daemon.pipeline.pose import PoseEstimate, PoseParams
     from drivers.base import Intrinsics
 
 # where the mount used for a frame came from
@@ -48,3 +52,59 @@ class Result:
     pose: PoseEstimate | None = None
     timings_s: dict[str, float] = field(default_factory=dict)
     warning: str | None = None
+
+
+def process(
+    frame: Frame,
+    mount: Mount,
+    scan_params: ScanParams,
+    cliff_params: CliffParams | None = None,
+    pose_params: PoseParams | None = None,
+    rng: np.random.Generator | None = None,
+    mount_source: str = "config",
+    clock: Callable[[], float] | None = None,
+) -> Result:
+    """Run the stages on one frame.
+
+    Args:
+        frame: the depth frame.
+        mount: sensor height, tilt and roll the scan and cliff stages use.
+        scan_params: scan parameters.
+        cliff_params: cliff parameters, or None to skip the cliff stage.
+        pose_params: pose parameters, or None to skip the floor pose estimate on this frame.
+        rng: random generator for RANSAC; required with ``pose_params``.
+        mount_source: where ``mount`` came from, copied into the result.
+        clock: a monotonic clock (seconds) to time the stages with, or None for no timings.
+
+    Returns:
+        The frame's Result; a frame without any valid reading gives all-NaN scans and a warning.
+    """
+    from depthnav_daemon.pipeline.cliff import detect_cliffs
+    from depthnav_daemon.pipeline.pose import estimate_pose
+
+    timings: dict[str, float] = {}
+    depth, intr = frame.depth_mm, frame.intrinsics
+    warning = None if depth.any() else "no valid depth in this frame (all pixels 0)"
+
+    t0 = clock() if clock else 0.0
+    scan = depth_to_scan(depth, intr, mount, scan_params)
+    t1 = clock() if clock else 0.0
+    cliff = None
+    if cliff_params is not None:
+        cliff = detect_cliffs(depth, intr, mount, cliff_params, scan.angle_min, scan.angle_increment, scan.ranges.size)
+    t2 = clock() if clock else 0.0
+    pose = None
+    if pose_params is not None:
+        if rng is None:
+            raise ValueError("process() with pose_params needs an rng (numpy.random.Generator)")
+        pose = estimate_pose(depth, intr, pose_params, rng)
+    t3 = clock() if clock else 0.0
+    if clock:
+        timings = {"scan": t1 - t0}
+        if cliff_params is not None:
+            timings["cliff"] = t2 - t1
+        if pose_params is not None:
+            timings["pose"] = t3 - t2
+    return Result(
+        frame.seq, frame.timestamp_s, intr, mount, mount_source, scan, cliff, pose, timings, warning
+    )

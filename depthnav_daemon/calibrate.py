@@ -1,0 +1,117 @@
+"""``depthnav calibrate``: the sensor's height, tilt and roll from the floor over N frames."""
+
+from __future__ import annotations
+
+import math
+import os
+import tempfile
+import threading
+import tomllib
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import tomli_w
+
+from depthnav_daemon.config import Config
+from depthnav_daemon.errors import ConfigError, DepthnavError
+from depthnav_daemon.pipeline.pose import estimate_pose
+from drivers import create_driver, iter_frames, opened
+
+
+@dataclass(frozen=True, slots=True)
+class Calibration:
+    """The mount estimated over several frames: medians, spreads (standard deviations) and quality."""
+
+    height_m: float
+    tilt_deg: float
+    roll_deg: float
+    height_std_m: float
+    tilt_std_deg: float
+    roll_std_deg: float
+    inlier_ratio: float
+    frames_used: int
+    frames_read: int
+
+    def as_dict(self) -> dict[str, Any]:
+        return {k: (round(v, 6) if isinstance(v, float) else v) for k, v in
+                ((f, getattr(self, f)) for f in self.__slots__)}  # type: ignore[attr-defined]
+
+
+def calibrate(
+    cfg: Config, n_frames: int, stop: threading.Event, progress: Callable[[int, int], None] | None = None
+) -> Calibration:
+    """Estimate the mount from the floor on up to ``n_frames`` frames of ``cfg.device``.
+
+    Raises:
+        DepthnavError: too little floor in too many frames (with a hint to point at open floor).
+    """
+    rng = np.random.default_rng(cfg.daemon.seed)
+    good: list[tuple[float, float, float, float]] = []
+    reasons: list[str] = []
+    read = 0
+    driver = create_driver(cfg.device)
+    with opened(driver):
+        for frame in iter_frames(driver, stop):
+            est = estimate_pose(frame.depth_mm, frame.intrinsics, cfg.pose, rng)
+            read += 1
+            if est.ok:
+                good.append((est.height_m, est.tilt_deg, est.roll_deg, est.inlier_ratio))
+            else:
+                reasons.append(est.reason)
+            if progress:
+                progress(read, n_frames)
+            if read >= n_frames:
+                break
+    need = max(1, math.ceil(read / 3))
+    if read == 0:
+        raise DepthnavError(f"{cfg.device} gave no frames", hint="check the device with depthnav devices")
+    if len(good) < need:
+        why = reasons[-1] if reasons else "no confident floor estimate"
+        raise DepthnavError(
+            f"too little floor: {len(good)} of {read} frames gave a confident floor estimate ({why})",
+            hint="point the sensor at open floor, or widen the [pose] prior (height_min_m.. tilt_max_deg)",
+        )
+    a = np.array(good)
+    med = np.median(a, axis=0)
+    std = a.std(axis=0)
+    return Calibration(float(med[0]), float(med[1]), float(med[2]), float(std[0]), float(std[1]),
+                       float(std[2]), float(med[3]), len(good), read)
+
+
+def format_text(c: Calibration) -> str:
+    return "\n".join([
+        f"height  {c.height_m:.3f} m    (spread {c.height_std_m * 1000:.1f} mm)",
+        f"tilt    {c.tilt_deg:.2f} deg   (spread {c.tilt_std_deg:.2f} deg, positive = pitched down)",
+        f"roll    {c.roll_deg:.2f} deg   (spread {c.roll_std_deg:.2f} deg, positive = left side up)",
+        f"floor   {c.inlier_ratio:.0%} inliers, {c.frames_used} of {c.frames_read} frames used",
+        "",
+        "[mount]",
+        f"height_m = {c.height_m:.3f}",
+        f"tilt_deg = {c.tilt_deg:.2f}",
+        f"roll_deg = {c.roll_deg:.2f}",
+    ])
+
+
+def write_mount(path: Path, c: Calibration) -> None:
+    """Set the [mount] section of a TOML config file (created if missing), atomically."""
+    data: dict[str, Any] = {}
+    if path.exists():
+        try:
+            data = tomllib.loads(path.read_text())
+        except (tomllib.TOMLDecodeError, OSError, UnicodeDecodeError) as exc:
+            raise ConfigError(f"{path} is not a TOML file I can update: {exc}",
+                              hint="name a new file or fix this one") from None
+    data["mount"] = {"height_m": round(c.height_m, 4), "tilt_deg": round(c.tilt_deg, 3),
+                     "roll_deg": round(c.roll_deg, 3)}
+    folder = path.resolve().parent
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=folder)
+    try:
+        with os.fdopen(fd, "wb") as fh:
+            tomli_w.dump(data, fh)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise

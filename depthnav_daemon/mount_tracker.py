@@ -1,0 +1,111 @@
+"""The live mount: configured first, then the accelerometer or a serial tilt source, then the floor.
+
+The original's three tools were never wired together; here the floor pose estimate feeds the scan
+and cliff stages. A configured mount is used until a tilt sensor or the floor says better; floor
+estimates are smoothed; an estimate that jumps beyond a bound is logged and held back until several
+consecutive estimates agree with each other (the sensor really was moved).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass
+
+from depthnav_daemon.pipeline.geometry import MAX_ROLL_DEG, MAX_TILT_DEG, Mount
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True, slots=True)
+class TrackerParams:
+    """See DaemonParams for the meaning of each field."""
+
+    smoothing: float = 0.3
+    max_jump_m: float = 0.05
+    max_jump_deg: float = 3.0
+    confirmations: int = 3
+
+
+def _distance(a: Mount, b: Mount) -> tuple[float, float]:
+    """(height difference m, largest angle difference deg) between two mounts."""
+    return abs(a.height_m - b.height_m), max(abs(a.tilt_deg - b.tilt_deg), abs(a.roll_deg - b.roll_deg))
+
+
+def _clamped(height_m: float, tilt_deg: float, roll_deg: float) -> Mount:
+    return Mount(
+        min(max(height_m, 0.01), 10.0),
+        min(max(tilt_deg, -MAX_TILT_DEG), MAX_TILT_DEG),
+        min(max(roll_deg, -MAX_ROLL_DEG), MAX_ROLL_DEG),
+    )
+
+
+class MountTracker:
+    """Holds the mount the stages use and where it came from ("config", "accel", "serial", "floor")."""
+
+    def __init__(self, configured: Mount, params: TrackerParams) -> None:
+        self.mount = configured
+        self.source = "config"
+        self._params = params
+        self._floor_seen = False
+        self._pending: list[Mount] = []
+        self.rejected = 0
+
+    def from_tilt_sensor(self, tilt_deg: float, roll_deg: float, source: str) -> None:
+        """Use a tilt sensor's reading (accelerometer or serial IMU) until the floor gives a pose.
+
+        The sensor gives tilt and roll only; the height stays as configured.
+        """
+        if self._floor_seen or not (math.isfinite(tilt_deg) and math.isfinite(roll_deg)):
+            return
+        if self.source != source:
+            log.info("mount tilt %.1f deg, roll %.1f deg from the %s", tilt_deg, roll_deg, source)
+            self.mount = _clamped(self.mount.height_m, tilt_deg, roll_deg)
+        else:  # smooth sensor noise
+            a = self._params.smoothing
+            m = self.mount
+            self.mount = _clamped(m.height_m, m.tilt_deg + a * (tilt_deg - m.tilt_deg), m.roll_deg + a * (roll_deg - m.roll_deg))
+        self.source = source
+
+    def from_floor(self, height_m: float, tilt_deg: float, roll_deg: float) -> str | None:
+        """Apply a confident floor estimate; returns a log-worthy note when something notable happened."""
+        new = _clamped(height_m, tilt_deg, roll_deg)
+        if not self._floor_seen:
+            self._floor_seen = True
+            old, self.mount, self.source = self.mount, new, "floor"
+            self._pending.clear()
+            return (
+                f"mount from the floor: height {new.height_m:.3f} m, tilt {new.tilt_deg:.2f} deg, roll "
+                f"{new.roll_deg:.2f} deg (was {old.height_m:.3f} m, {old.tilt_deg:.2f} deg, {old.roll_deg:.2f} deg)"
+            )
+        dh, da = _distance(new, self.mount)
+        p = self._params
+        if dh <= p.max_jump_m and da <= p.max_jump_deg:
+            self._pending.clear()
+            m = self.mount
+            a = p.smoothing
+            self.mount = _clamped(
+                m.height_m + a * (new.height_m - m.height_m),
+                m.tilt_deg + a * (new.tilt_deg - m.tilt_deg),
+                m.roll_deg + a * (new.roll_deg - m.roll_deg),
+            )
+            return None
+        # a jump: hold it back until enough consecutive estimates agree with each other
+        if self._pending and any(
+            _distance(new, q)[0] > p.max_jump_m or _distance(new, q)[1] > p.max_jump_deg for q in self._pending
+        ):
+            self._pending.clear()
+        self._pending.append(new)
+        if len(self._pending) >= p.confirmations:
+            self.mount = self._pending[-1]
+            self._pending.clear()
+            return (
+                f"mount jump accepted after {p.confirmations} agreeing floor estimates: height "
+                f"{self.mount.height_m:.3f} m, tilt {self.mount.tilt_deg:.2f} deg, roll {self.mount.roll_deg:.2f} deg"
+            )
+        self.rejected += 1
+        return (
+            f"floor estimate (height {new.height_m:.3f} m, tilt {new.tilt_deg:.2f} deg, roll {new.roll_deg:.2f} deg) "
+            f"jumps {dh:.3f} m / {da:.2f} deg from the running mount; not applied "
+            f"({len(self._pending)}/{p.confirmations} agreeing estimates)"
+        )
