@@ -24,7 +24,12 @@ from drivers.spec import Spec, parse_spec
 log = logging.getLogger(__name__)
 
 __all__ = [
-    "DRIVERS", "create_driver", "describe_backends", "detect_devices", "iter_frames", "opened",
+    "DRIVERS",
+    "create_driver",
+    "describe_backends",
+    "detect_devices",
+    "iter_frames",
+    "opened",
     "parse_spec",
 ]
 
@@ -40,7 +45,9 @@ PIP_PACKAGES = {"openni": "openni", "usb": "pyusb", "serial": "pyserial", "PIL":
 def _driver_class(scheme: str, text: str) -> type:
     if scheme not in DRIVERS:
         known = ", ".join(sorted([*DRIVERS, *ALIASES]))
-        raise DeviceSpecError(f"unknown device scheme {scheme!r} in {text!r}", hint=f"use one of: {known}")
+        raise DeviceSpecError(
+            f"unknown device scheme {scheme!r} in {text!r}", hint=f"use one of: {known}"
+        )
     module_name, class_name = DRIVERS[scheme]
     try:
         module = importlib.import_module(module_name)
@@ -95,12 +102,12 @@ def iter_frames(
 def detect_devices() -> list[tuple[str, str]]:
     """Devices that can be opened here, as (spec, description); never raises."""
     found: list[tuple[str, str]] = []
-    for scheme, (module_name, class_name) in DRIVERS.items():
+    for scheme in DRIVERS:
         try:
             detect = getattr(_driver_class(scheme, scheme), "detect", None)
             if detect is not None:
                 found.extend(detect())
-        except Exception:  # noqa: BLE001 - discovery must never fail the command
+        except Exception:
             log.debug("device detection for %s failed", scheme, exc_info=True)
     return found
 
@@ -114,7 +121,7 @@ def describe_backends() -> list[tuple[str, str]]:
             out.extend(status() if status else [(scheme, "available")])
         except DriverError as exc:
             out.append((scheme, f"missing: {exc}"))
-        except Exception as exc:  # noqa: BLE001
+        except Exception as exc:
             log.debug("backend status for %s failed", scheme, exc_info=True)
             out.append((scheme, f"error: {exc}"))
     return out

@@ -39,9 +39,9 @@ _NAME = re.compile(r"([dra])-(\d+(?:\.\d*)?)-(\d+)(?:-.*)?\.(pgm|ppm|dump)\Z")
 
 # Kinect 360 zero-plane constants as libfreenect reads them from the device; typical values.
 CONST_SHIFT = 200.0
-REFERENCE_DISTANCE = 120.0       # zero-plane distance, cm
-REFERENCE_PIXEL_SIZE = 0.1042    # zero-plane pixel size, mm
-DCMOS_EMITTER_DIST = 7.5         # emitter to IR camera baseline, cm
+REFERENCE_DISTANCE = 120.0  # zero-plane distance, cm
+REFERENCE_PIXEL_SIZE = 0.1042  # zero-plane pixel size, mm
+DCMOS_EMITTER_DIST = 7.5  # emitter to IR camera baseline, cm
 
 
 @functools.lru_cache(maxsize=8)
@@ -55,23 +55,31 @@ def disparity_to_mm_table(const_shift: float = CONST_SHIFT) -> npt.NDArray[np.ui
     fixed_ref_x = (raw - 4.0 * const_shift) / 4.0 - 0.375
     metric = fixed_ref_x * REFERENCE_PIXEL_SIZE
     with np.errstate(divide="ignore", invalid="ignore"):
-        mm = 10.0 * (metric * REFERENCE_DISTANCE / (DCMOS_EMITTER_DIST - metric) + REFERENCE_DISTANCE)
+        mm = 10.0 * (
+            metric * REFERENCE_DISTANCE / (DCMOS_EMITTER_DIST - metric) + REFERENCE_DISTANCE
+        )
     valid = (metric < DCMOS_EMITTER_DIST) & (mm >= 1.0) & (mm < MAX_MM)
-    table = np.where(valid, np.trunc(np.where(valid, mm, 0.0)), 0.0).astype(np.uint16)  # C truncates
+    table = np.where(valid, np.trunc(np.where(valid, mm, 0.0)), 0.0).astype(
+        np.uint16
+    )  # C truncates
     table[NO_DISPARITY] = 0
     table.setflags(write=False)
     return table
 
 
-def disparity_to_mm(raw: npt.NDArray[np.uint16], const_shift: float = CONST_SHIFT) -> npt.NDArray[np.uint16]:
+def disparity_to_mm(
+    raw: npt.NDArray[np.uint16], const_shift: float = CONST_SHIFT
+) -> npt.NDArray[np.uint16]:
     """(H, W) raw disparity to (H, W) uint16 millimetres, 0 = no reading."""
     return disparity_to_mm_table(const_shift)[np.minimum(raw, NO_DISPARITY)]
 
 
-def mm_to_disparity(depth_mm: npt.NDArray[np.uint16], const_shift: float = CONST_SHIFT) -> npt.NDArray[np.uint16]:
+def mm_to_disparity(
+    depth_mm: npt.NDArray[np.uint16], const_shift: float = CONST_SHIFT
+) -> npt.NDArray[np.uint16]:
     """(H, W) millimetres to the raw disparity whose depth is nearest; 0 mm -> 2047."""
     table = disparity_to_mm_table(const_shift)
-    raws = np.flatnonzero(table)                      # valid raw values, depth increasing
+    raws = np.flatnonzero(table)  # valid raw values, depth increasing
     depths = table[raws].astype(np.float64)
     mm = np.asarray(depth_mm, dtype=np.float64)
     idx = np.clip(np.searchsorted(depths, mm), 1, len(raws) - 1)
@@ -85,9 +93,9 @@ def mm_to_disparity(depth_mm: npt.NDArray[np.uint16], const_shift: float = CONST
 class Entry:
     """One line of INDEX.txt."""
 
-    kind: str          # "d", "r" or "a"
-    time_s: float      # host time when recorded, seconds
-    device_ts: int     # device timestamp (depth) or last frame timestamp seen (accel)
+    kind: str  # "d", "r" or "a"
+    time_s: float  # host time when recorded, seconds
+    device_ts: int  # device timestamp (depth) or last frame timestamp seen (accel)
     path: Path
 
 
@@ -108,11 +116,15 @@ def read_index(folder: Path) -> list[Entry]:
         match = _NAME.match(name)
         if not match or "/" in name:
             raise RecordingError(
-                f"{index}:{number}: {name!r} is not a fakenect file name (d-/r-/a-<time>-<ts>.<ext>)"
+                f"{index}:{number}: {name!r} is not a fakenect file name "
+                "(d-/r-/a-<time>-<ts>.<ext>)"
             )
         path = folder / name
         if not path.is_file():
-            raise RecordingError(f"{index}:{number}: names {name}, which is missing", hint="the recording is incomplete")
+            raise RecordingError(
+                f"{index}:{number}: names {name}, which is missing",
+                hint="the recording is incomplete",
+            )
         entries.append(Entry(match.group(1), float(match.group(2)), int(match.group(3)), path))
     if not any(e.kind == "d" for e in entries):
         raise RecordingError(f"{index}: lists no depth frames (d-*.pgm)")
@@ -123,10 +135,15 @@ def read_depth_pgm(path: Path) -> npt.NDArray[np.uint16]:
     """Read one fakenect depth file as (480, 640) raw disparity."""
     data = path.read_bytes()
     if not data.startswith(PGM_HEADER):
-        raise RecordingError(f"{path}: header is not {PGM_HEADER[:-1].decode()!r}; only 640x480 11-bit depth is supported")
+        raise RecordingError(
+            f"{path}: header is not {PGM_HEADER[:-1].decode()!r}; "
+            "only 640x480 11-bit depth is supported"
+        )
     expected = len(PGM_HEADER) + WIDTH * HEIGHT * 2
     if len(data) != expected:
-        raise RecordingError(f"{path}: {len(data)} bytes, expected {expected} (truncated or corrupt)")
+        raise RecordingError(
+            f"{path}: {len(data)} bytes, expected {expected} (truncated or corrupt)"
+        )
     raw = np.frombuffer(data, dtype="<u2", offset=len(PGM_HEADER)).reshape(HEIGHT, WIDTH)
     if int(raw.max()) > NO_DISPARITY:
         raise RecordingError(f"{path}: values above 2047; not 11-bit disparity")
@@ -134,7 +151,7 @@ def read_depth_pgm(path: Path) -> npt.NDArray[np.uint16]:
 
 
 def read_accel_dump(path: Path) -> tuple[int, int, int, int, int] | None:
-    """(x, y, z counts, tilt half-degrees, status) from an a-*.dump, or None if its size is wrong."""
+    """(x, y, z counts, tilt half-degrees, status) from an a-*.dump; None if the size is wrong."""
     data = path.read_bytes()
     if len(data) != ACCEL_DUMP.size:
         log.warning("%s: %d bytes, expected %d; ignoring it", path, len(data), ACCEL_DUMP.size)
@@ -167,7 +184,9 @@ def iter_fakenect(
 
 
 def write_fakenect(
-    folder: str | os.PathLike[str], frames: Iterable[Frame], const_shift: float = CONST_SHIFT,
+    folder: str | os.PathLike[str],
+    frames: Iterable[Frame],
+    const_shift: float = CONST_SHIFT,
     start_time_s: float = 1_000_000.0,
 ) -> int:
     """Write frames as a fakenect recording (depth quantised to 11-bit disparity).
@@ -189,10 +208,12 @@ def write_fakenect(
     count = 0
     for frame in frames:
         if frame.depth_mm.shape != (HEIGHT, WIDTH):
-            raise RecordingError(f"{out}: fakenect holds 640x480 depth only, frame {frame.seq} is "
-                                 f"{frame.depth_mm.shape[1]}x{frame.depth_mm.shape[0]}")
+            raise RecordingError(
+                f"{out}: fakenect holds 640x480 depth only, frame {frame.seq} is "
+                f"{frame.depth_mm.shape[1]}x{frame.depth_mm.shape[0]}"
+            )
         t = start_time_s + frame.timestamp_s
-        ts = int(round(frame.timestamp_s * 1e6)) & 0xFFFFFFFF
+        ts = round(frame.timestamp_s * 1e6) & 0xFFFFFFFF
         name = f"d-{t:.6f}-{ts}.pgm"
         raw = mm_to_disparity(frame.depth_mm, const_shift).astype("<u2")
         (out / name).write_bytes(PGM_HEADER + raw.tobytes())

@@ -24,8 +24,13 @@ from drivers.errors import DeviceOpenError, DriverNotAvailable, OpenFailure
 
 log = logging.getLogger(__name__)
 
-LIB_DIRS = ("/usr/lib/x86_64-linux-gnu", "/usr/lib/aarch64-linux-gnu", "/usr/lib/arm-linux-gnueabihf",
-            "/usr/lib", "/usr/local/lib")
+LIB_DIRS = (
+    "/usr/lib/x86_64-linux-gnu",
+    "/usr/lib/aarch64-linux-gnu",
+    "/usr/lib/arm-linux-gnueabihf",
+    "/usr/lib",
+    "/usr/local/lib",
+)
 LIB_NAME = "libfreenect.so.0.5"
 WIDTH, HEIGHT = 640, 480
 
@@ -37,18 +42,30 @@ DEVICE_MOTOR, DEVICE_CAMERA = 0x01, 0x02
 class FrameMode(ctypes.Structure):
     """``freenect_frame_mode``."""
 
-    _fields_ = [("reserved", ctypes.c_uint32), ("resolution", ctypes.c_int), ("format", ctypes.c_int32),
-                ("bytes", ctypes.c_int32), ("width", ctypes.c_int16), ("height", ctypes.c_int16),
-                ("data_bits_per_pixel", ctypes.c_int8), ("padding_bits_per_pixel", ctypes.c_int8),
-                ("framerate", ctypes.c_int8), ("is_valid", ctypes.c_int8)]
+    _fields_ = [
+        ("reserved", ctypes.c_uint32),
+        ("resolution", ctypes.c_int),
+        ("format", ctypes.c_int32),
+        ("bytes", ctypes.c_int32),
+        ("width", ctypes.c_int16),
+        ("height", ctypes.c_int16),
+        ("data_bits_per_pixel", ctypes.c_int8),
+        ("padding_bits_per_pixel", ctypes.c_int8),
+        ("framerate", ctypes.c_int8),
+        ("is_valid", ctypes.c_int8),
+    ]
 
 
 class RawTiltState(ctypes.Structure):
     """``freenect_raw_tilt_state``: accelerometer counts, tilt half-degrees, status."""
 
-    _fields_ = [("accelerometer_x", ctypes.c_int16), ("accelerometer_y", ctypes.c_int16),
-                ("accelerometer_z", ctypes.c_int16), ("tilt_angle", ctypes.c_int8),
-                ("tilt_status", ctypes.c_int)]
+    _fields_ = [
+        ("accelerometer_x", ctypes.c_int16),
+        ("accelerometer_y", ctypes.c_int16),
+        ("accelerometer_z", ctypes.c_int16),
+        ("tilt_angle", ctypes.c_int8),
+        ("tilt_status", ctypes.c_int),
+    ]
 
 
 class TimeVal(ctypes.Structure):
@@ -77,8 +94,9 @@ def load(path: Path) -> ctypes.CDLL:
     try:
         lib = ctypes.CDLL(str(path))
     except OSError as exc:
-        raise DriverNotAvailable(f"cannot load libfreenect at {path}: {exc}",
-                                 hint="apt-get install libfreenect0.5") from None
+        raise DriverNotAvailable(
+            f"cannot load libfreenect at {path}: {exc}", hint="apt-get install libfreenect0.5"
+        ) from None
     vp, pp = ctypes.c_void_p, ctypes.POINTER(ctypes.c_void_p)
     signatures = {
         "freenect_init": ([pp, vp], ctypes.c_int),
@@ -100,8 +118,10 @@ def load(path: Path) -> ctypes.CDLL:
         try:
             func = getattr(lib, name)
         except AttributeError:
-            raise DriverNotAvailable(f"{path} lacks {name}; not a libfreenect 0.5 build",
-                                     hint="apt-get install libfreenect0.5") from None
+            raise DriverNotAvailable(
+                f"{path} lacks {name}; not a libfreenect 0.5 build",
+                hint="apt-get install libfreenect0.5",
+            ) from None
         func.argtypes, func.restype = args, res
     return lib
 
@@ -118,7 +138,9 @@ class FreenectDepth:
             constants); fakenect 0.5.3 aborts on that request, so pass False for it.
     """
 
-    def __init__(self, lib_path: Path, index: int = 0, use_motor: bool = False, want_mm: bool = True) -> None:
+    def __init__(
+        self, lib_path: Path, index: int = 0, use_motor: bool = False, want_mm: bool = True
+    ) -> None:
         self.lib_path = lib_path
         self.want_mm = want_mm
         self.index = index
@@ -138,19 +160,30 @@ class FreenectDepth:
         """Initialise, open the device and start the depth stream."""
         lib = self._lib = load(self.lib_path)
         if lib.freenect_init(ctypes.byref(self._ctx), None) < 0:
-            raise DeviceOpenError("libfreenect failed to initialise (no USB access?)",
-                                  hint="check udev rules for 045e:02ae", reason=OpenFailure.PERMISSION)
-        lib.freenect_select_subdevices(self._ctx, DEVICE_CAMERA | (DEVICE_MOTOR if self.use_motor else 0))
+            raise DeviceOpenError(
+                "libfreenect failed to initialise (no USB access?)",
+                hint="check udev rules for 045e:02ae",
+                reason=OpenFailure.PERMISSION,
+            )
+        lib.freenect_select_subdevices(
+            self._ctx, DEVICE_CAMERA | (DEVICE_MOTOR if self.use_motor else 0)
+        )
         count = lib.freenect_num_devices(self._ctx)
         if count <= self.index:
             self.close()
             raise DeviceOpenError(
-                f"no Kinect found (045e:02ae/02b0) at index {self.index} ({count} found): plugged in? "
-                "udev rules? run `depthnav devices`", reason=OpenFailure.NOT_FOUND)
+                f"no Kinect found (045e:02ae/02b0) at index {self.index} ({count} found): "
+                "plugged in? "
+                "udev rules? run `depthnav devices`",
+                reason=OpenFailure.NOT_FOUND,
+            )
         if lib.freenect_open_device(self._ctx, ctypes.byref(self._dev), self.index) < 0:
             self.close()
-            raise DeviceOpenError(f"could not open Kinect {self.index} (busy or no permission)",
-                                  hint="close other Kinect programs; check udev rules", reason=OpenFailure.BUSY)
+            raise DeviceOpenError(
+                f"could not open Kinect {self.index} (busy or no permission)",
+                hint="close other Kinect programs; check udev rules",
+                reason=OpenFailure.BUSY,
+            )
         if self.want_mm:
             mode = lib.freenect_find_depth_mode(RESOLUTION_MEDIUM, DEPTH_MM)
             self.is_mm = bool(mode.is_valid) and lib.freenect_set_depth_mode(self._dev, mode) == 0
@@ -158,7 +191,9 @@ class FreenectDepth:
             mode = lib.freenect_find_depth_mode(RESOLUTION_MEDIUM, DEPTH_11BIT)
             if not mode.is_valid or lib.freenect_set_depth_mode(self._dev, mode) < 0:
                 self.close()
-                raise DeviceOpenError("libfreenect refused the 640x480 depth mode", reason=OpenFailure.UNSUPPORTED)
+                raise DeviceOpenError(
+                    "libfreenect refused the 640x480 depth mode", reason=OpenFailure.UNSUPPORTED
+                )
         lib.freenect_set_depth_callback(self._dev, self._callback)
         if lib.freenect_start_depth(self._dev) < 0:
             self.close()
@@ -170,7 +205,9 @@ class FreenectDepth:
         if not data:
             return
         buf = (ctypes.c_uint16 * (WIDTH * HEIGHT)).from_address(data)
-        frame = np.frombuffer(buf, dtype=np.uint16).reshape(HEIGHT, WIDTH).copy()  # C reuses the buffer
+        frame = (
+            np.frombuffer(buf, dtype=np.uint16).reshape(HEIGHT, WIDTH).copy()
+        )  # C reuses the buffer
         item = (time.monotonic(), frame)
         try:
             self._queue.put_nowait(item)
@@ -208,7 +245,13 @@ class FreenectDepth:
         assert self._lib is not None
         self._lib.freenect_update_tilt_state(self._dev)
         st = self._lib.freenect_get_tilt_state(self._dev).contents
-        return (st.accelerometer_x, st.accelerometer_y, st.accelerometer_z, st.tilt_angle, st.tilt_status)
+        return (
+            st.accelerometer_x,
+            st.accelerometer_y,
+            st.accelerometer_z,
+            st.tilt_angle,
+            st.tilt_status,
+        )
 
     def close(self) -> None:
         """Stop the event thread and release the device. Safe to call twice."""

@@ -1,4 +1,4 @@
-"""Kinect 360 (model 1414): depth through libfreenect (ctypes), accelerometer/tilt/LED through pyusb.
+"""Kinect 360 (model 1414): depth via libfreenect (ctypes), accelerometer/tilt/LED via pyusb.
 
 Spec: ``kinect[://INDEX][?accel=usb|freenect|none&tilt_deg=D&led=NAME&lib=PATH&fakenect=DIR&const_shift=C]``
 
@@ -26,7 +26,14 @@ from typing import Any
 
 from drivers import fakenect_format
 from drivers.base import KINECT_V1, DeviceInfo, Frame, TiltState
-from drivers.errors import DeviceLost, DeviceSpecError, DriverError, DriverNotAvailable, FrameTimeout, RecordingError
+from drivers.errors import (
+    DeviceLost,
+    DeviceSpecError,
+    DriverError,
+    DriverNotAvailable,
+    FrameTimeout,
+    RecordingError,
+)
 from drivers.freenect_lib import FreenectDepth, find_library
 from drivers.kinect_axes import accel_counts_to_camera, tilt_status_name
 from drivers.kinect_motor import LED, KinectMotor, describe_kinects
@@ -34,8 +41,10 @@ from drivers.spec import Spec, check_options, choice_option, float_option
 
 log = logging.getLogger(__name__)
 
-GRAMMAR = ("kinect[://INDEX][?accel=usb|freenect|none&tilt_deg=D&led=NAME&lib=PATH"
-           "&fakenect=DIR&const_shift=C]")
+GRAMMAR = (
+    "kinect[://INDEX][?accel=usb|freenect|none&tilt_deg=D&led=NAME&lib=PATH"
+    "&fakenect=DIR&const_shift=C]"
+)
 OPTIONS = ("accel", "tilt_deg", "led", "lib", "fakenect", "const_shift")
 
 
@@ -51,9 +60,13 @@ def check_fakenect_recording(folder: Path) -> int:
         if entry.kind in "dr":
             with open(entry.path, "rb") as fh:
                 head = fh.read(len(fakenect_format.PGM_HEADER))
-            if entry.kind == "d" and (head != fakenect_format.PGM_HEADER or entry.path.stat().st_size != expected):
-                raise RecordingError(f"{entry.path}: not a 640x480 11-bit fakenect depth file of {expected} bytes "
-                                     "(truncated or corrupt)")
+            if entry.kind == "d" and (
+                head != fakenect_format.PGM_HEADER or entry.path.stat().st_size != expected
+            ):
+                raise RecordingError(
+                    f"{entry.path}: not a 640x480 11-bit fakenect depth file of {expected} bytes "
+                    "(truncated or corrupt)"
+                )
             if entry.kind == "r" and b"\n" not in head:
                 raise RecordingError(f"{entry.path}: colour file without a header line")
     return sum(e.kind == "d" for e in entries)
@@ -65,15 +78,24 @@ class KinectDriver:
     Args:
         index: device index on the bus.
         accel: "usb", "freenect" or "none".
-        lib_path: libfreenect to load; None finds the system's (or fakenect's, with ``fakenect_dir``).
+        lib_path: libfreenect to load; None finds the system's (fakenect's with ``fakenect_dir``).
         fakenect_dir: a fakenect recording to replay instead of a live device.
         usb_backend: pyusb backend for the motor device; None means libusb (tests inject one).
     """
 
-    def __init__(self, index: int = 0, *, accel: str = "usb", tilt_deg: float | None = None,
-                 led: str | None = None, lib_path: Path | None = None, fakenect_dir: Path | None = None,
-                 const_shift: float = fakenect_format.CONST_SHIFT, usb_backend: Any = None,
-                 spec_text: str = "") -> None:
+    def __init__(
+        self,
+        index: int = 0,
+        *,
+        accel: str = "usb",
+        tilt_deg: float | None = None,
+        led: str | None = None,
+        lib_path: Path | None = None,
+        fakenect_dir: Path | None = None,
+        const_shift: float = fakenect_format.CONST_SHIFT,
+        usb_backend: Any = None,
+        spec_text: str = "",
+    ) -> None:
         if accel not in ("usb", "freenect", "none"):
             raise DeviceSpecError(f"accel={accel!r} is not usb, freenect or none")
         self.index = index
@@ -99,38 +121,63 @@ class KinectDriver:
             if index < 0:
                 raise ValueError
         except ValueError:
-            raise DeviceSpecError(f"{spec.text!r}: device index {spec.target!r} is not a number >= 0",
-                                  hint=f"the kinect spec is {GRAMMAR}") from None
+            raise DeviceSpecError(
+                f"{spec.text!r}: device index {spec.target!r} is not a number >= 0",
+                hint=f"the kinect spec is {GRAMMAR}",
+            ) from None
         fakenect = Path(spec.options["fakenect"]) if "fakenect" in spec.options else None
-        accel = choice_option(spec, "accel", ("usb", "freenect", "none"), "freenect" if fakenect else "usb")
+        accel = choice_option(
+            spec, "accel", ("usb", "freenect", "none"), "freenect" if fakenect else "usb"
+        )
         led = spec.options.get("led")
         if led is not None and led not in LED:
             raise DeviceSpecError(f"led={led!r} in {spec.text!r} is not one of {', '.join(LED)}")
-        return cls(index, accel=accel, tilt_deg=float_option(spec, "tilt_deg", None, -31.0, 31.0), led=led,
-                   lib_path=Path(spec.options["lib"]) if "lib" in spec.options else None, fakenect_dir=fakenect,
-                   const_shift=float_option(spec, "const_shift", fakenect_format.CONST_SHIFT, 0.0, 1000.0)
-                   or fakenect_format.CONST_SHIFT, spec_text=spec.text)
+        return cls(
+            index,
+            accel=accel,
+            tilt_deg=float_option(spec, "tilt_deg", None, -31.0, 31.0),
+            led=led,
+            lib_path=Path(spec.options["lib"]) if "lib" in spec.options else None,
+            fakenect_dir=fakenect,
+            const_shift=float_option(spec, "const_shift", fakenect_format.CONST_SHIFT, 0.0, 1000.0)
+            or fakenect_format.CONST_SHIFT,
+            spec_text=spec.text,
+        )
 
     @staticmethod
     def detect() -> list[tuple[str, str]]:
         """Kinects on the USB bus as (spec, description)."""
         found = describe_kinects()
-        return [(f"kinect://{i}" + ("" if model == "1414" else "?accel=none"), note)
-                for i, (model, note) in enumerate(found)]
+        return [
+            (f"kinect://{i}" + ("" if model == "1414" else "?accel=none"), note)
+            for i, (model, note) in enumerate(found)
+        ]
 
     @staticmethod
     def backend_status() -> list[tuple[str, str]]:
         """Where libfreenect and fakenect are, or what is missing."""
         real, fake = find_library(), find_library(fakenect=True)
         return [
-            ("kinect", f"libfreenect found at {real}" if real else "missing: libfreenect.so.0.5 (apt-get install libfreenect0.5)"),
-            ("kinect fakenect", f"fakenect found at {fake}" if fake else "missing: fakenect (apt-get install libfreenect0.5)"),
+            (
+                "kinect",
+                f"libfreenect found at {real}"
+                if real
+                else "missing: libfreenect.so.0.5 (apt-get install libfreenect0.5)",
+            ),
+            (
+                "kinect fakenect",
+                f"fakenect found at {fake}"
+                if fake
+                else "missing: fakenect (apt-get install libfreenect0.5)",
+            ),
         ]
 
     def _library(self) -> Path:
         if self.lib_path is not None:
             if not self.lib_path.exists():
-                raise DriverNotAvailable(f"{self.lib_path}: no such libfreenect", hint="check the lib= option")
+                raise DriverNotAvailable(
+                    f"{self.lib_path}: no such libfreenect", hint="check the lib= option"
+                )
             return self.lib_path
         path = find_library(fakenect=self.fakenect_dir is not None)
         if path is None:
@@ -156,15 +203,24 @@ class KinectDriver:
                     self._motor.set_led(self.led)
                 if self.tilt_deg is not None:
                     self._motor.set_tilt_deg(self.tilt_deg)
-            self._depth = FreenectDepth(lib, self.index, use_motor=self.accel == "freenect",
-                                        want_mm=self.fakenect_dir is None)
+            self._depth = FreenectDepth(
+                lib,
+                self.index,
+                use_motor=self.accel == "freenect",
+                want_mm=self.fakenect_dir is None,
+            )
             self._depth.open()
         except BaseException:
             self.close()
             raise
         name = "Kinect 360 (fakenect replay)" if self.fakenect_dir else "Kinect 360 (1414)"
-        return DeviceInfo(name=name, serial=serial, spec=self.spec_text, intrinsics=KINECT_V1,
-                          has_accel=self.accel != "none")
+        return DeviceInfo(
+            name=name,
+            serial=serial,
+            spec=self.spec_text,
+            intrinsics=KINECT_V1,
+            has_accel=self.accel != "none",
+        )
 
     def _accel(self) -> tuple[tuple[float, float, float] | None, TiltState | None]:
         if self._motor is not None:
@@ -199,16 +255,27 @@ class KinectDriver:
             if self._depth.ended.is_set():
                 if self.fakenect_dir is not None:
                     return None
-                raise DeviceLost(f"libfreenect stopped delivering frames (status {self._depth.end_status}): "
-                                 "Kinect unplugged?", hint="re-plug the Kinect and its power supply")
-            raise FrameTimeout(f"{self.spec_text}: no depth frame within {timeout_s:g} s",
-                               hint="is the Kinect's power supply connected?")
+                raise DeviceLost(
+                    f"libfreenect stopped delivering frames (status {self._depth.end_status}): "
+                    "Kinect unplugged?",
+                    hint="re-plug the Kinect and its power supply",
+                )
+            raise FrameTimeout(
+                f"{self.spec_text}: no depth frame within {timeout_s:g} s",
+                hint="is the Kinect's power supply connected?",
+            )
         t_s, depth = item
         if not self._depth.is_mm:
             depth = fakenect_format.disparity_to_mm(depth, self.const_shift)
         accel, tilt = self._accel()
-        frame = Frame(seq=self._seq, timestamp_s=t_s, depth_mm=depth, intrinsics=KINECT_V1,
-                      accel_mps2=accel, tilt=tilt)
+        frame = Frame(
+            seq=self._seq,
+            timestamp_s=t_s,
+            depth_mm=depth,
+            intrinsics=KINECT_V1,
+            accel_mps2=accel,
+            tilt=tilt,
+        )
         self._seq += 1
         return frame
 

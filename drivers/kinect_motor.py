@@ -34,8 +34,8 @@ NOT_FOUND = "no Kinect found (045e:02ae/02b0): plugged in? udev rules? run `dept
 class MotorState:
     """One reading of the motor device."""
 
-    accel_mps2: tuple[float, float, float]   # camera frame, m/s^2
-    raw_counts: tuple[int, int, int]         # device axes, 819 per g
+    accel_mps2: tuple[float, float, float]  # camera frame, m/s^2
+    raw_counts: tuple[int, int, int]  # device axes, 819 per g
     tilt: TiltState
 
 
@@ -44,7 +44,11 @@ def parse_state(buf: bytes) -> MotorState:
     if len(buf) < 10:
         raise DriverError(f"Kinect motor sent {len(buf)} state bytes, expected 10")
     _, x, y, z, tilt_raw, status = struct.unpack(">hhhhbB", bytes(buf[:10]))
-    return MotorState(accel_counts_to_camera(x, y, z), (x, y, z), TiltState(tilt_raw / 2.0, tilt_status_name(status)))
+    return MotorState(
+        accel_counts_to_camera(x, y, z),
+        (x, y, z),
+        TiltState(tilt_raw / 2.0, tilt_status_name(status)),
+    )
 
 
 def describe_kinects(backend: Any = None) -> list[tuple[str, str]]:
@@ -57,10 +61,21 @@ def describe_kinects(backend: Any = None) -> list[tuple[str, str]]:
             if dev.bcdDevice == BCD_MODEL_1414:
                 out.append(("1414", "Kinect 360 (1414): depth, accelerometer, tilt, LED"))
             else:
-                out.append(("1473", "Kinect 360 (1473): depth only; its tilt/accelerometer need the "
-                                    "audio firmware, which depthnav does not upload (use accel=none)"))
+                out.append(
+                    (
+                        "1473",
+                        "Kinect 360 (1473): depth only; its tilt/accelerometer need the "
+                        "audio firmware, which depthnav does not upload (use accel=none)",
+                    )
+                )
         elif dev.idProduct == PID_K4W_CAMERA:
-            out.append(("k4w", "Kinect for Windows: depth only; tilt/accelerometer not supported (use accel=none)"))
+            out.append(
+                (
+                    "k4w",
+                    "Kinect for Windows: depth only; tilt/accelerometer not supported "
+                    "(use accel=none)",
+                )
+            )
     return out
 
 
@@ -88,30 +103,51 @@ class KinectMotor:
         import usb.util
 
         try:
-            motors = list(usb.core.find(find_all=True, idVendor=VENDOR_MICROSOFT, idProduct=PID_MOTOR,
-                                        backend=self.backend) or [])
+            motors = list(
+                usb.core.find(
+                    find_all=True,
+                    idVendor=VENDOR_MICROSOFT,
+                    idProduct=PID_MOTOR,
+                    backend=self.backend,
+                )
+                or []
+            )
         except usb.core.NoBackendError:
-            raise DeviceOpenError("pyusb found no libusb to talk to the Kinect motor",
-                                  hint="apt-get install libusb-1.0-0", reason=OpenFailure.OTHER) from None
+            raise DeviceOpenError(
+                "pyusb found no libusb to talk to the Kinect motor",
+                hint="apt-get install libusb-1.0-0",
+                reason=OpenFailure.OTHER,
+            ) from None
         if len(motors) <= self.index:
             others = [note for model, note in describe_kinects(self.backend) if model != "1414"]
             if others:
-                raise DeviceOpenError(f"{others[0].split(':')[0]} found, but it has no motor device 045e:02b0",
-                                      hint=others[0], reason=OpenFailure.UNSUPPORTED)
-            raise DeviceOpenError(NOT_FOUND, hint="check `lsusb | grep 045e`; the Kinect needs its own power supply",
-                                  reason=OpenFailure.NOT_FOUND)
+                raise DeviceOpenError(
+                    f"{others[0].split(':')[0]} found, but it has no motor device 045e:02b0",
+                    hint=others[0],
+                    reason=OpenFailure.UNSUPPORTED,
+                )
+            raise DeviceOpenError(
+                NOT_FOUND,
+                hint="check `lsusb | grep 045e`; the Kinect needs its own power supply",
+                reason=OpenFailure.NOT_FOUND,
+            )
         dev = motors[self.index]
         try:
             dev.set_configuration()
         except usb.core.USBError as exc:
             usb.util.dispose_resources(dev)
             if exc.errno == errno.EACCES:
-                raise DeviceOpenError("no permission to use the Kinect motor (045e:02b0)",
-                                      hint="install udev rules (libfreenect0.5) and re-plug, or join group plugdev",
-                                      reason=OpenFailure.PERMISSION) from None
+                raise DeviceOpenError(
+                    "no permission to use the Kinect motor (045e:02b0)",
+                    hint="install udev rules (libfreenect0.5) and re-plug, or join group plugdev",
+                    reason=OpenFailure.PERMISSION,
+                ) from None
             if exc.errno == errno.EBUSY:
-                raise DeviceOpenError("the Kinect motor (045e:02b0) is busy",
-                                      hint="close other Kinect programs", reason=OpenFailure.BUSY) from None
+                raise DeviceOpenError(
+                    "the Kinect motor (045e:02b0) is busy",
+                    hint="close other Kinect programs",
+                    reason=OpenFailure.BUSY,
+                ) from None
             raise DeviceOpenError(f"could not configure the Kinect motor: {exc}") from None
         self._dev = dev
         try:
@@ -125,14 +161,20 @@ class KinectMotor:
         if self._dev is None:
             raise DriverError("the Kinect motor is not open", hint="call open() first")
         try:
-            return self._dev.ctrl_transfer(request_type, request, value, 0, length_or_data, timeout=500)
+            return self._dev.ctrl_transfer(
+                request_type, request, value, 0, length_or_data, timeout=500
+            )
         except usb.core.USBError as exc:
             if exc.errno == errno.ENODEV:
-                raise DeviceLost("the Kinect motor (045e:02b0) went away: unplugged?",
-                                 hint="re-plug the Kinect and its power supply; run `depthnav devices`") from None
+                raise DeviceLost(
+                    "the Kinect motor (045e:02b0) went away: unplugged?",
+                    hint="re-plug the Kinect and its power supply; run `depthnav devices`",
+                ) from None
             if exc.errno == errno.EPIPE:
-                raise DriverError(f"the Kinect motor stalled request {request:#04x}",
-                                  hint="transient; if it repeats, re-plug the Kinect") from None
+                raise DriverError(
+                    f"the Kinect motor stalled request {request:#04x}",
+                    hint="transient; if it repeats, re-plug the Kinect",
+                ) from None
             raise DriverError(f"Kinect motor request {request:#04x} failed: {exc}") from None
 
     def read_state(self) -> MotorState:

@@ -24,14 +24,29 @@ from drivers.errors import RecordingError
 
 MAGIC_FILE = b"NI10"
 MAGIC_RECORD = 0x0052494E
-FILE_HEADER = struct.Struct("<4sBBHIQI")  # magic, version 1.0.1.0 (u8 u8 u16 u32), max ts, max node id
+FILE_HEADER = struct.Struct(
+    "<4sBBHIQI"
+)  # magic, version 1.0.1.0 (u8 u8 u16 u32), max ts, max node id
 RECORD_HEADER = struct.Struct("<IIIIIQ")
 
 INT_PROPERTY, REAL_PROPERTY, GENERAL_PROPERTY = 0x03, 0x04, 0x06
 NODE_REMOVED, NODE_DATA_BEGIN, NODE_STATE_READY = 0x07, 0x08, 0x09
 NEW_DATA, SEEK_TABLE, END, NODE_ADDED = 0x0A, 0x0E, 0x0B, 0x0D
-KNOWN_TYPES = {0x02, INT_PROPERTY, REAL_PROPERTY, 0x05, GENERAL_PROPERTY, NODE_REMOVED,
-               NODE_DATA_BEGIN, NODE_STATE_READY, NEW_DATA, END, 0x0C, NODE_ADDED, SEEK_TABLE}
+KNOWN_TYPES = {
+    0x02,
+    INT_PROPERTY,
+    REAL_PROPERTY,
+    0x05,
+    GENERAL_PROPERTY,
+    NODE_REMOVED,
+    NODE_DATA_BEGIN,
+    NODE_STATE_READY,
+    NEW_DATA,
+    END,
+    0x0C,
+    NODE_ADDED,
+    SEEK_TABLE,
+}
 NODE_TYPE_DEPTH = 2
 PIXEL_FORMAT_DEPTH_1_MM = 100
 XN_PIXEL_FORMAT_GRAYSCALE_16 = 4
@@ -43,13 +58,18 @@ def _string(text: str) -> bytes:
 
 
 class _Writer:
-    def __init__(self, fh) -> None:  # noqa: ANN001 - a binary file object
+    def __init__(self, fh) -> None:
         self.fh = fh
 
-    def record(self, rtype: int, fields: bytes = b"", payload: bytes = b"", undo: int = 0, node: int = 1) -> int:
+    def record(
+        self, rtype: int, fields: bytes = b"", payload: bytes = b"", undo: int = 0, node: int = 1
+    ) -> int:
         pos = self.fh.tell()
-        self.fh.write(RECORD_HEADER.pack(MAGIC_RECORD, rtype, node, RECORD_HEADER.size + len(fields),
-                                         len(payload), undo))
+        self.fh.write(
+            RECORD_HEADER.pack(
+                MAGIC_RECORD, rtype, node, RECORD_HEADER.size + len(fields), len(payload), undo
+            )
+        )
         self.fh.write(fields)
         self.fh.write(payload)
         return pos
@@ -59,7 +79,9 @@ class _Writer:
 
 
 def _node_added(n_frames: int, max_ts: int, seek_pos: int) -> bytes:
-    return _string("Depth") + struct.pack("<I4sIQQQ", NODE_TYPE_DEPTH, b"NONE", n_frames, 0, max_ts, seek_pos)
+    return _string("Depth") + struct.pack(
+        "<I4sIQQQ", NODE_TYPE_DEPTH, b"NONE", n_frames, 0, max_ts, seek_pos
+    )
 
 
 def write_oni(path: str | os.PathLike[str], frames: Iterable[Frame], fps: int = 30) -> int:
@@ -83,10 +105,14 @@ def write_oni(path: str | os.PathLike[str], frames: Iterable[Frame], fps: int = 
         w = _Writer(fh)
         fh.write(FILE_HEADER.pack(MAGIC_FILE, 1, 0, 1, 0, stamps[-1], 1))
         added = w.record(NODE_ADDED, _node_added(len(items), stamps[-1], 0))
-        w.prop(INT_PROPERTY, "oniRequiredFrameSize", struct.pack("<Q", intr.width * intr.height * 2))
+        w.prop(
+            INT_PROPERTY, "oniRequiredFrameSize", struct.pack("<Q", intr.width * intr.height * 2)
+        )
         w.prop(INT_PROPERTY, "xnIsGenerating", struct.pack("<Q", 1))
         w.prop(INT_PROPERTY, "xnDeviceMaxDepth", struct.pack("<Q", 65535))
-        w.prop(GENERAL_PROPERTY, "xnMapOutputMode", struct.pack("<III", intr.width, intr.height, fps))
+        w.prop(
+            GENERAL_PROPERTY, "xnMapOutputMode", struct.pack("<III", intr.width, intr.height, fps)
+        )
         w.prop(INT_PROPERTY, "xnPixelFormat", struct.pack("<Q", XN_PIXEL_FORMAT_GRAYSCALE_16))
         w.prop(INT_PROPERTY, "oniPixelFormat", struct.pack("<Q", PIXEL_FORMAT_DEPTH_1_MM))
         w.prop(GENERAL_PROPERTY, "xnFOV", struct.pack("<dd", hfov, vfov))
@@ -104,8 +130,10 @@ def write_oni(path: str | os.PathLike[str], frames: Iterable[Frame], fps: int = 
             last = w.record(NEW_DATA, struct.pack("<QI", ts, number), payload, undo=last)
             seek.append((ts, last))
         w.record(NODE_REMOVED, undo=added)
-        seek_pos = w.record(SEEK_TABLE, payload=b"\0" * 20 + b"".join(
-            struct.pack("<QIQ", ts, 0, pos) for ts, pos in seek))
+        seek_pos = w.record(
+            SEEK_TABLE,
+            payload=b"\0" * 20 + b"".join(struct.pack("<QIQ", ts, 0, pos) for ts, pos in seek),
+        )
         w.record(END, node=0)
         fh.seek(added + RECORD_HEADER.size)
         fh.write(_node_added(len(items), stamps[-1], seek_pos))
@@ -140,8 +168,10 @@ def check_oni(path: Path) -> OniSummary:
             raise RecordingError(f"{path}: not an .oni file (no NI10 header)")
         version = struct.unpack_from("<BBHI", head, 4)
         if version < (1, 0, 1, 0):
-            raise RecordingError(f"{path}: .oni version {'.'.join(map(str, version))} is too old; "
-                                 "OpenNI2 reads 1.0.1.0 and later")
+            raise RecordingError(
+                f"{path}: .oni version {'.'.join(map(str, version))} is too old; "
+                "OpenNI2 reads 1.0.1.0 and later"
+            )
         pos, depth_nodes, frames, has_end = FILE_HEADER.size, 0, 0, False
         while pos + RECORD_HEADER.size <= size:
             fh.seek(pos)
@@ -155,7 +185,9 @@ def check_oni(path: Path) -> OniSummary:
             if pos + fields + payload > size:
                 raise RecordingError(
                     f"{path}: truncated: record at byte {pos} needs {fields + payload} bytes, "
-                    f"the file ends at {size}", hint="the recording was cut short; re-record it")
+                    f"the file ends at {size}",
+                    hint="the recording was cut short; re-record it",
+                )
             if rtype == NODE_ADDED:
                 fh.seek(pos + RECORD_HEADER.size)
                 (name_len,) = struct.unpack("<I", fh.read(4))

@@ -1,7 +1,8 @@
 """OpenNI2 depth: live devices (Xtion, Carmine, any PS1080/PSLink sensor) and ``.oni`` playback.
 
 Spec: ``openni://[URI][?mode=WxH@FPS]`` for a live device (first device when URI is empty;
-``openni://Dummy`` is OpenNI's built-in test device), or ``openni:FILE.oni[?rate=realtime|max&loop=0|1]``
+``openni://Dummy`` is OpenNI's built-in test device), or
+``openni:FILE.oni[?rate=realtime|max&loop=0|1]``
 for a recording. ``rate=max`` (default for files) plays every frame in order as fast as it is read.
 
 Uses PyPI ``openni`` over the system libOpenNI2 (Debian: ``apt-get install libopenni2-0``), found
@@ -27,8 +28,15 @@ from typing import Any
 import numpy as np
 
 from drivers.base import DeviceInfo, Frame, Intrinsics
-from drivers.errors import (DeviceLost, DeviceOpenError, DriverError, DriverNotAvailable, FrameTimeout,
-                            OpenFailure, RecordingError)
+from drivers.errors import (
+    DeviceLost,
+    DeviceOpenError,
+    DriverError,
+    DriverNotAvailable,
+    FrameTimeout,
+    OpenFailure,
+    RecordingError,
+)
 from drivers.oni_format import check_oni
 from drivers.spec import Spec, bool_option, check_options, choice_option
 
@@ -38,14 +46,19 @@ GRAMMAR = "openni://[URI][?mode=WxH@FPS] or openni:FILE.oni[?rate=realtime|max&l
 LIVE_OPTIONS = ("mode",)
 FILE_OPTIONS = ("rate", "loop")
 LIB_NAME = "libOpenNI2.so.0"
-LIB_DIRS = ("/usr/lib/x86_64-linux-gnu", "/usr/lib/aarch64-linux-gnu", "/usr/lib/arm-linux-gnueabihf",
-            "/usr/lib", "/usr/local/lib")
+LIB_DIRS = (
+    "/usr/lib/x86_64-linux-gnu",
+    "/usr/lib/aarch64-linux-gnu",
+    "/usr/lib/arm-linux-gnueabihf",
+    "/usr/lib",
+    "/usr/local/lib",
+)
 # PrimeSense PS1080 nominal field of view, used when a device does not report one (Dummy).
 DEFAULT_HFOV_DEG, DEFAULT_VFOV_DEG = 58.0, 45.0
 STOP_SETTLE_S = 0.1  # > 33 ms: DummyDevice's stream thread outlives stop() by one frame period
 
 _init_lock = threading.Lock()
-_initialized_from: str | None = None
+_state: dict[str, str] = {}  # "library": path once initialised in this process
 
 
 def find_library() -> tuple[Path, Path] | None:
@@ -82,29 +95,35 @@ def initialize() -> Any:
     Raises:
         DriverNotAvailable: the library or the ``openni`` package is missing or fails to load.
     """
-    global _initialized_from
     try:
         from openni import openni2
     except ImportError as exc:
-        raise DriverNotAvailable("the Python package 'openni' is not installed",
-                                 hint="pip install openni") from exc
+        raise DriverNotAvailable(
+            "the Python package 'openni' is not installed", hint="pip install openni"
+        ) from exc
     with _init_lock:
-        if _initialized_from is not None:
+        if "library" in _state:
             return openni2
         found = find_library()
         if found is None:
             raise DriverNotAvailable(
                 f"libOpenNI2 not found (looked for {LIB_NAME} in {', '.join(LIB_DIRS)})",
-                hint="apt-get install libopenni2-0, or set DEPTHNAV_OPENNI2_REDIST to an OpenNI2 Redist folder",
+                hint="apt-get install libopenni2-0, or set DEPTHNAV_OPENNI2_REDIST to an OpenNI2 "
+                "Redist folder",
             )
         lib, drivers_dir = found
-        folder = str(lib.parent) if os.environ.get("DEPTHNAV_OPENNI2_REDIST") else _private_dir(lib, drivers_dir)
+        folder = (
+            str(lib.parent)
+            if os.environ.get("DEPTHNAV_OPENNI2_REDIST")
+            else _private_dir(lib, drivers_dir)
+        )
         try:
             openni2.initialize(folder)  # note: chdir()s while loading; done once, under the lock
         except Exception as exc:
-            raise DriverNotAvailable(f"libOpenNI2 at {lib} failed to initialise: {exc}",
-                                     hint="reinstall libopenni2-0") from exc
-        _initialized_from = str(lib)
+            raise DriverNotAvailable(
+                f"libOpenNI2 at {lib} failed to initialise: {exc}", hint="reinstall libopenni2-0"
+            ) from exc
+        _state["library"] = str(lib)
         log.debug("OpenNI2 initialised from %s", lib)
     return openni2
 
@@ -127,14 +146,24 @@ def _parse_mode(spec: Spec) -> tuple[int, int, int] | None:
     except ValueError:
         from drivers.errors import DeviceSpecError
 
-        raise DeviceSpecError(f"mode={text!r} in {spec.text!r} is not WxH@FPS, e.g. 640x480@30") from None
+        raise DeviceSpecError(
+            f"mode={text!r} in {spec.text!r} is not WxH@FPS, e.g. 640x480@30"
+        ) from None
 
 
 class OpenNIDriver:
     """OpenNI2 depth stream from a live device or an ``.oni`` file."""
 
-    def __init__(self, uri: str | None = None, *, file: Path | None = None, mode: tuple[int, int, int] | None = None,
-                 realtime: bool = False, loop: bool = False, spec_text: str = "") -> None:
+    def __init__(
+        self,
+        uri: str | None = None,
+        *,
+        file: Path | None = None,
+        mode: tuple[int, int, int] | None = None,
+        realtime: bool = False,
+        loop: bool = False,
+        spec_text: str = "",
+    ) -> None:
         self.uri = uri
         self.file = file
         self.mode = mode
@@ -156,14 +185,19 @@ class OpenNIDriver:
         """Build from ``openni://...`` or ``openni:FILE.oni``."""
         if spec.target.lower().endswith(".oni"):
             check_options(spec, FILE_OPTIONS, GRAMMAR)
-            return cls.for_file(Path(spec.target),
-                                realtime=choice_option(spec, "rate", ("realtime", "max"), "max") == "realtime",
-                                loop=bool_option(spec, "loop", False), spec_text=spec.text)
+            return cls.for_file(
+                Path(spec.target),
+                realtime=choice_option(spec, "rate", ("realtime", "max"), "max") == "realtime",
+                loop=bool_option(spec, "loop", False),
+                spec_text=spec.text,
+            )
         check_options(spec, LIVE_OPTIONS, GRAMMAR)
         return cls(spec.target or None, mode=_parse_mode(spec), spec_text=spec.text)
 
     @classmethod
-    def for_file(cls, path: Path, *, realtime: bool = False, loop: bool = False, spec_text: str = "") -> OpenNIDriver:
+    def for_file(
+        cls, path: Path, *, realtime: bool = False, loop: bool = False, spec_text: str = ""
+    ) -> OpenNIDriver:
         """A driver playing an ``.oni`` file."""
         return cls(None, file=Path(path), realtime=realtime, loop=loop, spec_text=spec_text)
 
@@ -171,8 +205,11 @@ class OpenNIDriver:
     def detect() -> list[tuple[str, str]]:
         """Attached OpenNI2 devices as (spec, description)."""
         openni2 = initialize()
-        return [(f"openni://{info.uri.decode()}", f"{info.vendor.decode()} {info.name.decode()}")
-                for info in openni2.Device.enumerate_devices() if info.uri]
+        return [
+            (f"openni://{info.uri.decode()}", f"{info.vendor.decode()} {info.name.decode()}")
+            for info in openni2.Device.enumerate_devices()
+            if info.uri
+        ]
 
     @staticmethod
     def backend_status() -> list[tuple[str, str]]:
@@ -181,7 +218,9 @@ class OpenNIDriver:
         if found is None:
             return [("openni", f"missing: {LIB_NAME} (apt-get install libopenni2-0)")]
         drivers = sorted(p.name for p in (found[1] / "Drivers").glob("lib*.so*"))
-        return [("openni", f"libOpenNI2 found at {found[0]} (drivers: {', '.join(drivers) or 'none'})")]
+        return [
+            ("openni", f"libOpenNI2 found at {found[0]} (drivers: {', '.join(drivers) or 'none'})")
+        ]
 
     def _open_device(self, openni2: Any) -> Any:
         from openni.utils import OpenNIError
@@ -192,15 +231,23 @@ class OpenNIDriver:
                 self._n_frames = summary.frames
                 return openni2.Device.open_file(str(self.file).encode())
             if self.uri:
-                return openni2.Device.open_any() if self.uri == "" else openni2.Device(self.uri.encode())
+                return (
+                    openni2.Device.open_any()
+                    if self.uri == ""
+                    else openni2.Device(self.uri.encode())
+                )
             return openni2.Device.open_any()
         except OpenNIError as exc:
             if self.file is not None:
-                raise RecordingError(f"{self.file}: OpenNI2 cannot play it ({_message(exc)})") from exc
+                raise RecordingError(
+                    f"{self.file}: OpenNI2 cannot play it ({_message(exc)})"
+                ) from exc
             what = f"OpenNI2 device {self.uri!r}" if self.uri else "an OpenNI2 device"
-            raise DeviceOpenError(f"could not open {what}: {_message(exc)}",
-                                  hint="plugged in? udev rules (libopenni2-0)? run `depthnav devices`",
-                                  reason=OpenFailure.NOT_FOUND) from exc
+            raise DeviceOpenError(
+                f"could not open {what}: {_message(exc)}",
+                hint="plugged in? udev rules (libopenni2-0)? run `depthnav devices`",
+                reason=OpenFailure.NOT_FOUND,
+            ) from exc
 
     def open(self) -> DeviceInfo:
         """Open the device or file and start the depth stream."""
@@ -213,10 +260,14 @@ class OpenNIDriver:
         try:
             if self._dev.playback is not None:
                 self._dev.playback.set_repeat_enabled(self.loop)
-                self._dev.playback.set_speed(1.0 if self.realtime else -1.0)  # -1: manual, every frame
+                self._dev.playback.set_speed(
+                    1.0 if self.realtime else -1.0
+                )  # -1: manual, every frame
             self._stream = self._dev.create_depth_stream()
             if self._stream is None:
-                raise DeviceOpenError(f"{self.spec_text}: no depth stream", reason=OpenFailure.UNSUPPORTED)
+                raise DeviceOpenError(
+                    f"{self.spec_text}: no depth stream", reason=OpenFailure.UNSUPPORTED
+                )
             if self.mode is not None:
                 self._set_mode(openni2)
             vm = self._stream.get_video_mode()
@@ -225,32 +276,55 @@ class OpenNIDriver:
             info = self._dev.get_device_info()
         except OpenNIError as exc:
             self.close()
-            raise DeviceOpenError(f"{self.spec_text}: starting the depth stream failed: {_message(exc)}") from exc
+            raise DeviceOpenError(
+                f"{self.spec_text}: starting the depth stream failed: {_message(exc)}"
+            ) from exc
         except BaseException:
             self.close()
             raise
-        name = f"OpenNI file {self.file.name}" if self.file else f"{info.vendor.decode()} {info.name.decode()}".strip()
+        name = (
+            f"OpenNI file {self.file.name}"
+            if self.file
+            else f"{info.vendor.decode()} {info.name.decode()}".strip()
+        )
         return DeviceInfo(name=name, serial=None, spec=self.spec_text, intrinsics=self._intrinsics)
 
     def _set_mode(self, openni2: Any) -> None:
         assert self.mode is not None
         width, height, fps = self.mode
         for vm in self._stream.get_sensor_info().videoModes:
-            if (vm.resolutionX, vm.resolutionY, vm.fps) == (width, height, fps) and vm.pixelFormat in (
-                    openni2.PIXEL_FORMAT_DEPTH_1_MM, openni2.PIXEL_FORMAT_DEPTH_100_UM):
+            if (vm.resolutionX, vm.resolutionY, vm.fps) == (
+                width,
+                height,
+                fps,
+            ) and vm.pixelFormat in (
+                openni2.PIXEL_FORMAT_DEPTH_1_MM,
+                openni2.PIXEL_FORMAT_DEPTH_100_UM,
+            ):
                 self._stream.set_video_mode(vm)
                 return
-        modes = sorted({f"{vm.resolutionX}x{vm.resolutionY}@{vm.fps}"
-                        for vm in self._stream.get_sensor_info().videoModes})
-        raise DeviceOpenError(f"{self.spec_text}: mode {width}x{height}@{fps} not supported",
-                              hint=f"supported: {', '.join(modes)}", reason=OpenFailure.UNSUPPORTED)
+        modes = sorted(
+            {
+                f"{vm.resolutionX}x{vm.resolutionY}@{vm.fps}"
+                for vm in self._stream.get_sensor_info().videoModes
+            }
+        )
+        raise DeviceOpenError(
+            f"{self.spec_text}: mode {width}x{height}@{fps} not supported",
+            hint=f"supported: {', '.join(modes)}",
+            reason=OpenFailure.UNSUPPORTED,
+        )
 
     def _intrinsics_for(self, width: int, height: int) -> Intrinsics:
         try:
             hfov, vfov = self._stream.get_horizontal_fov(), self._stream.get_vertical_fov()
-        except Exception:  # noqa: BLE001 - Dummy and some drivers lack the FOV property
-            log.info("%s reports no field of view; assuming %.0f x %.0f deg", self.spec_text,
-                     DEFAULT_HFOV_DEG, DEFAULT_VFOV_DEG)
+        except Exception:
+            log.info(
+                "%s reports no field of view; assuming %.0f x %.0f deg",
+                self.spec_text,
+                DEFAULT_HFOV_DEG,
+                DEFAULT_VFOV_DEG,
+            )
             return Intrinsics.from_fov(width, height, DEFAULT_HFOV_DEG, DEFAULT_VFOV_DEG)
         return Intrinsics.from_fov(width, height, math.degrees(hfov), math.degrees(vfov))
 
@@ -267,22 +341,30 @@ class OpenNIDriver:
             if not ready:
                 if self.file is not None and not self.loop:
                     return None
-                raise FrameTimeout(f"{self.spec_text}: no frame within {timeout_s:g} s",
-                                   hint="is the sensor covered or the USB bus overloaded?")
+                raise FrameTimeout(
+                    f"{self.spec_text}: no frame within {timeout_s:g} s",
+                    hint="is the sensor covered or the USB bus overloaded?",
+                )
             raw = self._stream.read_frame()
             try:
                 depth, t_s = self._copy(raw)
             finally:
                 raw.close()
         except OpenNIError as exc:
-            raise DeviceLost(f"{self.spec_text}: depth stream failed: {_message(exc)}",
-                             hint="check the cable; run `depthnav devices`") from exc
+            raise DeviceLost(
+                f"{self.spec_text}: depth stream failed: {_message(exc)}",
+                hint="check the cable; run `depthnav devices`",
+            ) from exc
         self._read += 1
         if t_s < self._last_raw_t_s:  # the file looped: keep time increasing
             self._t_offset_s += self._last_raw_t_s - t_s + 1.0 / 30.0
         self._last_raw_t_s = t_s
-        frame = Frame(seq=self._seq, timestamp_s=t_s + self._t_offset_s, depth_mm=depth,
-                      intrinsics=self._intrinsics)
+        frame = Frame(
+            seq=self._seq,
+            timestamp_s=t_s + self._t_offset_s,
+            depth_mm=depth,
+            intrinsics=self._intrinsics,
+        )
         self._seq += 1
         return frame
 
@@ -290,15 +372,19 @@ class OpenNIDriver:
         intr = self._intrinsics
         assert intr is not None
         if (raw.width, raw.height) != (intr.width, intr.height):
-            raise DeviceLost(f"{self.spec_text}: frame is {raw.width}x{raw.height}, "
-                             f"stream was {intr.width}x{intr.height} (cropping or mode change)")
+            raise DeviceLost(
+                f"{self.spec_text}: frame is {raw.width}x{raw.height}, "
+                f"stream was {intr.width}x{intr.height} (cropping or mode change)"
+            )
         buf = np.frombuffer(raw.get_buffer_as_uint16(), dtype=np.uint16)
         rows = buf[: raw.height * (raw.stride // 2)].reshape(raw.height, raw.stride // 2)
         depth = np.array(rows[:, : raw.width], dtype=np.uint16)  # copy: the buffer is reused
         if raw.videoMode.pixelFormat == self._openni2.PIXEL_FORMAT_DEPTH_100_UM:
             depth = ((depth.astype(np.uint32) + 5) // 10).astype(np.uint16)
         elif raw.videoMode.pixelFormat != self._openni2.PIXEL_FORMAT_DEPTH_1_MM:
-            raise DeviceLost(f"{self.spec_text}: pixel format {raw.videoMode.pixelFormat} is not depth")
+            raise DeviceLost(
+                f"{self.spec_text}: pixel format {raw.videoMode.pixelFormat} is not depth"
+            )
         return depth, raw.timestamp / 1e6
 
     def close(self) -> None:
@@ -311,10 +397,10 @@ class OpenNIDriver:
                 if self.file is None:
                     time.sleep(STOP_SETTLE_S)
                 stream.close()
-            except Exception:  # noqa: BLE001 - closing must not raise
+            except Exception:
                 log.debug("closing OpenNI2 stream failed", exc_info=True)
         if dev is not None:
             try:
                 dev.close()
-            except Exception:  # noqa: BLE001
+            except Exception:
                 log.debug("closing OpenNI2 device failed", exc_info=True)

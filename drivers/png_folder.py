@@ -17,6 +17,7 @@ or from the replay spec options ``fx``, ``fy``, ``cx``, ``cy``, ``scale`` (which
 
 from __future__ import annotations
 
+import itertools
 import logging
 import os
 import tomllib
@@ -39,7 +40,9 @@ INDEX = "depth.txt"
 
 def is_png_folder(folder: Path) -> bool:
     """True if the folder looks like a PNG depth folder."""
-    return (folder / INDEX).is_file() or any(folder.glob("*.png")) or any(folder.glob("depth/*.png"))
+    return (
+        (folder / INDEX).is_file() or any(folder.glob("*.png")) or any(folder.glob("depth/*.png"))
+    )
 
 
 def list_frames(folder: Path, fps: float) -> list[tuple[float, Path]]:
@@ -47,20 +50,24 @@ def list_frames(folder: Path, fps: float) -> list[tuple[float, Path]]:
     index = folder / INDEX
     items: list[tuple[float, Path]] = []
     if index.is_file():
-        for number, line in enumerate(index.read_text(encoding="utf-8", errors="replace").splitlines(), 1):
-            line = line.strip()
-            if not line or line.startswith("#"):
+        for number, line in enumerate(
+            index.read_text(encoding="utf-8", errors="replace").splitlines(), 1
+        ):
+            text = line.strip()
+            if not text or text.startswith("#"):
                 continue
-            parts = line.split()
+            parts = text.split()
             try:
                 stamp = float(parts[0])
                 path = folder / parts[1]
             except (ValueError, IndexError):
-                raise RecordingError(f"{index}:{number}: expected '<timestamp_s> <file.png>', got {line!r}") from None
+                raise RecordingError(
+                    f"{index}:{number}: expected '<timestamp_s> <file.png>', got {text!r}"
+                ) from None
             if not path.is_file():
                 raise RecordingError(f"{index}:{number}: names {parts[1]}, which is missing")
             items.append((stamp, path))
-        if items and any(b[0] < a[0] for a, b in zip(items, items[1:])):
+        if items and any(b[0] < a[0] for a, b in itertools.pairwise(items)):
             raise RecordingError(f"{index}: timestamps go backwards")
     else:
         paths = sorted(folder.glob("*.png")) or sorted(folder.glob("depth/*.png"))
@@ -91,7 +98,9 @@ def read_depth_png(path: Path, scale: float) -> npt.NDArray[np.uint16]:
                 raise RecordingError(f"{path}: a {img.mode} image, expected 16-bit greyscale depth")
             raw = np.asarray(img)
     except (UnidentifiedImageError, OSError, SyntaxError, ValueError) as exc:
-        raise RecordingError(f"{path}: not a readable PNG ({exc})", hint="the file is corrupt or truncated") from None
+        raise RecordingError(
+            f"{path}: not a readable PNG ({exc})", hint="the file is corrupt or truncated"
+        ) from None
     if raw.ndim != 2 or raw.min() < 0 or raw.max() > 65535:
         raise RecordingError(f"{path}: not a single-channel 16-bit depth image")
     if scale == 1000.0:
@@ -114,7 +123,9 @@ def iter_png_folder(
         yield stamp, depth
 
 
-def write_png_folder(folder: str | os.PathLike[str], frames: Iterable[Frame], scale: float = 5000.0) -> int:
+def write_png_folder(
+    folder: str | os.PathLike[str], frames: Iterable[Frame], scale: float = 5000.0
+) -> int:
     """Write frames as a TUM-style PNG folder with ``depth.txt`` and ``camera.toml``.
 
     Raises:
@@ -130,7 +141,9 @@ def write_png_folder(folder: str | os.PathLike[str], frames: Iterable[Frame], sc
         intr = frame.intrinsics
         units = np.rint(frame.depth_mm.astype(np.float64) * (scale / 1000.0))
         if units.max(initial=0) > 65535:
-            raise RecordingError(f"{out}: frame {frame.seq} has depth beyond 16 bits at scale {scale:g}")
+            raise RecordingError(
+                f"{out}: frame {frame.seq} has depth beyond 16 bits at scale {scale:g}"
+            )
         name = f"depth/{frame.timestamp_s:.6f}.png"
         Image.fromarray(units.astype(np.uint16)).save(out / name)
         lines.append(f"{frame.timestamp_s:.6f} {name}")

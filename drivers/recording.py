@@ -63,7 +63,9 @@ class Recording:
                 timestamp_s=float(self.timestamp_s[i]),
                 depth_mm=self.depth_mm[i],
                 intrinsics=self.intrinsics,
-                accel_mps2=None if self.accel_mps2 is None else tuple(map(float, self.accel_mps2[i])),
+                accel_mps2=None
+                if self.accel_mps2 is None
+                else tuple(map(float, self.accel_mps2[i])),
             )
             for i in range(len(self.depth_mm))
         ]
@@ -84,7 +86,8 @@ def _toml_value(value: Any, where: str) -> str:
     if isinstance(value, (list, tuple)):
         return "[" + ", ".join(_toml_value(v, where) for v in value) + "]"
     raise RecordingError(
-        f"{where} has a {type(value).__name__}; recording metadata takes numbers, text, booleans or lists"
+        f"{where} has a {type(value).__name__}; "
+        "recording metadata takes numbers, text, booleans or lists"
     )
 
 
@@ -155,7 +158,9 @@ def write_recording(
         if progress is not None:
             progress(len(depth))
     if intrinsics is None:
-        raise RecordingError(f"{folder}: no frames to write", hint="check that the device delivers frames")
+        raise RecordingError(
+            f"{folder}: no frames to write", hint="check that the device delivers frames"
+        )
     arrays: dict[str, npt.NDArray[Any]] = {
         "depth_mm": np.stack(depth),
         "intrinsics": intrinsics.as_array(),
@@ -168,9 +173,12 @@ def write_recording(
     meta = {"format_version": FORMAT_VERSION, "description": description, "device": device}
     tables: dict[str, Mapping[str, Any]] = {
         "intrinsics": {
-            "width": intrinsics.width, "height": intrinsics.height,
-            "fx": float(intrinsics.fx), "fy": float(intrinsics.fy),
-            "cx": float(intrinsics.cx), "cy": float(intrinsics.cy),
+            "width": intrinsics.width,
+            "height": intrinsics.height,
+            "fx": float(intrinsics.fx),
+            "fy": float(intrinsics.fy),
+            "cx": float(intrinsics.cx),
+            "cy": float(intrinsics.cy),
         }
     }
     if truth:
@@ -210,11 +218,17 @@ def _load_npz(path: Path) -> dict[str, npt.NDArray[Any]]:
 
 def _intrinsics_from_meta(table: Any, shape: tuple[int, int], where: Path) -> Intrinsics:
     if not isinstance(table, dict):
-        raise RecordingError(f"{where}: [intrinsics] table is missing", hint="add width, height, fx, fy, cx, cy")
+        raise RecordingError(
+            f"{where}: [intrinsics] table is missing", hint="add width, height, fx, fy, cx, cy"
+        )
     try:
         intr = Intrinsics(
-            int(table["width"]), int(table["height"]), float(table["fx"]), float(table["fy"]),
-            float(table["cx"]), float(table["cy"]),
+            int(table["width"]),
+            int(table["height"]),
+            float(table["fx"]),
+            float(table["fy"]),
+            float(table["cx"]),
+            float(table["cy"]),
         )
     except KeyError as exc:
         raise RecordingError(f"{where}: [intrinsics] lacks {exc.args[0]!r}") from None
@@ -222,7 +236,8 @@ def _intrinsics_from_meta(table: Any, shape: tuple[int, int], where: Path) -> In
         raise RecordingError(f"{where}: bad [intrinsics]: {exc}") from None
     if (intr.height, intr.width) != shape:
         raise RecordingError(
-            f"{where}: [intrinsics] says {intr.width}x{intr.height} but frames are {shape[1]}x{shape[0]}"
+            f"{where}: [intrinsics] says {intr.width}x{intr.height} "
+            f"but frames are {shape[1]}x{shape[0]}"
         )
     return intr
 
@@ -231,11 +246,82 @@ def intrinsics_from_array(values: Any, shape: tuple[int, int], where: Path) -> I
     """Intrinsics from an [fx, fy, cx, cy] array and an (H, W) image shape."""
     arr = np.asarray(values)
     if arr.shape != (4,) or not np.issubdtype(arr.dtype, np.number):
-        raise RecordingError(f"{where}: 'intrinsics' must be 4 numbers [fx, fy, cx, cy], got shape {arr.shape}")
+        raise RecordingError(
+            f"{where}: 'intrinsics' must be 4 numbers [fx, fy, cx, cy], got shape {arr.shape}"
+        )
     try:
         return Intrinsics(shape[1], shape[0], *(float(v) for v in arr))
     except ValueError as exc:
         raise RecordingError(f"{where}: bad intrinsics: {exc}") from None
+
+
+def _read_meta(folder: Path) -> dict[str, Any]:
+    """``recording.toml`` of a recording folder, with its format_version checked."""
+    meta_path = folder / META_FILE
+    try:
+        meta = tomllib.loads(meta_path.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise RecordingError(
+            f"{folder}: not a depthnav recording (no {META_FILE})",
+            hint="an interrupted `depthnav record` leaves no recording.toml; record again",
+        ) from None
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+        raise RecordingError(f"{meta_path}: not valid TOML ({exc})") from None
+    version = meta.get("format_version")
+    if not isinstance(version, int) or version < 1:
+        raise RecordingError(f"{meta_path}: format_version is missing or not a positive integer")
+    if version > FORMAT_VERSION:
+        raise RecordingError(
+            f"{meta_path}: has format_version {version}; "
+            f"this depthnav reads up to {FORMAT_VERSION}",
+            hint="update depthnav",
+        )
+    return meta
+
+
+def _checked_depth(arrays: dict[str, npt.NDArray[Any]], npz_path: Path) -> npt.NDArray[np.uint16]:
+    depth = arrays.get("depth_mm")
+    if depth is None:
+        raise RecordingError(
+            f"{npz_path}: has no 'depth_mm' array (found: {', '.join(arrays) or 'none'})"
+        )
+    if depth.dtype != np.uint16 or depth.ndim != 3 or depth.shape[0] < 1:  # noqa: PLR2004
+        raise RecordingError(
+            f"{npz_path}: 'depth_mm' must be uint16 (N, H, W) with N >= 1, "
+            f"got {depth.dtype} {depth.shape}"
+        )
+    return depth
+
+
+def _checked_stamps(
+    stamps: npt.NDArray[Any] | None, n: int, npz_path: Path, default_fps: float
+) -> npt.NDArray[np.float64]:
+    if stamps is None:
+        return np.arange(n, dtype=np.float64) / default_fps
+    stamps = np.asarray(stamps)
+    if stamps.shape != (n,) or not np.issubdtype(stamps.dtype, np.number):
+        raise RecordingError(
+            f"{npz_path}: 'timestamp_s' must be {n} numbers, got {stamps.dtype} {stamps.shape}"
+        )
+    stamps = stamps.astype(np.float64)
+    if not np.all(np.isfinite(stamps)) or np.any(np.diff(stamps) < 0):
+        raise RecordingError(f"{npz_path}: 'timestamp_s' must be finite and non-decreasing")
+    return stamps
+
+
+def _checked_accel(
+    accel: npt.NDArray[Any] | None, n: int, npz_path: Path
+) -> npt.NDArray[np.float64] | None:
+    if accel is None:
+        return None
+    if accel.shape != (n, 3) or not np.issubdtype(accel.dtype, np.number):
+        raise RecordingError(
+            f"{npz_path}: 'accel_mps2' must be ({n}, 3) numbers, got {accel.shape}"
+        )
+    accel = accel.astype(np.float64)
+    if not np.all(np.isfinite(accel)):
+        raise RecordingError(f"{npz_path}: 'accel_mps2' has non-finite values")
+    return accel
 
 
 def read_recording(path: str | os.PathLike[str], default_fps: float = 30.0) -> Recording:
@@ -251,37 +337,14 @@ def read_recording(path: str | os.PathLike[str], default_fps: float = 30.0) -> R
     where = Path(path)
     meta: dict[str, Any] = {}
     if where.is_dir():
-        meta_path = where / META_FILE
-        try:
-            meta = tomllib.loads(meta_path.read_text(encoding="utf-8"))
-        except FileNotFoundError:
-            raise RecordingError(
-                f"{where}: not a depthnav recording (no {META_FILE})",
-                hint="an interrupted `depthnav record` leaves no recording.toml; record again",
-            ) from None
-        except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
-            raise RecordingError(f"{meta_path}: not valid TOML ({exc})") from None
-        version = meta.get("format_version")
-        if not isinstance(version, int) or version < 1:
-            raise RecordingError(f"{meta_path}: format_version is missing or not a positive integer")
-        if version > FORMAT_VERSION:
-            raise RecordingError(
-                f"{meta_path}: has format_version {version}; this depthnav reads up to {FORMAT_VERSION}",
-                hint="update depthnav",
-            )
+        meta = _read_meta(where)
         npz_path = where / FRAMES_FILE
     elif where.suffix.lower() == ".npz" or where.is_file():
         npz_path = where
     else:
         raise RecordingError(f"{where}: no such file or folder", hint="check the path")
     arrays = _load_npz(npz_path)
-    depth = arrays.get("depth_mm")
-    if depth is None:
-        raise RecordingError(f"{npz_path}: has no 'depth_mm' array (found: {', '.join(arrays) or 'none'})")
-    if depth.dtype != np.uint16 or depth.ndim != 3 or depth.shape[0] < 1:
-        raise RecordingError(
-            f"{npz_path}: 'depth_mm' must be uint16 (N, H, W) with N >= 1, got {depth.dtype} {depth.shape}"
-        )
+    depth = _checked_depth(arrays, npz_path)
     n, shape = depth.shape[0], (depth.shape[1], depth.shape[2])
     if "intrinsics" in meta:
         intr = _intrinsics_from_meta(meta["intrinsics"], shape, where / META_FILE)
@@ -289,25 +352,13 @@ def read_recording(path: str | os.PathLike[str], default_fps: float = 30.0) -> R
         intr = intrinsics_from_array(arrays["intrinsics"], shape, npz_path)
     else:
         raise RecordingError(f"{npz_path}: has no 'intrinsics' array [fx, fy, cx, cy]")
-    stamps = arrays.get("timestamp_s")
-    if stamps is None:
-        stamps = np.arange(n, dtype=np.float64) / default_fps
-    stamps = np.asarray(stamps)
-    if stamps.shape != (n,) or not np.issubdtype(stamps.dtype, np.number):
-        raise RecordingError(f"{npz_path}: 'timestamp_s' must be {n} numbers, got {stamps.dtype} {stamps.shape}")
-    stamps = stamps.astype(np.float64)
-    if not np.all(np.isfinite(stamps)) or np.any(np.diff(stamps) < 0):
-        raise RecordingError(f"{npz_path}: 'timestamp_s' must be finite and non-decreasing")
-    accel = arrays.get("accel_mps2")
-    if accel is not None:
-        if accel.shape != (n, 3) or not np.issubdtype(accel.dtype, np.number):
-            raise RecordingError(f"{npz_path}: 'accel_mps2' must be ({n}, 3) numbers, got {accel.shape}")
-        accel = accel.astype(np.float64)
-        if not np.all(np.isfinite(accel)):
-            raise RecordingError(f"{npz_path}: 'accel_mps2' has non-finite values")
     truth = meta.get("truth", {})
     return Recording(
-        depth_mm=depth, intrinsics=intr, timestamp_s=stamps, accel_mps2=accel,
-        description=str(meta.get("description", "")), device=str(meta.get("device", "")),
+        depth_mm=depth,
+        intrinsics=intr,
+        timestamp_s=_checked_stamps(arrays.get("timestamp_s"), n, npz_path, default_fps),
+        accel_mps2=_checked_accel(arrays.get("accel_mps2"), n, npz_path),
+        description=str(meta.get("description", "")),
+        device=str(meta.get("device", "")),
         truth=truth if isinstance(truth, dict) else {},
     )

@@ -1,6 +1,7 @@
 """The fake driver: replays recorded frames as if a sensor were attached.
 
-Spec: ``replay:PATH[?rate=realtime|max&loop=0|1&fps=F&fx=..&fy=..&cx=..&cy=..&scale=S&const_shift=C]``
+Spec: ``replay:PATH[?rate=realtime|max&loop=0|1&fps=F&fx=..&fy=..&cx=..&cy=..&scale=S
+&const_shift=C]``
 
 PATH is one of (detected when opened):
 - a depthnav recording folder (``recording.toml`` + ``frames.npz``) or a bare ``.npz``;
@@ -27,16 +28,17 @@ import numpy as np
 import numpy.typing as npt
 
 from drivers import fakenect_format, png_folder
-from drivers.base import KINECT_V1, DeviceInfo, Driver, Frame, Intrinsics
+from drivers.base import KINECT_V1, DeviceInfo, Driver, Frame, Intrinsics, TiltState
 from drivers.errors import DriverError, RecordingError
 from drivers.kinect_axes import accel_counts_to_camera, tilt_status_name
-from drivers.base import TiltState
 from drivers.recording import read_recording
 from drivers.spec import Spec, bool_option, check_options, choice_option, float_option
 
 log = logging.getLogger(__name__)
 
-GRAMMAR = "replay:PATH[?rate=realtime|max&loop=0|1&fps=F&fx=..&fy=..&cx=..&cy=..&scale=S&const_shift=C]"
+GRAMMAR = (
+    "replay:PATH[?rate=realtime|max&loop=0|1&fps=F&fx=..&fy=..&cx=..&cy=..&scale=S&const_shift=C]"
+)
 OPTIONS = ("rate", "loop", "fps", "fx", "fy", "cx", "cy", "scale", "const_shift")
 
 Item = tuple[float, npt.NDArray[np.uint16], tuple[float, float, float] | None, TiltState | None]
@@ -49,9 +51,16 @@ class ReplayDriver:
     _count_lock = threading.Lock()
 
     def __init__(
-        self, path: str | Path, *, realtime: bool = True, loop: bool = False, fps: float = 30.0,
-        intrinsics_override: dict[str, float] | None = None, scale: float | None = None,
-        const_shift: float = fakenect_format.CONST_SHIFT, spec_text: str = "",
+        self,
+        path: str | Path,
+        *,
+        realtime: bool = True,
+        loop: bool = False,
+        fps: float = 30.0,
+        intrinsics_override: dict[str, float] | None = None,
+        scale: float | None = None,
+        const_shift: float = fakenect_format.CONST_SHIFT,
+        spec_text: str = "",
     ) -> None:
         self.path = Path(path)
         self.realtime = realtime
@@ -94,14 +103,17 @@ class ReplayDriver:
         )
 
     # --- sources -------------------------------------------------------------------------
-    def _intrinsics_with(self, base: Intrinsics | None, shape: tuple[int, int] | None) -> Intrinsics:
+    def _intrinsics_with(
+        self, base: Intrinsics | None, shape: tuple[int, int] | None
+    ) -> Intrinsics:
         height, width = shape if shape else ((base.height, base.width) if base else (0, 0))
         if base is None:
             missing = [k for k in ("fx", "fy", "cx", "cy") if k not in self.overrides]
             if missing:
                 raise RecordingError(
                     f"{self.path}: no intrinsics ({', '.join(missing)} unknown)",
-                    hint=f"add a {png_folder.SIDECAR} with an [intrinsics] table, or ?fx=..&fy=..&cx=..&cy=..",
+                    hint=f"add a {png_folder.SIDECAR} with an [intrinsics] table, "
+                    "or ?fx=..&fy=..&cx=..&cy=..",
                 )
             values = dict(self.overrides)
         else:
@@ -131,10 +143,18 @@ class ReplayDriver:
         table = side.get("intrinsics")
         if isinstance(table, dict):
             try:
-                base = Intrinsics(first.shape[1], first.shape[0], float(table["fx"]), float(table["fy"]),
-                                  float(table["cx"]), float(table["cy"]))
+                base = Intrinsics(
+                    first.shape[1],
+                    first.shape[0],
+                    float(table["fx"]),
+                    float(table["fy"]),
+                    float(table["cx"]),
+                    float(table["cy"]),
+                )
             except (KeyError, TypeError, ValueError) as exc:
-                raise RecordingError(f"{self.path / png_folder.SIDECAR}: bad [intrinsics]: {exc}") from None
+                raise RecordingError(
+                    f"{self.path / png_folder.SIDECAR}: bad [intrinsics]: {exc}"
+                ) from None
         intr = self._intrinsics_with(base, first.shape)
 
         def items() -> Iterator[Item]:
@@ -167,7 +187,8 @@ class ReplayDriver:
                 self._items, intr, name = self._png_items()
             else:
                 raise RecordingError(
-                    f"{self.path}: not a recording folder (no recording.toml, INDEX.txt, depth.txt or *.png)",
+                    f"{self.path}: not a recording folder "
+                    "(no recording.toml, INDEX.txt, depth.txt or *.png)",
                     hint="record one with `depthnav record`",
                 )
         elif self.path.suffix.lower() == ".npz":
@@ -192,14 +213,20 @@ class ReplayDriver:
         if self.path.suffix.lower() == ".oni" and self.path.is_file():
             from drivers.openni import OpenNIDriver  # only .oni replay needs OpenNI2
 
-            self._inner = OpenNIDriver.for_file(self.path, realtime=self.realtime, loop=self.loop,
-                                                spec_text=self.spec_text)
+            self._inner = OpenNIDriver.for_file(
+                self.path, realtime=self.realtime, loop=self.loop, spec_text=self.spec_text
+            )
             info = self._inner.open()
         else:
             self._start()
             assert self._intrinsics is not None
-            info = DeviceInfo(name=f"replay: {self._name}", serial=None, spec=self.spec_text,
-                              intrinsics=self._intrinsics, has_accel=False)
+            info = DeviceInfo(
+                name=f"replay: {self._name}",
+                serial=None,
+                spec=self.spec_text,
+                intrinsics=self._intrinsics,
+                has_accel=False,
+            )
         self._is_open = True
         with ReplayDriver._count_lock:
             ReplayDriver.open_count += 1
@@ -232,8 +259,14 @@ class ReplayDriver:
                 self._wall0 -= delay - timeout_s
             elif delay > 0:
                 time.sleep(delay)
-        frame = Frame(seq=self._seq, timestamp_s=t_s, depth_mm=np.array(depth, dtype=np.uint16),
-                      intrinsics=self._intrinsics, accel_mps2=accel, tilt=tilt)
+        frame = Frame(
+            seq=self._seq,
+            timestamp_s=t_s,
+            depth_mm=np.array(depth, dtype=np.uint16),
+            intrinsics=self._intrinsics,
+            accel_mps2=accel,
+            tilt=tilt,
+        )
         self._seq += 1
         self._last_t_s = t_s
         return frame

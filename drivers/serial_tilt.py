@@ -4,9 +4,10 @@ Spec (for configs): ``serialtilt:PORT[?protocol=line|mavlink&baud=N]`` where POR
 (``/dev/ttyUSB0``) or any pyserial URL (``socket://host:port``, ``loop://``).
 
 Protocols:
-- ``line`` (default): NMEA-like ASCII lines ``$TILT,<tilt_deg>,<roll_deg>*HH\\r\\n``, where HH is the
-  XOR of the bytes between ``$`` and ``*`` as two hex digits. The values use depthnav's signs:
-  tilt positive = sensor pitched DOWN, roll positive = left side UP. Example: ``$TILT,15.0,-2.5*1B``.
+- ``line`` (default): NMEA-like ASCII lines ``$TILT,<tilt_deg>,<roll_deg>*HH\\r\\n``, where HH is
+  the XOR of the bytes between ``$`` and ``*`` as two hex digits. The values use depthnav's signs:
+  tilt positive = sensor pitched DOWN, roll positive = left side UP.
+  Example: ``$TILT,15.0,-2.5*1B``.
 - ``mavlink``: MAVLink 1/2 ``ATTITUDE`` (id 30) from an autopilot, via pymavlink. ATTITUDE is in
   radians in the vehicle's FRD body frame: pitch positive = nose UP, roll positive = right side
   down. So tilt_deg = -degrees(pitch) and roll_deg = +degrees(roll), for an IMU whose forward axis
@@ -41,9 +42,9 @@ MAVLINK_ATTITUDE = 30
 class TiltReading:
     """One attitude reading in depthnav's convention."""
 
-    tilt_deg: float      # positive = pitched down
-    roll_deg: float      # positive = left side up
-    timestamp_s: float   # host monotonic time of arrival
+    tilt_deg: float  # positive = pitched down
+    roll_deg: float  # positive = left side up
+    timestamp_s: float  # host monotonic time of arrival
 
 
 def nmea_checksum(body: bytes) -> int:
@@ -61,7 +62,7 @@ def format_line(tilt_deg: float, roll_deg: float) -> bytes:
 
 
 def parse_line(line: bytes) -> tuple[float, float] | None:
-    """(tilt_deg, roll_deg) from one ``$TILT`` line, or None if malformed or the checksum is wrong."""
+    """(tilt_deg, roll_deg) from one ``$TILT`` line; None if malformed or the checksum is wrong."""
     match = LINE.fullmatch(line.strip())
     if match is None:
         return None
@@ -108,8 +109,11 @@ class SerialTiltSource:
         if spec.scheme != "serialtilt" or not spec.target:
             raise DeviceSpecError(f"{text!r} is not a serial tilt spec", hint=f"write {GRAMMAR}")
         check_options(spec, ("protocol", "baud"), GRAMMAR)
-        return cls(spec.target, choice_option(spec, "protocol", ("line", "mavlink"), "line"),
-                   int_option(spec, "baud", 115200, 50, 4_000_000))
+        return cls(
+            spec.target,
+            choice_option(spec, "protocol", ("line", "mavlink"), "line"),
+            int_option(spec, "baud", 115200, 50, 4_000_000),
+        )
 
     def start(self) -> None:
         """Open the port and start the reader thread.
@@ -122,11 +126,15 @@ class SerialTiltSource:
         try:
             self._serial = serial.serial_for_url(self.port, baudrate=self.baudrate, timeout=0.1)
         except (serial.SerialException, ValueError, OSError) as exc:
-            raise DeviceOpenError(f"cannot open serial port {self.port}: {exc}",
-                                  hint="check the port name and that you are in group dialout",
-                                  reason=OpenFailure.NOT_FOUND) from None
+            raise DeviceOpenError(
+                f"cannot open serial port {self.port}: {exc}",
+                hint="check the port name and that you are in group dialout",
+                reason=OpenFailure.NOT_FOUND,
+            ) from None
         self._stop.clear()
-        self._thread = threading.Thread(target=self._run, name=f"serial-tilt {self.port}", daemon=True)
+        self._thread = threading.Thread(
+            target=self._run, name=f"serial-tilt {self.port}", daemon=True
+        )
         self._thread.start()
 
     def _publish(self, tilt_deg: float, roll_deg: float) -> None:
@@ -145,8 +153,10 @@ class SerialTiltSource:
         except (serial.SerialException, OSError) as exc:
             if not self._stop.is_set():
                 with self._lock:
-                    self._error = DeviceLost(f"serial tilt source {self.port} stopped: {exc}",
-                                             hint="check the cable and the IMU's power")
+                    self._error = DeviceLost(
+                        f"serial tilt source {self.port} stopped: {exc}",
+                        hint="check the cable and the IMU's power",
+                    )
                 log.warning("serial tilt source %s stopped: %s", self.port, exc)
 
     def _line_feeder(self) -> Any:
@@ -202,7 +212,11 @@ class SerialTiltSource:
             if self._error is not None:
                 raise self._error
             reading = self._latest
-        if reading is not None and max_age_s is not None and time.monotonic() - reading.timestamp_s > max_age_s:
+        if (
+            reading is not None
+            and max_age_s is not None
+            and time.monotonic() - reading.timestamp_s > max_age_s
+        ):
             return None
         return reading
 
@@ -215,7 +229,7 @@ class SerialTiltSource:
         if self._serial is not None:
             try:
                 self._serial.close()
-            except Exception:  # noqa: BLE001 - closing must not raise
+            except Exception:
                 log.debug("closing %s failed", self.port, exc_info=True)
             self._serial = None
 
@@ -223,6 +237,10 @@ class SerialTiltSource:
         self.start()
         return self
 
-    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
-                 tb: TracebackType | None) -> None:
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
         self.stop()

@@ -86,7 +86,8 @@ def check_options(spec: Spec, valid: Iterable[str], grammar: str) -> None:
         if key not in allowed:
             names = ", ".join(sorted(allowed)) or "none"
             raise DeviceSpecError(
-                f"unknown option {key!r} for {spec.scheme!r} in {spec.text!r}; valid options: {names}",
+                f"unknown option {key!r} for {spec.scheme!r} in {spec.text!r}; "
+                f"valid options: {names}",
                 hint=f"the {spec.scheme} spec is {grammar}",
             )
 

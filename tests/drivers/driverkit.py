@@ -20,7 +20,9 @@ SMALL = Intrinsics(64, 48, 61.5, 57.25, 30.25, 22.75)
 VGA = Intrinsics(640, 480, 583.0, 575.5, 318.25, 243.75)
 
 
-def ramp_frames(n: int = 4, intr: Intrinsics = SMALL, seed: int = 7, accel: bool = True) -> list[Frame]:
+def ramp_frames(
+    n: int = 4, intr: Intrinsics = SMALL, seed: int = 7, accel: bool = True
+) -> list[Frame]:
     """``n`` frames: random uint16 depth (fixed seed), a few holes, 30 fps timestamps."""
     rng = np.random.default_rng(seed)
     frames = []
@@ -29,7 +31,9 @@ def ramp_frames(n: int = 4, intr: Intrinsics = SMALL, seed: int = 7, accel: bool
         depth[rng.random(depth.shape) < 0.05] = 0
         tilt = math.radians(5.0 + i)
         acc = (0.1 * i, -9.81 * math.cos(tilt), -9.81 * math.sin(tilt)) if accel else None
-        frames.append(Frame(seq=i, timestamp_s=i / 30.0, depth_mm=depth, intrinsics=intr, accel_mps2=acc))
+        frames.append(
+            Frame(seq=i, timestamp_s=i / 30.0, depth_mm=depth, intrinsics=intr, accel_mps2=acc)
+        )
     return frames
 
 
@@ -41,20 +45,33 @@ def kinect_exact_frames(n: int = 3, intr: Intrinsics = VGA, seed: int = 11) -> l
     raw[rng.random(raw.shape) < 0.05] = 2047
     depth = table[raw].astype(np.uint16)
     return [
-        Frame(seq=i, timestamp_s=i / 30.0, depth_mm=depth[i], intrinsics=intr,
-              accel_mps2=(0.0, -9.7, -1.4))
+        Frame(
+            seq=i,
+            timestamp_s=i / 30.0,
+            depth_mm=depth[i],
+            intrinsics=intr,
+            accel_mps2=(0.0, -9.7, -1.4),
+        )
         for i in range(n)
     ]
 
 
-def run_isolated(code: str, *args: str, env: dict[str, str] | None = None, timeout_s: float = 60.0
-                 ) -> subprocess.CompletedProcess[str]:
+def run_isolated(
+    code: str, *args: str, env: dict[str, str] | None = None, timeout_s: float = 60.0
+) -> subprocess.CompletedProcess[str]:
     """Run Python code in a child process, so a native crash fails one test, not the run."""
-    full_env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(REPO), str(Path(__file__).parent)]),
-                **(env or {})}
-    return subprocess.run(
-        [sys.executable, "-c", code, *args], capture_output=True, text=True, timeout=timeout_s,
-        env=full_env, cwd=str(REPO),
+    full_env = {
+        **os.environ,
+        "PYTHONPATH": os.pathsep.join([str(REPO), str(Path(__file__).parent)]),
+        **(env or {}),
+    }
+    return subprocess.run(  # noqa: PLW1510 - callers check returncode and show stderr
+        [sys.executable, "-c", code, *args],
+        capture_output=True,
+        text=True,
+        timeout=timeout_s,
+        env=full_env,
+        cwd=str(REPO),
     )
 
 
@@ -71,9 +88,14 @@ def contract_report(spec: str, max_frames: int = 8, timeout_s: float = 5.0) -> d
     report: dict = {"spec": spec, "frames": [], "problems": []}
     driver = drivers.create_driver(spec)
     info = driver.open()
-    report["info"] = {"name": info.name, "spec": info.spec, "has_accel": info.has_accel,
-                      "intrinsics": None if info.intrinsics is None else list(
-                          (info.intrinsics.width, info.intrinsics.height))}
+    report["info"] = {
+        "name": info.name,
+        "spec": info.spec,
+        "has_accel": info.has_accel,
+        "intrinsics": None
+        if info.intrinsics is None
+        else list((info.intrinsics.width, info.intrinsics.height)),
+    }
     try:
         for _ in range(max_frames):
             frame = driver.read_frame(timeout_s)
@@ -82,7 +104,10 @@ def contract_report(spec: str, max_frames: int = 8, timeout_s: float = 5.0) -> d
                 report["after_end"] = driver.read_frame(timeout_s) is None
                 break
             depth = frame.depth_mm
-            if depth.dtype != np.uint16 or depth.shape != (frame.intrinsics.height, frame.intrinsics.width):
+            if depth.dtype != np.uint16 or depth.shape != (
+                frame.intrinsics.height,
+                frame.intrinsics.width,
+            ):
                 report["problems"].append(f"frame {frame.seq}: {depth.dtype} {depth.shape}")
             if depth.flags.writeable:
                 report["problems"].append(f"frame {frame.seq}: depth is writeable")
@@ -91,10 +116,17 @@ def contract_report(spec: str, max_frames: int = 8, timeout_s: float = 5.0) -> d
             if frame.accel_mps2 is not None:
                 norm = math.sqrt(sum(a * a for a in frame.accel_mps2))
                 if len(frame.accel_mps2) != 3 or not 5.0 <= norm <= 15.0:
-                    report["problems"].append(f"frame {frame.seq}: implausible accel {frame.accel_mps2}")
-            report["frames"].append({"seq": frame.seq, "t": frame.timestamp_s,
-                                     "sha": hashlib.sha256(depth.tobytes()).hexdigest()[:16],
-                                     "accel": frame.accel_mps2 is not None})
+                    report["problems"].append(
+                        f"frame {frame.seq}: implausible accel {frame.accel_mps2}"
+                    )
+            report["frames"].append(
+                {
+                    "seq": frame.seq,
+                    "t": frame.timestamp_s,
+                    "sha": hashlib.sha256(depth.tobytes()).hexdigest()[:16],
+                    "accel": frame.accel_mps2 is not None,
+                }
+            )
     finally:
         driver.close()
         driver.close()

@@ -18,24 +18,46 @@ import usb.core
 class KinectMotorModel:
     """Emulates 045e:02b0: accelerometer, tilt motor and LED."""
 
-    def __init__(self, counts=(0, 819, 0), tilt_half_deg=0, status=0, product=0x02B0, bcd=0x010B,
-                 serial="A00366911234567A") -> None:
+    def __init__(
+        self,
+        counts=(0, 819, 0),
+        tilt_half_deg=0,
+        status=0,
+        product=0x02B0,
+        bcd=0x010B,
+        serial="A00366911234567A",
+    ) -> None:
         self.counts = list(counts)
         self.tilt_half_deg = tilt_half_deg
         self.status = status
         self.led = None
-        self.log = []                 # (bmRequestType, bRequest, wValue, wIndex, length)
+        self.log = []  # (bmRequestType, bRequest, wValue, wIndex, length)
         self.unplug_after_reads = None  # int: unplug once this many state reads succeeded
-        self.stall_next = 0           # stall this many next transfers
+        self.stall_next = 0  # stall this many next transfers
         self.unplugged = False
         self.reads = 0
         self.product = product
         self.strings = {1: "Microsoft", 2: "Xbox NUI Motor", 3: serial}
         self.desc = types.SimpleNamespace(
-            bLength=18, bDescriptorType=1, bcdUSB=0x0200, bDeviceClass=0, bDeviceSubClass=0,
-            bDeviceProtocol=0, bMaxPacketSize0=64, idVendor=0x045E, idProduct=product, bcdDevice=bcd,
-            iManufacturer=1, iProduct=2, iSerialNumber=3, bNumConfigurations=1, address=5, bus=1,
-            port_number=1, port_numbers=(1,), speed=2,
+            bLength=18,
+            bDescriptorType=1,
+            bcdUSB=0x0200,
+            bDeviceClass=0,
+            bDeviceSubClass=0,
+            bDeviceProtocol=0,
+            bMaxPacketSize0=64,
+            idVendor=0x045E,
+            idProduct=product,
+            bcdDevice=bcd,
+            iManufacturer=1,
+            iProduct=2,
+            iSerialNumber=3,
+            bNumConfigurations=1,
+            address=5,
+            bus=1,
+            port_number=1,
+            port_numbers=(1,),
+            speed=2,
         )
 
     def control(self, request_type, request, value, index, data):
@@ -80,14 +102,31 @@ class FakeUsbBackend(usb.backend.IBackend):
         return dev.desc
 
     def get_configuration_descriptor(self, dev, config):
-        return types.SimpleNamespace(bLength=9, bDescriptorType=2, wTotalLength=18, bNumInterfaces=1,
-                                     bConfigurationValue=1, iConfiguration=0, bmAttributes=0xC0,
-                                     bMaxPower=50, extra_descriptors=[])
+        return types.SimpleNamespace(
+            bLength=9,
+            bDescriptorType=2,
+            wTotalLength=18,
+            bNumInterfaces=1,
+            bConfigurationValue=1,
+            iConfiguration=0,
+            bmAttributes=0xC0,
+            bMaxPower=50,
+            extra_descriptors=[],
+        )
 
     def get_interface_descriptor(self, dev, intf, alt, config):
-        return types.SimpleNamespace(bLength=9, bDescriptorType=4, bInterfaceNumber=0, bAlternateSetting=0,
-                                     bNumEndpoints=0, bInterfaceClass=0xFF, bInterfaceSubClass=0,
-                                     bInterfaceProtocol=0, iInterface=0, extra_descriptors=[])
+        return types.SimpleNamespace(
+            bLength=9,
+            bDescriptorType=4,
+            bInterfaceNumber=0,
+            bAlternateSetting=0,
+            bNumEndpoints=0,
+            bInterfaceClass=0xFF,
+            bInterfaceSubClass=0,
+            bInterfaceProtocol=0,
+            iInterface=0,
+            extra_descriptors=[],
+        )
 
     def open_device(self, dev):
         if dev.unplugged:

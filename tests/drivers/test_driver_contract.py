@@ -3,7 +3,10 @@ the Kinect driver on Debian's fakenect, and a live device given with --depthnav-
 
 from __future__ import annotations
 
+import itertools
+
 import pytest
+from driverkit import contract_report, contract_report_isolated, kinect_exact_frames, ramp_frames
 
 from drivers.fakenect_format import write_fakenect
 from drivers.freenect_lib import find_library as find_freenect
@@ -11,7 +14,6 @@ from drivers.oni_format import write_oni
 from drivers.openni import find_library as find_openni
 from drivers.png_folder import write_png_folder
 from drivers.recording import write_recording
-from driverkit import contract_report, contract_report_isolated, kinect_exact_frames, ramp_frames
 
 N = 3
 
@@ -25,8 +27,12 @@ def _npz(tmp):
     import numpy as np
 
     frames = ramp_frames(N)
-    np.savez(tmp / "x.npz", depth_mm=np.stack([f.depth_mm for f in frames]),
-             intrinsics=frames[0].intrinsics.as_array(), timestamp_s=[f.timestamp_s for f in frames])
+    np.savez(
+        tmp / "x.npz",
+        depth_mm=np.stack([f.depth_mm for f in frames]),
+        intrinsics=frames[0].intrinsics.as_array(),
+        timestamp_s=[f.timestamp_s for f in frames],
+    )
     return f"replay:{tmp / 'x.npz'}?rate=max", False
 
 
@@ -54,8 +60,14 @@ def _kinect_fakenect(tmp):
     return f"kinect://0?fakenect={tmp / 'fk'}", True
 
 
-BACKENDS = {"replay-folder": _folder, "replay-npz": _npz, "replay-png": _png,
-            "replay-fakenect": _fakenect_replay, "openni-oni": _oni, "kinect-fakenect": _kinect_fakenect}
+BACKENDS = {
+    "replay-folder": _folder,
+    "replay-npz": _npz,
+    "replay-png": _png,
+    "replay-fakenect": _fakenect_replay,
+    "openni-oni": _oni,
+    "kinect-fakenect": _kinect_fakenect,
+}
 
 
 def check_contract(report: dict, finite: bool, n_expected: int | None) -> None:
@@ -63,9 +75,11 @@ def check_contract(report: dict, finite: bool, n_expected: int | None) -> None:
     seqs = [f["seq"] for f in report["frames"]]
     assert seqs == list(range(len(seqs))) and seqs, report
     stamps = [f["t"] for f in report["frames"]]
-    assert all(b >= a for a, b in zip(stamps, stamps[1:])), stamps
+    assert all(b >= a for a, b in itertools.pairwise(stamps)), stamps
     if finite:
-        assert report.get("ended") and report.get("after_end"), "a finite source ends with None, and stays ended"
+        assert report.get("ended") and report.get("after_end"), (
+            "a finite source ends with None, and stays ended"
+        )
     if n_expected is not None:
         assert len(seqs) == n_expected
 

@@ -6,12 +6,18 @@ import struct
 
 import numpy as np
 import pytest
+from driverkit import VGA, kinect_exact_frames
 
 from drivers.base import Frame
 from drivers.errors import RecordingError
-from drivers.fakenect_format import (PGM_HEADER, disparity_to_mm, disparity_to_mm_table, iter_fakenect,
-                                     mm_to_disparity, write_fakenect)
-from driverkit import VGA, kinect_exact_frames
+from drivers.fakenect_format import (
+    PGM_HEADER,
+    disparity_to_mm,
+    disparity_to_mm_table,
+    iter_fakenect,
+    mm_to_disparity,
+    write_fakenect,
+)
 
 
 def test_table_matches_libfreenect_formula_at_a_hand_computed_point():
@@ -38,7 +44,9 @@ def test_round_trip_is_within_the_quantisation_step():
     raw = mm_to_disparity(mm).astype(np.int64)
     step = np.maximum(table[np.minimum(raw + 1, 2046)] - table[np.maximum(raw - 1, 0)], 1)
     assert np.all(np.abs(back - mm.astype(np.int64)) <= step)
-    assert np.all(np.abs(back - mm.astype(np.int64)) <= np.maximum(0.02 * mm, 2))  # < 2 % out to 9.5 m
+    assert np.all(
+        np.abs(back - mm.astype(np.int64)) <= np.maximum(0.02 * mm, 2)
+    )  # < 2 % out to 9.5 m
 
 
 def test_written_files_follow_the_fakenect_layout(tmp_path):
@@ -51,7 +59,7 @@ def test_written_files_follow_the_fakenect_layout(tmp_path):
     raw = np.frombuffer(data, "<u2", offset=len(PGM_HEADER)).reshape(480, 640)
     np.testing.assert_array_equal(disparity_to_mm(raw), frames[0].depth_mm)
     assert len((tmp_path / "rec" / names[1]).read_bytes()) == 12
-    x, y, z, tilt, status = struct.unpack("<hhhbxi", (tmp_path / "rec" / names[1]).read_bytes())
+    x, y, z, _tilt, _status = struct.unpack("<hhhbxi", (tmp_path / "rec" / names[1]).read_bytes())
     assert (x, y) == (0, 810) and z == -117  # (0, -9.7, -1.4) m/s^2 in camera axes
 
 

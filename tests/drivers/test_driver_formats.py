@@ -5,6 +5,7 @@ from __future__ import annotations
 import hashlib
 
 import pytest
+from driverkit import contract_report_isolated, kinect_exact_frames
 
 import drivers
 from drivers.fakenect_format import write_fakenect
@@ -13,7 +14,6 @@ from drivers.oni_format import write_oni
 from drivers.openni import find_library as find_openni
 from drivers.png_folder import write_png_folder
 from drivers.recording import write_recording
-from driverkit import contract_report_isolated, kinect_exact_frames
 
 
 def digest(depth) -> str:
@@ -30,7 +30,10 @@ def test_every_format_replays_bit_identical_depth(tmp_path):
     write_png_folder(tmp_path / "png_mm", frames, scale=1000.0)
     write_png_folder(tmp_path / "png_tum", frames, scale=5000.0)
     write_fakenect(tmp_path / "fakenect", frames)
-    specs = [f"replay:{tmp_path / name}?rate=max" for name in ("folder", "bare.npz", "png_mm", "png_tum", "fakenect")]
+    specs = [
+        f"replay:{tmp_path / name}?rate=max"
+        for name in ("folder", "bare.npz", "png_mm", "png_tum", "fakenect")
+    ]
     for spec in specs:
         with drivers.opened(drivers.create_driver(spec)) as driver:
             got = [digest(f.depth_mm) for f in drivers.iter_frames(driver)]

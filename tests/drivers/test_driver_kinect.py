@@ -9,14 +9,16 @@ from __future__ import annotations
 import json
 
 import pytest
+from driverkit import kinect_exact_frames, run_isolated
 
 import drivers
 from drivers.errors import DeviceOpenError
 from drivers.fakenect_format import write_fakenect
 from drivers.freenect_lib import find_library
-from driverkit import kinect_exact_frames, run_isolated
 
-pytestmark = pytest.mark.skipif(find_library(fakenect=True) is None, reason="libfreenect0.5 not installed")
+pytestmark = pytest.mark.skipif(
+    find_library(fakenect=True) is None, reason="libfreenect0.5 not installed"
+)
 
 CHILD = """
 import json, sys, numpy as np
@@ -54,7 +56,9 @@ print(json.dumps(out))
 
 def run_kinect(folder, accel="freenect", unplug_after="none", stall=0) -> dict:
     proc = run_isolated(CHILD, str(folder), accel, str(unplug_after), str(stall))
-    assert proc.returncode == 0, f"child exited {proc.returncode}: {proc.stdout[-500:]} {proc.stderr[-2000:]}"
+    assert proc.returncode == 0, (
+        f"child exited {proc.returncode}: {proc.stdout[-500:]} {proc.stderr[-2000:]}"
+    )
     return json.loads(proc.stdout.strip().splitlines()[-1])
 
 

@@ -5,12 +5,12 @@ from __future__ import annotations
 import math
 
 import pytest
+from fake_kinect_usb import FakeUsbBackend, KinectMotorModel
 
 from drivers.errors import DeviceLost, DeviceOpenError, DriverError, OpenFailure
 from drivers.kinect_axes import STANDARD_GRAVITY_MPS2 as G
 from drivers.kinect_axes import accel_counts_to_camera, camera_to_accel_counts
 from drivers.kinect_motor import NOT_FOUND, KinectMotor, describe_kinects, parse_state
-from fake_kinect_usb import FakeUsbBackend, KinectMotorModel
 
 
 def opened_motor(model: KinectMotorModel) -> KinectMotor:
@@ -28,7 +28,7 @@ def test_level_sensor_reads_minus_g_on_y():
 def test_pitched_down_reads_negative_z_and_tilt_recovers(tilt_deg):
     t = math.radians(tilt_deg)
     # Device axes: y up, z forward; pitched down by t, "up" leans backwards (-z).
-    ax, ay, az = accel_counts_to_camera(0, round(819 * math.cos(t)), round(-819 * math.sin(t)))
+    _, ay, az = accel_counts_to_camera(0, round(819 * math.cos(t)), round(-819 * math.sin(t)))
     assert ay == pytest.approx(-G * math.cos(t), abs=0.02)
     assert az == pytest.approx(-G * math.sin(t), abs=0.02)
     assert math.degrees(math.atan2(-az, -ay)) == pytest.approx(tilt_deg, abs=0.1)
@@ -68,8 +68,10 @@ def test_serial_number_comes_from_string_descriptors():
     motor.close()
 
 
-@pytest.mark.parametrize(("angle", "w_value", "result"),
-                         [(10.0, 20, 10.0), (-10.0, 0xFFEC, -10.0), (45.0, 62, 31.0), (-90.0, 0xFFC2, -31.0)])
+@pytest.mark.parametrize(
+    ("angle", "w_value", "result"),
+    [(10.0, 20, 10.0), (-10.0, 0xFFEC, -10.0), (45.0, 62, 31.0), (-90.0, 0xFFC2, -31.0)],
+)
 def test_set_tilt_clamps_and_encodes_int16_half_degrees(angle, w_value, result):
     model = KinectMotorModel()
     motor = opened_motor(model)
@@ -95,7 +97,9 @@ def test_stall_is_an_error_the_next_read_recovers_from():
     model.stall_next = 1
     with pytest.raises(DriverError) as info:
         motor.read_state()
-    assert not isinstance(info.value, DeviceLost) and "stalled" in str(info.value) and info.value.hint
+    assert (
+        not isinstance(info.value, DeviceLost) and "stalled" in str(info.value) and info.value.hint
+    )
     assert motor.read_state().raw_counts == (0, 819, 0)
     motor.close()
 
@@ -114,12 +118,17 @@ def test_unplug_is_device_lost():
 def test_no_kinect_gives_the_documented_message():
     with pytest.raises(DeviceOpenError) as info:
         KinectMotor(backend=FakeUsbBackend()).open()
-    assert str(info.value) == NOT_FOUND == (
-        "no Kinect found (045e:02ae/02b0): plugged in? udev rules? run `depthnav devices`")
+    assert (
+        str(info.value)
+        == NOT_FOUND
+        == ("no Kinect found (045e:02ae/02b0): plugged in? udev rules? run `depthnav devices`")
+    )
     assert info.value.reason is OpenFailure.NOT_FOUND
 
 
-@pytest.mark.parametrize(("product", "bcd", "model"), [(0x02AE, 0x0100, "1473"), (0x02BF, 0x0100, "Kinect for Windows")])
+@pytest.mark.parametrize(
+    ("product", "bcd", "model"), [(0x02AE, 0x0100, "1473"), (0x02BF, 0x0100, "Kinect for Windows")]
+)
 def test_model_1473_and_k4w_are_detected_as_unsupported(product, bcd, model):
     camera = KinectMotorModel(product=product, bcd=bcd)
     with pytest.raises(DeviceOpenError) as info:
@@ -129,6 +138,9 @@ def test_model_1473_and_k4w_are_detected_as_unsupported(product, bcd, model):
 
 
 def test_describe_kinects_lists_models():
-    backend = FakeUsbBackend(KinectMotorModel(), KinectMotorModel(product=0x02AE, bcd=0x010B),
-                             KinectMotorModel(product=0x02AE, bcd=0x0100))
+    backend = FakeUsbBackend(
+        KinectMotorModel(),
+        KinectMotorModel(product=0x02AE, bcd=0x010B),
+        KinectMotorModel(product=0x02AE, bcd=0x0100),
+    )
     assert [m for m, _ in describe_kinects(backend)] == ["1414", "1473"]

@@ -5,17 +5,18 @@ Every test that loads the native library runs in a child process, so a crash fai
 
 from __future__ import annotations
 
+import itertools
 import json
 import math
 import struct
 
 import numpy as np
 import pytest
+from driverkit import SMALL, ramp_frames, run_isolated
 
 from drivers.errors import RecordingError
 from drivers.oni_format import check_oni, write_oni
 from drivers.openni import find_library
-from driverkit import SMALL, ramp_frames, run_isolated
 
 pytestmark = pytest.mark.skipif(find_library() is None, reason="libopenni2-0 not installed")
 
@@ -74,7 +75,7 @@ def test_oni_loop_keeps_time_increasing(oni_file):
     frames = run(f"openni:{oni_file}?loop=1", n_read=9)["frames"]
     assert len(frames) == 9 and all(f["equal"] for f in frames)
     stamps = [f["t"] for f in frames]
-    assert all(b > a for a, b in zip(stamps, stamps[1:]))
+    assert all(b > a for a, b in itertools.pairwise(stamps))
 
 
 def test_dummy_device_smoke():
@@ -87,7 +88,9 @@ print([f.depth_mm.shape for f in frames], int(frames[0].depth_mm[0].min()), int(
 """
     proc = run_isolated(code)
     assert proc.returncode == 0, proc.stderr[-2000:]  # a segfault would be -11
-    assert proc.stdout.strip().splitlines()[-1] == "[(240, 320), (240, 320), (240, 320)] 2000 2000 320"
+    assert (
+        proc.stdout.strip().splitlines()[-1] == "[(240, 320), (240, 320), (240, 320)] 2000 2000 320"
+    )
 
 
 def test_missing_device_and_bad_mode_give_hints():

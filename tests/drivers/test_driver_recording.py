@@ -7,15 +7,17 @@ import tomllib
 
 import numpy as np
 import pytest
+from driverkit import SMALL, ramp_frames
 
 from drivers.errors import RecordingError
 from drivers.recording import read_recording, write_recording
-from driverkit import SMALL, ramp_frames
 
 
 def test_round_trip_is_bit_exact(tmp_path):
     frames = ramp_frames(5)
-    n = write_recording(tmp_path / "rec", frames, description="ramp", truth={"tilt_deg": 5.0, "ok": True})
+    n = write_recording(
+        tmp_path / "rec", frames, description="ramp", truth={"tilt_deg": 5.0, "ok": True}
+    )
     assert n == 5
     rec = read_recording(tmp_path / "rec")
     assert rec.intrinsics == SMALL
@@ -31,7 +33,14 @@ def test_files_and_arrays_follow_the_documented_layout(tmp_path):
     assert sorted(os.listdir(tmp_path / "rec")) == ["frames.npz", "recording.toml"]
     meta = tomllib.loads((tmp_path / "rec" / "recording.toml").read_text())
     assert meta["format_version"] == 1
-    assert meta["intrinsics"] == {"width": 64, "height": 48, "fx": 61.5, "fy": 57.25, "cx": 30.25, "cy": 22.75}
+    assert meta["intrinsics"] == {
+        "width": 64,
+        "height": 48,
+        "fx": 61.5,
+        "fy": 57.25,
+        "cx": 30.25,
+        "cy": 22.75,
+    }
     with np.load(tmp_path / "rec" / "frames.npz", allow_pickle=False) as npz:
         assert npz["depth_mm"].dtype == np.uint16 and npz["depth_mm"].shape == (2, 48, 64)
         np.testing.assert_array_equal(npz["intrinsics"], [61.5, 57.25, 30.25, 22.75])
@@ -60,7 +69,7 @@ def test_interrupted_write_leaves_no_recording(tmp_path, monkeypatch):
         write_recording(tmp_path / "late", ramp_frames(2))
     monkeypatch.undo()
     assert sorted(os.listdir(tmp_path / "late")) == ["frames.npz"]  # no .partial left behind
-    with pytest.raises(RecordingError, match="no recording.toml"):
+    with pytest.raises(RecordingError, match=r"no recording\.toml"):
         read_recording(tmp_path / "late")
 
 
@@ -73,15 +82,18 @@ def test_refuses_to_overwrite_a_non_empty_folder(tmp_path):
 
 
 def test_bad_truth_writes_nothing(tmp_path):
-    with pytest.raises(RecordingError, match="truth.bad"):
+    with pytest.raises(RecordingError, match=r"truth\.bad"):
         write_recording(tmp_path / "rec", ramp_frames(1), truth={"bad": object()})
     assert not (tmp_path / "rec").exists() or not any((tmp_path / "rec").iterdir())
 
 
 def test_bare_npz_without_timestamps_gets_default_rate(tmp_path):
     frames = ramp_frames(3, accel=False)
-    np.savez(tmp_path / "x.npz", depth_mm=np.stack([f.depth_mm for f in frames]),
-             intrinsics=SMALL.as_array())
+    np.savez(
+        tmp_path / "x.npz",
+        depth_mm=np.stack([f.depth_mm for f in frames]),
+        intrinsics=SMALL.as_array(),
+    )
     rec = read_recording(tmp_path / "x.npz", default_fps=10.0)
     np.testing.assert_allclose(rec.timestamp_s, [0.0, 0.1, 0.2])
     assert rec.accel_mps2 is None and rec.intrinsics == SMALL
@@ -110,8 +122,12 @@ def _corrupt_cases(tmp_path):
     np.savez(p, depth_mm=np.zeros((1, 48, 64), np.uint16))
     cases["nointr"] = p
     p = tmp_path / "badts.npz"
-    np.savez(p, depth_mm=np.zeros((2, 48, 64), np.uint16), intrinsics=SMALL.as_array(),
-             timestamp_s=np.array([1.0, 0.5]))
+    np.savez(
+        p,
+        depth_mm=np.zeros((2, 48, 64), np.uint16),
+        intrinsics=SMALL.as_array(),
+        timestamp_s=np.array([1.0, 0.5]),
+    )
     cases["backwards"] = p
     newer = tmp_path / "newer"
     write_recording(newer, ramp_frames(1))

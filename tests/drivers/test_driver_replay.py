@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+import itertools
 import time
 
 import numpy as np
 import pytest
+from driverkit import SMALL, VGA, kinect_exact_frames, ramp_frames
 
 import drivers
 from drivers.errors import RecordingError
@@ -13,7 +15,6 @@ from drivers.fakenect_format import write_fakenect
 from drivers.png_folder import write_png_folder
 from drivers.recording import write_recording
 from drivers.replay import ReplayDriver
-from driverkit import SMALL, VGA, kinect_exact_frames, ramp_frames
 
 
 def read_all(spec: str, limit: int = 100):
@@ -38,14 +39,16 @@ def test_loop_repeats_with_increasing_timestamps(tmp_path):
         got = [driver.read_frame() for _ in range(5)]
     assert [f.seq for f in got] == [0, 1, 2, 3, 4]
     stamps = [f.timestamp_s for f in got]
-    assert all(b > a for a, b in zip(stamps, stamps[1:]))
+    assert all(b > a for a, b in itertools.pairwise(stamps))
     np.testing.assert_array_equal(got[2].depth_mm, got[0].depth_mm)
 
 
 def test_realtime_sleeps_toward_recorded_times(tmp_path):
     frames = ramp_frames(3)
-    stretched = [type(f)(seq=f.seq, timestamp_s=f.seq * 0.2, depth_mm=f.depth_mm, intrinsics=f.intrinsics)
-                 for f in frames]
+    stretched = [
+        type(f)(seq=f.seq, timestamp_s=f.seq * 0.2, depth_mm=f.depth_mm, intrinsics=f.intrinsics)
+        for f in frames
+    ]
     write_recording(tmp_path / "rec", stretched)
     start = time.monotonic()
     read_all(f"replay:{tmp_path / 'rec'}?rate=realtime")
@@ -75,7 +78,9 @@ def test_png_folder_without_intrinsics_asks_for_them(tmp_path):
 def test_fakenect_folder_replays_with_accelerometer(tmp_path):
     frames = kinect_exact_frames(2)
     write_fakenect(tmp_path / "fk", frames)
-    out = read_all(f"replay:{tmp_path / 'fk'}?rate=max&fx={VGA.fx}&fy={VGA.fy}&cx={VGA.cx}&cy={VGA.cy}")
+    out = read_all(
+        f"replay:{tmp_path / 'fk'}?rate=max&fx={VGA.fx}&fy={VGA.fy}&cx={VGA.cx}&cy={VGA.cy}"
+    )
     assert len(out) == 2 and out[0].intrinsics == VGA
     for a, b in zip(frames, out, strict=True):
         np.testing.assert_array_equal(a.depth_mm, b.depth_mm)
@@ -83,8 +88,18 @@ def test_fakenect_folder_replays_with_accelerometer(tmp_path):
         assert b.tilt is not None and b.tilt.status == "stopped"
 
 
-@pytest.mark.parametrize("kind", ["png_truncated", "png_garbage", "fakenect_truncated", "fakenect_missing",
-                                  "fakenect_header", "unknown_suffix", "empty_folder"])
+@pytest.mark.parametrize(
+    "kind",
+    [
+        "png_truncated",
+        "png_garbage",
+        "fakenect_truncated",
+        "fakenect_missing",
+        "fakenect_header",
+        "unknown_suffix",
+        "empty_folder",
+    ],
+)
 def test_corrupt_inputs_give_one_line_errors_naming_the_file(tmp_path, kind):
     if kind.startswith("png"):
         write_png_folder(tmp_path / "rec", ramp_frames(2, accel=False))

@@ -84,8 +84,8 @@ def test_mavlink_attitude_is_converted_to_our_signs(pty_pair):
         noise = b"\x00\xfd\x05junk"
         simulate(master, [heartbeat.pack(mav), noise] + [attitude.pack(mav)] * 30).join(WAIT_S)
         reading = wait_for(source, lambda r: True)
-        assert reading.tilt_deg == pytest.approx(10.0, abs=1e-4)   # pitched down -> positive tilt
-        assert reading.roll_deg == pytest.approx(5.0, abs=1e-4)    # right side down = left side up
+        assert reading.tilt_deg == pytest.approx(10.0, abs=1e-4)  # pitched down -> positive tilt
+        assert reading.roll_deg == pytest.approx(5.0, abs=1e-4)  # right side down = left side up
 
 
 def test_port_vanishing_is_device_lost(pty_pair):

@@ -26,7 +26,9 @@ def test_parse_spec_splits_scheme_target_and_options(text, scheme, target, optio
     assert (spec.scheme, spec.target, dict(spec.options)) == (scheme, target, options)
 
 
-@pytest.mark.parametrize("text", ["", "  ", "1abc:x", "replay:x?rate", "replay:x?rate=max&rate=realtime"])
+@pytest.mark.parametrize(
+    "text", ["", "  ", "1abc:x", "replay:x?rate", "replay:x?rate=max&rate=realtime"]
+)
 def test_malformed_specs_are_rejected_with_a_message(text):
     with pytest.raises(DeviceSpecError) as info:
         parse_spec(text)
@@ -50,8 +52,17 @@ def test_unknown_option_lists_the_valid_ones(text):
     assert info.value.hint
 
 
-@pytest.mark.parametrize("text", ["replay:x?rate=fast", "replay:x?loop=maybe", "replay:x?fx=abc",
-                                  "replay:x?fps=0", "kinect://x", "kinect?accel=gps"])
+@pytest.mark.parametrize(
+    "text",
+    [
+        "replay:x?rate=fast",
+        "replay:x?loop=maybe",
+        "replay:x?fx=abc",
+        "replay:x?fps=0",
+        "kinect://x",
+        "kinect?accel=gps",
+    ],
+)
 def test_bad_option_values_are_rejected(text):
     with pytest.raises(DriverError) as info:
         drivers.create_driver(text)
