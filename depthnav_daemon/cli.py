@@ -17,7 +17,7 @@ from typing import Any
 
 from depthnav_daemon import __version__
 from depthnav_daemon.errors import ConfigError, DepthnavError
-from drivers.errors import DriverError
+from drivers.errors import DeviceSpecError, DriverError
 
 log = logging.getLogger("depthnav_daemon.cli")
 
@@ -56,8 +56,14 @@ def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(prog="depthnav", description="Depth sensor to laser scan, cliffs and mount pose for robots.")
     parser.add_argument("--version", action="version", version=f"depthnav {__version__}")
     parser.add_argument("-v", "--verbose", action="count", default=0, help="-v debug logs, -vv with tracebacks")
-    parser.add_argument("-q", "--quiet", action="store_true", help="warnings and errors only")
+    parser.add_argument("-q", "--quiet", action="store_true", default=False, help="warnings and errors only")
+    # the same flags after the subcommand; SUPPRESS keeps the values given before it
+    common = argparse.ArgumentParser(add_help=False)
+    common.add_argument("-v", "--verbose", action="count", default=argparse.SUPPRESS, help=argparse.SUPPRESS)
+    common.add_argument("-q", "--quiet", action="store_true", default=argparse.SUPPRESS, help=argparse.SUPPRESS)
     sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
+    _add = sub.add_parser
+    sub.add_parser = lambda *a, **k: _add(*a, parents=[common], **k)  # type: ignore[method-assign]
 
     p = sub.add_parser("run", help="process a device and stream the results")
     _add_run_args(p, device_required=True)
@@ -311,6 +317,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         sys.stderr.write(f"depthnav: error: {str(exc).splitlines()[0] if str(exc) else type(exc).__name__}\n")
         if getattr(exc, "hint", None):
             sys.stderr.write(f"depthnav: hint: {exc.hint}\n")
+        if isinstance(exc, DeviceSpecError):
+            return EXIT_USAGE
         return int(getattr(exc, "exit_code", EXIT_FAIL))
     except KeyboardInterrupt:
         return EXIT_INTERRUPTED

@@ -94,5 +94,5 @@ def draw_side_view(path: Path, height_m: float, tilt_deg: float, vfov_deg: float
     g.ellipse([px(0, height_m)[0] - 5, px(0, height_m)[1] - 5, px(0, height_m)[0] + 5, px(0, height_m)[1] + 5], fill="black")
     g.text((margin, 10), f"h {height_m:.2f} m, tilt {tilt_deg:.1f} deg, vfov {vfov_deg:.1f} deg", fill="black")
     for d in np.arange(0, max_dist_m + 1e-9, 0.5):
-        g.text(px(float(d), 0)[0] - 8, h - margin + 8, f"{d:g}", fill="black")
+        g.text((px(float(d), 0)[0] - 8, h - margin + 8), f"{d:g}", fill="black")
     img.save(path)
