@@ -1,0 +1,182 @@
+"""The frame loop: sinks that fail, devices that stop or go silent, the live mount from the floor."""
+
+from __future__ import annotations
+
+import threading
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import pytest
+
+from depthnav_daemon.config import build_config
+from depthnav_daemon.daemon import run
+from depthnav_daemon.errors import DepthnavError
+from depthnav_daemon.mount_tracker import MountTracker, TrackerParams
+from depthnav_daemon.pipeline import Result
+from depthnav_daemon.pipeline.geometry import Mount
+from depthnav_daemon.sinks.base import SinkContext
+from drivers import create_driver
+from drivers.base import DeviceInfo, Frame
+from drivers.errors import DeviceLost, FrameTimeout
+
+FIXTURE = Path(__file__).resolve().parents[1] / "fixtures" / "corridor_step"
+SPEC = f"replay:{FIXTURE}?rate=max"
+
+
+@dataclass
+class CollectSink:
+    """Keeps what it is given; optionally fails on its n-th write like a dying transport."""
+
+    name: str = "collect"
+    fail_on: int | None = None
+    results: list[Result] = field(default_factory=list)
+    closed: int = 0
+    context: SinkContext | None = None
+
+    def open(self, context: SinkContext) -> None:
+        self.context = context
+
+    def write(self, frame: Frame, result: Result) -> None:
+        if self.fail_on is not None and len(self.results) + 1 == self.fail_on:
+            raise BrokenPipeError("[Errno 32] Broken pipe")
+        self.results.append(result)
+
+    def close(self) -> None:
+        self.closed += 1
+
+
+class FlakyDriver:
+    """The real replay driver, which the 'cable' drops once: lost after ``lose_after`` frames."""
+
+    def __init__(self, lose_after: int | None, silent: bool = False) -> None:
+        self.inner = create_driver(SPEC)
+        self.lose_after = lose_after
+        self.silent = silent
+        self.count = 0
+
+    def open(self) -> DeviceInfo:
+        return self.inner.open()
+
+    def read_frame(self, timeout_s: float = 1.0) -> Frame | None:
+        if self.lose_after is not None and self.count >= self.lose_after:
+            if self.silent:
+                raise FrameTimeout("no frame within the timeout")
+            raise DeviceLost("usb: [Errno 19] No such device (it may have been disconnected)")
+        self.count += 1
+        return self.inner.read_frame(timeout_s)
+
+    def close(self) -> None:
+        self.inner.close()
+
+
+def config(*sets: str):  # noqa: ANN201
+    return build_config([], ["daemon.reconnect_backoff_s=0.01", *sets], {"device": SPEC})
+
+
+def test_a_failing_sink_is_dropped_and_the_others_go_on() -> None:
+    good, bad = CollectSink("good"), CollectSink("bad", fail_on=3)
+    sinks = iter([good, bad])
+    cfg = build_config([], [], {"device": SPEC, "sinks": ["a", "b"]})
+    report = run(cfg, threading.Event(), max_frames=8, sink_factory=lambda _spec: next(sinks))
+    assert report.frames == 8
+    assert len(good.results) == 8 and len(bad.results) == 2
+    assert report.dropped_sinks == ["bad"]
+    assert bad.closed == 1 and good.closed == 1
+
+
+def test_every_sink_failing_ends_the_run_with_an_error() -> None:
+    cfg = build_config([], [], {"device": SPEC, "sinks": ["a"]})
+    with pytest.raises(DepthnavError, match="every output sink failed"):
+        run(cfg, threading.Event(), sink_factory=lambda _spec: CollectSink("only", fail_on=2))
+
+
+@pytest.mark.parametrize("silent", [False, True], ids=["lost", "silent"])
+def test_a_device_that_stops_is_reconnected(silent: bool) -> None:
+    drivers = iter([FlakyDriver(3, silent), FlakyDriver(None)])
+    sink = CollectSink()
+    cfg = config("daemon.frame_timeout_s=0.05", "daemon.max_consecutive_timeouts=2")
+    report = run(cfg, threading.Event(), max_frames=10, driver_factory=lambda _s: next(drivers),
+                 sink_factory=lambda _s: sink)
+    assert report.reconnects == 1
+    assert report.frames == 10
+    assert [r.seq for r in sink.results][:3] == [0, 1, 2]
+
+
+def test_a_device_that_never_comes_back_gives_up_with_a_hint() -> None:
+    cfg = config("daemon.reconnect_attempts=2")
+    made = []
+
+    def factory(_s: str) -> FlakyDriver:
+        made.append(FlakyDriver(2 if not made else 0))
+        if len(made) > 1:
+            made[-1].open = lambda: (_ for _ in ()).throw(DeviceLost("no Kinect found"))  # type: ignore[method-assign]
+        return made[-1]
+
+    with pytest.raises(DepthnavError, match="2 reconnect attempts failed") as info:
+        run(cfg, threading.Event(), driver_factory=factory, sink_factory=lambda _s: CollectSink())
+    assert info.value.hint
+
+
+def test_stop_event_ends_the_loop_and_closes_sinks() -> None:
+    stop = threading.Event()
+    sink = CollectSink()
+
+    class Stopper(CollectSink):
+        def write(self, frame: Frame, result: Result) -> None:
+            super().write(frame, result)
+            if len(self.results) == 4:
+                stop.set()
+
+    stopper = Stopper("stopper")
+    sinks = iter([sink, stopper])
+    cfg = build_config([], [], {"device": f"replay:{FIXTURE}?rate=max&loop=1", "sinks": ["a", "b"]})
+    report = run(cfg, stop, sink_factory=lambda _s: next(sinks))
+    assert report.stopped and report.frames == 4
+    assert sink.closed == 1 and stopper.closed == 1
+
+
+def test_the_floor_pose_feeds_the_scan() -> None:
+    """Configured badly (1.0 m, level), the floor estimate corrects the mount the stages use."""
+    sink = CollectSink()
+    cfg = build_config([], ["daemon.tilt_source=floor", "daemon.pose_every_frames=2"],
+                       {"device": SPEC, "mount": {"height_m": 1.0, "tilt_deg": 0.0}})
+    run(cfg, threading.Event(), max_frames=6, sink_factory=lambda _s: sink)
+    first, last = sink.results[0], sink.results[-1]
+    assert first.mount_source == "config" and first.mount.height_m == 1.0
+    assert first.pose is not None and first.pose.ok  # estimated on frame 0, applied from frame 1
+    assert last.mount_source == "floor"
+    assert last.mount.height_m == pytest.approx(0.55, abs=0.01)
+    assert last.mount.tilt_deg == pytest.approx(15.0, abs=0.5)
+
+
+def test_the_accelerometer_gives_the_first_tilt() -> None:
+    sink = CollectSink()
+    cfg = build_config([], ["daemon.pose_every_frames=0"], {"device": SPEC, "mount": {"tilt_deg": 0.0}})
+    run(cfg, threading.Event(), max_frames=3, sink_factory=lambda _s: sink)
+    assert sink.results[0].mount_source == "accel"
+    assert sink.results[0].mount.tilt_deg == pytest.approx(15.0, abs=0.5)  # the fixture's accel says 15 deg
+
+
+def test_mount_tracker_holds_back_a_jump_until_it_is_confirmed() -> None:
+    t = MountTracker(Mount(0.5, 10.0, 0.0), TrackerParams(smoothing=0.5, max_jump_m=0.05, max_jump_deg=3.0, confirmations=3))
+    assert "from the floor" in (t.from_floor(0.55, 15.0, 0.0) or "")
+    assert t.mount == Mount(0.55, 15.0, 0.0)
+    assert t.from_floor(0.56, 15.4, 0.2) is None            # small: smoothed in halfway
+    assert t.mount.height_m == pytest.approx(0.555) and t.mount.tilt_deg == pytest.approx(15.2)
+    before = t.mount
+    assert "not applied" in (t.from_floor(0.80, 30.0, 0.0) or "")   # a jump: held back
+    assert "not applied" in (t.from_floor(0.20, 5.0, 0.0) or "")    # disagrees with the first: restart
+    assert t.mount == before and t.rejected == 2
+    t.from_floor(0.80, 30.0, 0.0)
+    t.from_floor(0.80, 30.1, 0.0)
+    assert "accepted" in (t.from_floor(0.81, 30.0, 0.0) or "")      # three agreeing: the sensor moved
+    assert t.mount.height_m == pytest.approx(0.81)
+
+
+def test_mount_tracker_uses_tilt_sensor_only_until_the_floor_speaks() -> None:
+    t = MountTracker(Mount(0.5, 0.0, 0.0), TrackerParams())
+    t.from_tilt_sensor(14.0, 1.0, "accel")
+    assert t.source == "accel" and t.mount.tilt_deg == 14.0 and t.mount.height_m == 0.5
+    t.from_floor(0.6, 15.0, 0.0)
+    t.from_tilt_sensor(40.0, 0.0, "accel")
+    assert t.source == "floor" and t.mount.tilt_deg == 15.0
