@@ -124,4 +124,14 @@ def describe_backends() -> list[tuple[str, str]]:
         except Exception as exc:
             log.debug("backend status for %s failed", scheme, exc_info=True)
             out.append((scheme, f"error: {exc}"))
+    out.append(("serialtilt", _serial_tilt_status()))
     return out
+
+
+def _serial_tilt_status() -> str:
+    try:
+        import pymavlink
+        import serial
+    except ImportError as exc:
+        return f"missing: {exc.name} (pip install pyserial pymavlink)"
+    return f"pyserial {serial.VERSION}, pymavlink {getattr(pymavlink, '__version__', '?')}"

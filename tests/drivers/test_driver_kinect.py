@@ -32,7 +32,10 @@ model = KinectMotorModel(counts=(-12, 805, 140), tilt_half_deg=-20)
 if unplug_after != "none":
     model.unplug_after_reads = int(unplug_after)
 expected = kinect_exact_frames(3)
-driver = KinectDriver(fakenect_dir=folder, accel=accel, usb_backend=FakeUsbBackend(model))
+tilt = None if sys.argv[5] == "none" else float(sys.argv[5])
+led = None if sys.argv[6] == "none" else sys.argv[6]
+driver = KinectDriver(fakenect_dir=folder, accel=accel, usb_backend=FakeUsbBackend(model),
+                      tilt_deg=tilt, led=led)
 out = {"frames": []}
 try:
     info = driver.open()
@@ -50,12 +53,15 @@ except DriverError as exc:
 finally:
     driver.close()
     driver.close()
+out["motor_writes"] = [entry for entry in model.log if entry[0] == 0x40]
 print(json.dumps(out))
 """
 
 
-def run_kinect(folder, accel="freenect", unplug_after="none", stall=0) -> dict:
-    proc = run_isolated(CHILD, str(folder), accel, str(unplug_after), str(stall))
+def run_kinect(
+    folder, accel="freenect", unplug_after="none", stall=0, tilt="none", led="none"
+) -> dict:
+    proc = run_isolated(CHILD, str(folder), accel, str(unplug_after), str(stall), str(tilt), led)
     assert proc.returncode == 0, (
         f"child exited {proc.returncode}: {proc.stdout[-500:]} {proc.stderr[-2000:]}"
     )
@@ -122,3 +128,9 @@ def test_without_a_kinect_the_message_says_what_to_check():
         driver.open()
     driver.close()
     assert "no Kinect found (045e:02ae/02b0)" in str(info.value)
+
+
+def test_open_sets_led_and_tilt_on_the_motor(recording):
+    out = run_kinect(recording, accel="usb", tilt=-10.0, led="red")
+    assert out["motor_writes"] == [[0x40, 0x06, 2, 0, 0], [0x40, 0x31, 0xFFEC, 0, 0]]
+    assert out["frames"][-1]["tilt"] == [-10.0, "moving"]
