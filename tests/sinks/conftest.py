@@ -1,0 +1,87 @@
+"""Real Frames and Results for the sink tests: synthetic scenes run through the real scan and cliff stages."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, replace
+
+import numpy as np
+import pytest
+
+from depthnav_daemon import __version__
+from depthnav_daemon.pipeline import Result
+from depthnav_daemon.pipeline.cliff import CliffParams, detect_cliffs
+from depthnav_daemon.pipeline.geometry import Mount
+from depthnav_daemon.pipeline.scan import ScanParams, depth_to_scan, scan_layout
+from depthnav_daemon.sinks import SinkContext
+from depthnav_daemon.synthetic import Box, Scene, render, step_down
+from drivers.base import DeviceInfo, Frame, Intrinsics
+
+# Asymmetric on purpose (fx != fy, cx != W/2, cy != H/2) so swapped axes fail loudly.
+ASYM_640 = Intrinsics(640, 480, 575.0, 555.0, 331.0, 228.0)
+SCAN = ScanParams(range_min_m=0.4, range_max_m=5.0)
+CLIFF = CliffParams()
+# a box ahead-left, a thin post ahead-right, a step down 2.2 m ahead
+SCENE = Scene(
+    boxes=(Box(1.6, 0.35, 0.3, 0.3, 0.4), Box(1.2, -0.3, 0.04, 0.04, 0.6)),
+    holes=(step_down(2.2, 0.3),),
+)
+
+
+@dataclass(frozen=True)
+class PoseStandIn:
+    """The agreed PoseEstimate attributes (pipeline/pose.py is not committed yet)."""
+
+    ok: bool
+    height_m: float
+    tilt_deg: float
+    roll_deg: float
+    inliers: int
+    inlier_ratio: float
+    residual_m: float
+    candidates: int
+    reason: str = ""
+
+
+def make_pair(seq: int, mount: Mount = Mount(0.5, 12.0, 1.5), *, scene: Scene = SCENE,
+              intr: Intrinsics = ASYM_640, cliff: bool = True, pose: object | None = None,
+              warning: str | None = None) -> tuple[Frame, Result]:
+    """Render ``scene`` and run the real scan (and cliff) stage on it: one (Frame, Result)."""
+    view = render(scene, intr, mount)
+    frame = Frame(seq, 100.0 + seq / 30.0, view.depth_mm, intr)
+    scan = depth_to_scan(view.depth_mm, intr, mount, SCAN)
+    cliff_result = None
+    if cliff:
+        a0, inc, n = scan_layout(intr, mount, SCAN)
+        cliff_result = detect_cliffs(view.depth_mm, intr, mount, CLIFF, a0, inc, n)
+    result = Result(seq, frame.timestamp_s, intr, mount, "config", scan, cliff_result, pose,
+                    {"scan": 0.004 + seq * 1e-4, "cliff": 0.002}, warning)
+    return frame, result
+
+
+@pytest.fixture(scope="session")
+def pairs() -> list[tuple[Frame, Result]]:
+    """Five frames whose mount height changes a little each frame (so time series are checkable)."""
+    out = []
+    for seq in range(5):
+        pose = PoseStandIn(True, 0.5 + seq * 0.01, 12.0, 1.5, 900, 0.9, 0.004, 1000) if seq == 2 else None
+        out.append(make_pair(seq, Mount(0.5 + seq * 0.01, 12.0, 1.5), pose=pose,
+                             warning="low valid depth" if seq == 3 else None))
+    return out
+
+
+@pytest.fixture(scope="session")
+def context() -> SinkContext:
+    """What the daemon hands to open()."""
+    return SinkContext(DeviceInfo("synthetic", None, "replay:synthetic", ASYM_640), SCAN,
+                       CLIFF.block_size, __version__)
+
+
+def with_ranges(result: Result, ranges: np.ndarray) -> Result:
+    """``result`` with its scan's ranges replaced (same layout length required)."""
+    scan = replace(result.scan, ranges=np.asarray(ranges, dtype=np.float32))
+    return replace(result, scan=scan)
+
+
+def radians(deg: float) -> float:
+    return math.radians(deg)

@@ -1,0 +1,117 @@
+"""The stdout sink over real pipes: one strict JSON line per frame, a closed reader is a SinkError."""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import subprocess
+import sys
+import textwrap
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+import pytest
+
+from depthnav_daemon.errors import SinkError
+from depthnav_daemon.sinks import create_sink
+from depthnav_daemon.sinks.stdout import StdoutSink
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def test_lines_over_a_pipe(pairs, context):
+    r, w = os.pipe()
+    with os.fdopen(r, "r") as reader, os.fdopen(w, "w") as writer:
+        # read concurrently, like a real consumer: five lines overflow the 64 kB pipe buffer
+        with ThreadPoolExecutor(1) as pool:
+            text = pool.submit(reader.read)
+            sink = StdoutSink(stream=writer)
+            sink.open(context)
+            for frame, result in pairs:
+                sink.write(frame, result)
+            sink.close()
+            sink.close()                                   # safe twice
+            writer.close()
+            lines = text.result(timeout=60).splitlines()
+    assert len(lines) == len(pairs)
+    msgs = [json.loads(line) for line in lines]
+    assert [m["seq"] for m in msgs] == [r.seq for _, r in pairs]
+    assert all(m["version"] == context.version for m in msgs)
+
+
+def test_each_line_is_flushed_at_once(pairs, context):
+    # the reader sees frame 0 before frame 1 is written: nothing waits in a buffer
+    r, w = os.pipe()
+    with os.fdopen(r, "rb", buffering=0) as reader, os.fdopen(w, "w") as writer:
+        sink = StdoutSink(stream=writer)
+        sink.open(context)
+        sink.write(*pairs[0])
+        got = b""
+        while not got.endswith(b"\n"):
+            chunk = reader.read(65536)
+            assert chunk, "pipe closed early"
+            got += chunk
+        assert json.loads(got)["seq"] == 0
+        sink.close()
+
+
+def test_broken_pipe_is_a_sink_error(pairs, context):
+    r, w = os.pipe()
+    os.close(r)                                        # the reader went away (`| head -1` exited)
+    with os.fdopen(w, "w") as writer:
+        sink = StdoutSink(stream=writer)
+        sink.open(context)
+        with pytest.raises(SinkError, match="broken pipe") as info:
+            sink.write(*pairs[0])
+        assert info.value.hint
+        sink.close()
+        sink.close()
+        with pytest.raises(SinkError, match="not open"):
+            sink.write(*pairs[0])
+
+
+def test_log_handler_on_stdout_is_refused(context, monkeypatch):
+    r, w = os.pipe()
+    with os.fdopen(r, "r"), os.fdopen(w, "w") as stream:
+        handler = logging.StreamHandler(stream)
+        logger = logging.getLogger("depthnav_test_stdout_sink")
+        logger.addHandler(handler)
+        try:
+            with pytest.raises(SinkError, match="log handler writes to stdout"):
+                StdoutSink(stream=stream).open(context)
+        finally:
+            logger.removeHandler(handler)
+
+
+def test_real_stdout_closed_by_reader_exits_cleanly():
+    """A depthnav-like process writing to its real stdout, read by `head -1`: no traceback."""
+    script = textwrap.dedent("""
+        import logging, sys
+        from dataclasses import replace
+        logging.basicConfig(stream=sys.stderr, level=logging.INFO)
+        from depthnav_daemon.errors import SinkError
+        from depthnav_daemon.sinks import create_sink
+        from tests.sinks.conftest import make_pair, SCAN, CLIFF, ASYM_640
+        from depthnav_daemon.sinks import SinkContext
+        from drivers.base import DeviceInfo
+        frame, result = make_pair(0, cliff=False)
+        sink = create_sink("stdout")
+        sink.open(SinkContext(DeviceInfo("x", None, "x", ASYM_640), SCAN, 16, "0.1.0"))
+        try:
+            for seq in range(100000):
+                sink.write(replace(frame, seq=seq), replace(result, seq=seq))
+        except SinkError as exc:
+            logging.getLogger("test").error("sink dropped: %s", exc)
+        sink.close()
+    """)
+    proc = subprocess.run(f"{sys.executable} -c '{script}' | head -1", shell=True, cwd=ROOT,
+                          capture_output=True, text=True, timeout=120)
+    first = json.loads(proc.stdout)
+    assert first["seq"] == 0
+    assert "sink dropped: stdout was closed by the reader" in proc.stderr
+    assert "Traceback" not in proc.stderr and "Exception ignored" not in proc.stderr
+
+
+def test_spec():
+    assert isinstance(create_sink("stdout"), StdoutSink)
