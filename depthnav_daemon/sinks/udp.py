@@ -65,7 +65,7 @@ class UdpSink:
 
     @property
     def send_errors(self) -> int:
-        """Datagrams lost to send errors (receiver gone, buffer full, ...) since open."""
+        """Send errors since open: receiver gone (each ICMP report), buffer full, network down."""
         return self._send_errors.count
 
     @classmethod
@@ -112,9 +112,16 @@ class UdpSink:
                                   result.seq, self.max_bytes)
             return
         try:
-            self._sock.send(data)
+            try:
+                self._sock.send(data)
+            except ConnectionRefusedError:
+                # the ICMP error belongs to an earlier datagram and was reported instead of sending
+                # this one: count it and try once more, so a receiver that came back gets this frame
+                self._send_errors.failed("udp sink: %s:%d is not receiving (ConnectionRefusedError)",
+                                         self.host, self.port)
+                self._sock.send(data)
         except (BlockingIOError, ConnectionRefusedError) as exc:
-            # receiver gone (ICMP) or the socket buffer is full: drop this frame, keep going
+            # socket buffer full, or the receiver refused again: drop this frame, keep going
             self._send_errors.failed("udp sink: datagram to %s:%d dropped: %s",
                                      self.host, self.port, type(exc).__name__)
         except OSError as exc:   # network unreachable, message too long for this route, ...

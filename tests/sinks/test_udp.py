@@ -1,0 +1,123 @@
+"""The udp sink over a real loopback socket: one datagram per frame, a lost receiver never stalls."""
+
+from __future__ import annotations
+
+import json
+import logging
+import socket
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from depthnav_daemon.errors import ConfigError
+from depthnav_daemon.sinks import create_sink, jsonmsg
+from depthnav_daemon.sinks.udp import UdpSink
+
+
+@pytest.fixture
+def receiver():
+    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    sock.bind(("127.0.0.1", 0))
+    sock.settimeout(5.0)                       # bounded wait; loopback delivers at once
+    yield sock
+    sock.close()
+
+
+def test_one_datagram_per_frame(receiver, pairs, context):
+    port = receiver.getsockname()[1]
+    sink = create_sink(f"udp://:{port}")       # empty host = loopback
+    assert isinstance(sink, UdpSink) and sink.host == "127.0.0.1"
+    sink.open(context)
+    for frame, result in pairs:
+        sink.write(frame, result)
+    sink.close()
+    sink.close()
+    msgs = [json.loads(receiver.recv(65536)) for _ in pairs]
+    assert [m["seq"] for m in msgs] == [r.seq for _, r in pairs]
+    frame, result = pairs[0]
+    got = jsonmsg.decode_ranges(msgs[0]["scan"]["ranges"])
+    want = result.scan.ranges.astype(np.float64)
+    assert np.array_equal(np.isnan(got), np.isnan(want)) and np.array_equal(np.isinf(got), np.isinf(want))
+    fin = np.isfinite(want)
+    assert np.allclose(got[fin], want[fin], atol=0.0006)
+    assert msgs[0]["message"] is None and sink.sent == len(pairs) and sink.send_errors == 0
+
+
+def test_full_width_scan_fits_one_datagram(receiver, pairs, context):
+    # a 640-column scan with every range finite is the largest scan a Kinect frame gives
+    frame, result = pairs[0]
+    ranges = np.linspace(0.4, 4.999, result.scan.ranges.size).astype(np.float32)
+    result = replace(result, scan=replace(result.scan, ranges=ranges))
+    sink = create_sink(f"udp://127.0.0.1:{receiver.getsockname()[1]}")
+    sink.open(context)
+    sink.write(frame, result)
+    sink.close()
+    data = receiver.recv(65536)
+    assert len(data) < 60000
+    msg = json.loads(data)
+    assert msg["message"] is None and len(msg["scan"]["ranges"]) == ranges.size
+
+
+def test_oversize_message_drops_far_cliff_points_and_says_so(receiver, pairs, context):
+    frame, result = pairs[0]
+    rng = np.random.default_rng(3)
+    pts = rng.uniform([0.5, -3.0], [5.0, 3.0], size=(8000, 2)).astype(np.float32)
+    result = replace(result, cliff=replace(result.cliff, points_m=pts))
+    sink = create_sink(f"udp://127.0.0.1:{receiver.getsockname()[1]}?max_bytes=30000")
+    sink.open(context)
+    sink.write(frame, result)
+    sink.close()
+    data = receiver.recv(65536)
+    assert len(data) <= 30000
+    msg = json.loads(data)
+    assert msg["cliff"]["points_total"] == 8000 and msg["cliff"]["points_dropped"] > 0
+    assert "capped" in msg["message"]
+
+
+def test_lost_receiver_is_counted_never_raised(receiver, pairs, context, caplog):
+    port = receiver.getsockname()[1]
+    receiver.close()                           # nobody listens: ICMP port unreachable on loopback
+    sink = create_sink(f"udp://127.0.0.1:{port}")
+    sink.open(context)
+    frame, result = pairs[0]
+    with caplog.at_level(logging.WARNING, logger="depthnav_daemon.sinks.udp"):
+        for seq in range(20):
+            sink.write(frame, replace(result, seq=seq))   # must not raise
+    sink.close()
+    assert sink.send_errors >= 1
+    # at most one warning per 10 s, however many datagrams were lost
+    lines = [r for r in caplog.records if r.name == "depthnav_daemon.sinks.udp"]
+    assert len(lines) == 1 and "ConnectionRefusedError" in lines[0].getMessage()
+
+
+def test_receiver_coming_back_gets_data_again(pairs, context):
+    probe = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    probe.bind(("127.0.0.1", 0))
+    port = probe.getsockname()[1]
+    probe.close()
+    sink = create_sink(f"udp://127.0.0.1:{port}")
+    sink.open(context)
+    frame, result = pairs[0]
+    for seq in range(3):
+        sink.write(frame, replace(result, seq=seq))
+    again = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    try:
+        again.bind(("127.0.0.1", port))
+        again.settimeout(5.0)
+        sink.write(frame, replace(result, seq=99))
+        assert json.loads(again.recv(65536))["seq"] == 99
+    finally:
+        again.close()
+        sink.close()
+
+
+@pytest.mark.parametrize("spec", ["udp://", "udp://host", "udp://:0", "udp://h:1?max_bytes=99", "udp://h:1?ttl=3"])
+def test_bad_specs(spec):
+    with pytest.raises(ConfigError):
+        create_sink(spec)
+
+
+def test_ipv6_spec():
+    sink = create_sink("udp://[::1]:5600?max_bytes=1400")
+    assert (sink.host, sink.port, sink.max_bytes) == ("::1", 5600, 1400)
