@@ -1,0 +1,189 @@
+"""The rerun sink writes a real .rrd; rerun's own reader checks entities, counts and values."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from depthnav_daemon.errors import ConfigError, SinkError
+from depthnav_daemon.pipeline.geometry import rot_x, rot_y
+from depthnav_daemon.pipeline.scan import obstacle_pixels
+from depthnav_daemon.sinks import create_sink
+from depthnav_daemon.sinks.rerun import RerunSink
+
+rrchunk = pytest.importorskip("rerun.chunk")
+
+
+@pytest.fixture(autouse=True)
+def offline_rerun(tmp_path, monkeypatch):
+    """Keep rerun's config/analytics out of the real home and never reach a display."""
+    home = tmp_path / "home"
+    home.mkdir()
+    for var, sub in (("HOME", ""), ("XDG_CONFIG_HOME", ".config"), ("XDG_DATA_HOME", ".local/share"),
+                     ("XDG_CACHE_HOME", ".cache")):
+        monkeypatch.setenv(var, str(home / sub))
+    monkeypatch.delenv("DISPLAY", raising=False)
+    monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
+
+
+def record(path, pairs, context, options: str = "") -> RerunSink:
+    sink = create_sink(f"rerun:{path}{options}")
+    assert isinstance(sink, RerunSink) and sink.mode == "save"
+    sink.open(context)
+    for frame, result in pairs:
+        sink.write(frame, result)
+    sink.close()
+    sink.close()                                    # safe twice
+    return sink
+
+
+def temporal(path) -> dict[str, list]:
+    """entity -> list of record batches of its non-static chunks."""
+    out: dict[str, list] = {}
+    for chunk in rrchunk.RrdReader(str(path)).stream():
+        if not chunk.is_static:
+            out.setdefault(chunk.entity_path, []).append(chunk.to_record_batch())
+    return out
+
+
+def column(batches, name) -> list:
+    """All rows of one column, in frame order."""
+    rows = []
+    for rb in batches:
+        rows += list(zip(rb.column("frame").to_pylist(), rb.column(name).to_pylist(), strict=True))
+    return [v for _, v in sorted(rows, key=lambda fv: fv[0])]
+
+
+def test_rrd_has_every_entity_per_frame(tmp_path, pairs, context):
+    path = tmp_path / "run.rrd"
+    record(path, pairs, context)
+    reader = rrchunk.RrdReader(str(path))
+    assert [r.application_id for r in reader.recordings()] == ["depthnav"]
+    assert len(reader.blueprints()) == 1                        # the default layout travels in the file
+    reader.store()                                              # only a footer-complete file loads lazily
+    ent = temporal(path)
+    n = len(pairs)
+    for entity in ("/world/sensor", "/world/sensor/depth", "/world/sensor/depth/band",
+                   "/world/sensor/depth/obstacles", "/world/sensor/depth/cliffs", "/world/scan",
+                   "/world/cliff/points", "/world/cliff/scan", "/stats/pose/height_m", "/stats/pose/tilt_deg",
+                   "/stats/pose/roll_deg", "/stats/timing/scan_ms", "/stats/timing/cliff_ms"):
+        assert sum(rb.num_rows for rb in ent[entity]) == n, entity
+    assert column(ent["/world/scan"], "frame") == [r.seq for _, r in pairs]
+    # one warning (frame 3); the accepted floor estimate of frame 2 logs nothing
+    texts = column(ent["/log"], "TextLog:text")
+    assert len(texts) == 1 and "low valid depth" in texts[0][0]
+
+
+def test_values_match_the_results(tmp_path, pairs, context):
+    path = tmp_path / "run.rrd"
+    record(path, pairs, context)
+    ent = temporal(path)
+    heights = [v[0] for v in column(ent["/stats/pose/height_m"], "Scalars:scalars")]
+    assert heights == pytest.approx([r.mount.height_m for _, r in pairs])
+    timing = [v[0] for v in column(ent["/stats/timing/scan_ms"], "Scalars:scalars")]
+    assert timing == pytest.approx([r.timings_s["scan"] * 1000 for _, r in pairs])
+    secs = [v.total_seconds() for v in column(ent["/world/sensor"], "sensor_time")]
+    assert secs == pytest.approx([r.timestamp_s for _, r in pairs], abs=1e-6)
+    frame, result = pairs[1]
+    # depth image: the very bytes of the frame, with meter = 1000 (millimetres)
+    buf = column(ent["/world/sensor/depth"], "DepthImage:buffer")[1][0]
+    assert np.array_equal(np.frombuffer(bytes(buf), np.uint16).reshape(frame.depth_mm.shape), frame.depth_mm)
+    assert column(ent["/world/sensor/depth"], "DepthImage:meter")[1] == [1000.0]
+    # scan points: every finite range, on its bearing (x forward, y left)
+    pts = np.asarray(column(ent["/world/scan"], "Points3D:positions")[1])
+    r = result.scan.ranges.astype(np.float64)
+    ok = np.isfinite(r)
+    a = result.scan.angles[ok]
+    assert len(pts) == ok.sum() > 0
+    assert np.allclose(pts[:, 0], r[ok] * np.cos(a), atol=1e-4)
+    assert np.allclose(pts[:, 1], r[ok] * np.sin(a), atol=1e-4)
+    # cliff points on the floor (z = 0), blocks drawn at (col, row) with the block size
+    cliff_pts = np.asarray(column(ent["/world/cliff/points"], "Points3D:positions")[1])
+    assert np.allclose(cliff_pts[:, :2], result.cliff.points_m, atol=1e-5) and np.all(cliff_pts[:, 2] == 0)
+    centers = np.asarray(column(ent["/world/sensor/depth/cliffs"], "Boxes2D:centers")[1])
+    blocks = np.asarray(result.cliff.blocks)
+    bs = context.cliff_block_size
+    assert np.allclose(centers, blocks[:, ::-1] - 0.5 + bs / 2.0)
+    # obstacle overlay: exactly the scan's obstacle pixels
+    seg = np.frombuffer(bytes(column(ent["/world/sensor/depth/obstacles"], "SegmentationImage:buffer")[1][0]),
+                        np.uint8).reshape(frame.depth_mm.shape)
+    want = obstacle_pixels(frame.depth_mm, frame.intrinsics, result.mount, context.scan_params)
+    assert want.any() and np.array_equal(seg == 1, want)
+
+
+def test_sensor_pose_transform_pins_tilt_sign(tmp_path, pairs, context):
+    path = tmp_path / "run.rrd"
+    record(path, pairs[:1], context)
+    ent = temporal(path)
+    _, result = pairs[0]
+    t = column(ent["/world/sensor"], "Transform3D:translation")[0][0]
+    assert t == pytest.approx([0.0, 0.0, result.mount.height_m])
+    mat = np.asarray(column(ent["/world/sensor"], "Transform3D:mat3x3")[0][0]).reshape(3, 3).T  # stored column-major
+    assert np.allclose(mat, rot_y(result.mount.tilt_rad) @ rot_x(result.mount.roll_rad), atol=1e-6)
+    forward = mat @ [1.0, 0.0, 0.0]
+    assert forward[2] < 0                       # tilt 12 deg = nose down: the optical axis points at the floor
+    left = mat @ [0.0, 1.0, 0.0]
+    assert left[2] > 0                          # roll 1.5 deg = left side up
+
+
+def test_static_scene_logged_once(tmp_path, pairs, context):
+    path = tmp_path / "run.rrd"
+    record(path, pairs, context)
+    static = {}
+    for chunk in rrchunk.RrdReader(str(path)).stream():
+        if chunk.is_static:
+            static[chunk.entity_path] = static.get(chunk.entity_path, 0) + chunk.num_rows
+    assert static["/world"] == 1 and static["/world/floor"] == 1
+    assert static["/world/sensor/depth"] == 1   # the pinhole: the intrinsics never changed
+
+
+def test_every_and_image_options(tmp_path, pairs, context):
+    path = tmp_path / "thin.rrd"
+    sink = record(path, pairs, context, "?every=2&image=0")
+    assert sink.logged == 3
+    ent = temporal(path)
+    assert "/world/sensor/depth" not in ent and "/world/sensor/depth/obstacles" not in ent
+    assert column(ent["/world/scan"], "frame") == [0, 2, 4]
+
+
+def test_no_cliff_stage(tmp_path, pairs, context):
+    path = tmp_path / "nocliff.rrd"
+    frame, result = pairs[0]
+    record(path, [(frame, replace(result, cliff=None))], context)
+    ent = temporal(path)
+    assert "/world/cliff/points" not in ent
+    assert column(ent["/world/sensor/depth/cliffs"], "Boxes2D:centers") in ([None], [[]])
+
+
+def test_spawn_without_display_fails_fast(context):
+    sink = create_sink("rerun")
+    with pytest.raises(SinkError, match="no display") as info:
+        sink.open(context)
+    assert "rerun:FILE.rrd" in info.value.hint
+    sink.close()
+
+
+def test_save_into_missing_folder(tmp_path, context):
+    sink = create_sink(f"rerun:{tmp_path}/nope/run.rrd")
+    with pytest.raises(SinkError, match="does not exist"):
+        sink.open(context)
+
+
+@pytest.mark.parametrize("spec", ["rerun:run.txt", "rerun://host:9876", "rerun:x.rrd?every=0", "rerun?fps=3"])
+def test_bad_specs(spec):
+    with pytest.raises(ConfigError):
+        create_sink(spec)
+
+
+def test_grpc_spec_builds_proxy_url():
+    assert create_sink("rerun+grpc://10.0.0.5:9000").target == "rerun+http://10.0.0.5:9000/proxy"
+    assert create_sink("rerun+grpc://").target == "rerun+http://127.0.0.1:9876/proxy"
+
+
+def test_module_name_does_not_shadow_rerun():
+    import rerun
+
+    # sinks/rerun.py does `import rerun as rr`: that must be the SDK, not the module itself
+    assert "depthnav_daemon" not in rerun.__file__ and hasattr(rerun, "RecordingStream")
