@@ -250,7 +250,8 @@ class RerunSink:
             rec.log("/world/sensor/depth/obstacles", rr.SegmentationImage(mask.astype(np.uint8) * CLASS_OBSTACLE,
                                                                           opacity=0.6))
         blocks = np.empty((0, 2)) if result.cliff is None else np.asarray(result.cliff.blocks).reshape(-1, 2)
-        size = float(ctx.cliff_block_size)
+        # the cliff stage reports its own block size; the context's is the configured fallback
+        size = float(getattr(result.cliff, "block_size", None) or ctx.cliff_block_size)
         # blocks are (row, col) of the top-left pixel; Boxes2D wants (x, y) = (col, row) pixel edges
         rec.log("/world/sensor/depth/cliffs", rr.Boxes2D(mins=blocks[:, ::-1].astype(np.float32) - 0.5,
                                                          sizes=np.full((len(blocks), 2), size, np.float32),
