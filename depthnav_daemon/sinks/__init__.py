@@ -20,7 +20,7 @@ from depthnav_daemon.sinks.base import Sink, SinkContext, SinkSpec, parse_sink_s
 
 __all__ = ["SINKS", "Sink", "SinkContext", "SinkSpec", "create_sink", "parse_sink_spec"]
 
-SINKS: dict[str, tuple[str, str]] = {   # scheme -> (module, class); imported only when used
+SINKS: dict[str, tuple[str, str]] = {  # scheme -> (module, class); imported only when used
     "stdout": ("depthnav_daemon.sinks.stdout", "StdoutSink"),
     "udp": ("depthnav_daemon.sinks.udp", "UdpSink"),
     "null": ("depthnav_daemon.sinks.null", "NullSink"),
@@ -35,7 +35,8 @@ def create_sink(text: str) -> Sink:
     """Build (but do not open) the sink named by a spec.
 
     Args:
-        text: e.g. "stdout", "udp://127.0.0.1:5600", "rerun:run.rrd", "mavlink:/dev/ttyUSB0?baud=921600".
+        text: e.g. "stdout", "udp://127.0.0.1:5600", "rerun:run.rrd",
+            "mavlink:/dev/ttyUSB0?baud=921600".
 
     Raises:
         ConfigError: unknown scheme (listing the valid ones), unknown option (listing the sink's

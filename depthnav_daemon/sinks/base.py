@@ -101,7 +101,9 @@ def parse_sink_spec(text: str) -> SinkSpec:
         ConfigError: empty spec, bad scheme, malformed or repeated option.
     """
     if not isinstance(text, str) or not text.strip():
-        raise ConfigError("empty sink spec", hint="e.g. stdout, udp://127.0.0.1:5600, rerun:run.rrd")
+        raise ConfigError(
+            "empty sink spec", hint="e.g. stdout, udp://127.0.0.1:5600, rerun:run.rrd"
+        )
     text = text.strip()
     body, sep, query = text.partition("?")
     scheme, colon, target = body.partition(":")
@@ -142,7 +144,8 @@ def check_options(spec: SinkSpec, valid: Iterable[str], grammar: str) -> None:
         if key not in allowed:
             names = ", ".join(sorted(allowed)) or "none"
             raise ConfigError(
-                f"unknown option {key!r} for sink {spec.scheme!r} in {spec.text!r}; valid options: {names}",
+                f"unknown option {key!r} for sink {spec.scheme!r} in {spec.text!r}; "
+                f"valid options: {names}",
                 hint=f"the {spec.scheme} sink spec is {grammar}",
             )
 
@@ -163,10 +166,14 @@ def number_option(
     except ValueError:
         kind = "an integer" if integer else "a number"
         raise ConfigError(
-            f"option {key}={raw!r} in sink spec {spec.text!r} is not {kind} (accepted: {low:g}..{high:g})"
+            f"option {key}={raw!r} in sink spec {spec.text!r} is not {kind} "
+            f"(accepted: {low:g}..{high:g})"
         ) from None
     if not (math.isfinite(value) and low <= value <= high):
-        raise ConfigError(f"option {key}={raw!r} in sink spec {spec.text!r} is out of range (accepted: {low:g}..{high:g})")
+        raise ConfigError(
+            f"option {key}={raw!r} in sink spec {spec.text!r} is out of range "
+            f"(accepted: {low:g}..{high:g})"
+        )
     return value
 
 
@@ -199,18 +206,18 @@ def parse_host_port(spec: SinkSpec, default_host: str, default_port: int | None)
     """
     target = spec.target.strip().rstrip("/")
     host, port_text = target, ""
-    if target.startswith("["):                      # [::1]:5600
+    if target.startswith("["):  # [::1]:5600
         end = target.find("]")
         if end < 0:
             raise ConfigError(f"unclosed '[' in sink spec {spec.text!r}")
-        host, rest = target[1:end], target[end + 1:]
+        host, rest = target[1:end], target[end + 1 :]
         if rest:
             if not rest.startswith(":"):
                 raise ConfigError(f"expected ':PORT' after ']' in sink spec {spec.text!r}")
             port_text = rest[1:]
     elif target.count(":") == 1:
         host, port_text = target.split(":")
-    elif target.isdigit():                           # udp:5600
+    elif target.isdigit():  # udp:5600
         host, port_text = "", target
     host = host.strip() or default_host
     if not port_text:
@@ -236,7 +243,7 @@ class RateLimitedLog:
         self._log = logger
         self._period_s = period_s
         self._last = -math.inf
-        self.count = 0          # failures since the sink opened
+        self.count = 0  # failures since the sink opened
         self._unreported = 0
 
     def failed(self, message: str, *args: object) -> None:
@@ -245,7 +252,11 @@ class RateLimitedLog:
         self._unreported += 1
         now = time.monotonic()
         if now - self._last >= self._period_s:
-            self._log.warning(message + " (%d failure(s) since the last report, %d in total)",
-                              *args, self._unreported, self.count)
+            self._log.warning(
+                message + " (%d failure(s) since the last report, %d in total)",
+                *args,
+                self._unreported,
+                self.count,
+            )
             self._last = now
             self._unreported = 0

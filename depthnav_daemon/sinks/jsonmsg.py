@@ -27,14 +27,14 @@ log = logging.getLogger(__name__)
 SCHEMA_VERSION = 1
 POS_INF = "Infinity"
 NEG_INF = "-Infinity"
-MM = 3        # decimals for metres (1 mm)
-RAD = 6       # decimals for radians (1 microradian)
-DEG = 3       # decimals for degrees
-SEC = 6       # decimals for seconds (1 microsecond)
+MM = 3  # decimals for metres (1 mm)
+RAD = 6  # decimals for radians (1 microradian)
+DEG = 3  # decimals for degrees
+SEC = 6  # decimals for seconds (1 microsecond)
 
 
 def _num(value: float | None, decimals: int) -> float | None:
-    """A finite number rounded to ``decimals``, or None for None/NaN/inf (scalars have no inf code)."""
+    """A finite number rounded to ``decimals``; None for None/NaN/inf (scalars have no inf code)."""
     if value is None:
         return None
     v = float(value)
@@ -42,10 +42,10 @@ def _num(value: float | None, decimals: int) -> float | None:
 
 
 def encode_ranges(ranges: np.ndarray) -> list[float | str | None]:
-    """REP 117 ranges (N,) metres -> JSON list: mm-rounded numbers, null, "Infinity", "-Infinity"."""
+    """REP 117 ranges (N,) metres -> JSON list: numbers (1 mm), null, "Infinity", "-Infinity"."""
     r = np.asarray(ranges, dtype=np.float64)
     out: list[float | str | None] = np.round(r, MM).tolist()
-    # the special values are rare next to finite ones: patch them in place rather than branch per item
+    # special values are rare next to finite ones: patch them in place, no branch per item
     for i in np.flatnonzero(~np.isfinite(r)).tolist():
         v = r[i]
         out[i] = None if math.isnan(v) else (POS_INF if v > 0 else NEG_INF)
@@ -173,7 +173,7 @@ def dumps(msg: dict[str, Any]) -> str:
 def fit_message(
     frame: Frame, result: Result, version: str, wall_time_s: float, max_bytes: int
 ) -> bytes | None:
-    """The frame's JSON as UTF-8, with cliff points dropped (nearest kept) until it fits ``max_bytes``.
+    """The frame's JSON as UTF-8, cliff points dropped (nearest kept) until it fits ``max_bytes``.
 
     Returns:
         The encoded message, or None when even the message without any cliff points is too big.
@@ -189,9 +189,13 @@ def fit_message(
         # scale by the overshoot, then shave 10 % more: a couple of rounds at most in practice
         cap = min(cap - 1, int(cap * max_bytes / len(data) * 0.9))
         cap = max(cap, 0)
-        note = f"cliff points capped to the nearest {cap} of {total} to fit one {max_bytes}-byte datagram"
-        data = dumps(frame_message(frame, result, version, wall_time_s,
-                                   max_cliff_points=cap, message=note)).encode()
+        note = (
+            f"cliff points capped to the nearest {cap} of {total} "
+            f"to fit one {max_bytes}-byte datagram"
+        )
+        data = dumps(
+            frame_message(frame, result, version, wall_time_s, max_cliff_points=cap, message=note)
+        ).encode()
         if len(data) <= max_bytes:
             return data
     return None

@@ -10,8 +10,10 @@ Options (all optional):
         rate from a thread, decoupled from the frame rate; a scan older than ``stale`` is not
         repeated, so the autopilot times out (ArduPilot: 500 ms) instead of trusting old data.
     stale: seconds a scan may be repeated (default 0.5).
-    sysid, compid: MAVLink source system / component (default 1 / 196 MAV_COMP_ID_OBSTACLE_AVOIDANCE).
-    sensor: laser | ultrasound | infrared | radar | unknown (default infrared: structured light / ToF).
+    sysid, compid: MAVLink source system / component (default 1 / 196,
+        MAV_COMP_ID_OBSTACLE_AVOIDANCE).
+    sensor: laser | ultrasound | infrared | radar | unknown (default infrared: structured light,
+        ToF).
     cliff: 1 = also report drop-offs (the cliff scan) as obstacles, sector-wise minimum (default 0).
 
 Sectors (pinned by tests/sinks/test_mavlink.py): the 72 sectors split the scan's field of view
@@ -56,17 +58,25 @@ if TYPE_CHECKING:
 
 log = logging.getLogger(__name__)
 
-GRAMMAR = ("mavlink:SERIALPORT[?baud=N&rate=HZ&stale=S&sysid=N&compid=N&sensor=KIND&cliff=0|1] or "
-           "mavlink+udp://HOST:PORT[?rate=HZ&stale=S&sysid=N&compid=N&sensor=KIND&cliff=0|1]")
+GRAMMAR = (
+    "mavlink:SERIALPORT[?baud=N&rate=HZ&stale=S&sysid=N&compid=N&sensor=KIND&cliff=0|1] or "
+    "mavlink+udp://HOST:PORT[?rate=HZ&stale=S&sysid=N&compid=N&sensor=KIND&cliff=0|1]"
+)
 COMMON_OPTIONS = ("rate", "stale", "sysid", "compid", "sensor", "cliff")
 SECTORS = 72
-UNKNOWN = 65535                     # UINT16_MAX: no data in this sector
-SENSOR_TYPES = {"laser": 0, "ultrasound": 1, "infrared": 2, "radar": 3, "unknown": 4}  # MAV_DISTANCE_SENSOR
+UNKNOWN = 65535  # UINT16_MAX: no data in this sector
+SENSOR_TYPES = {
+    "laser": 0,
+    "ultrasound": 1,
+    "infrared": 2,
+    "radar": 3,
+    "unknown": 4,
+}  # MAV_DISTANCE_SENSOR
 MAV_COMP_ID_OBSTACLE_AVOIDANCE = 196
 MAV_FRAME_BODY_FRD = 12
 DEFAULT_UDP = ("127.0.0.1", 14550)
 HEARTBEAT_PERIOD_S = 1.0
-MESSAGE_BYTES = 180                 # a packed MAVLink 2 OBSTACLE_DISTANCE, for the baud-rate check
+MESSAGE_BYTES = 180  # a packed MAVLink 2 OBSTACLE_DISTANCE, for the baud-rate check
 
 
 @dataclass(frozen=True, slots=True)
@@ -98,7 +108,7 @@ def bins_to_cm(ranges: np.ndarray, min_cm: int, max_cm: int) -> npt.NDArray[np.f
     """REP 117 ranges (N,) metres -> per-bin distances in cm (float, NaN = no data)."""
     r = np.asarray(ranges, dtype=np.float64)
     with np.errstate(invalid="ignore"):
-        cm = np.clip(np.floor(r * 100.0), min_cm, max_cm)   # floor: report an obstacle slightly near
+        cm = np.clip(np.floor(r * 100.0), min_cm, max_cm)  # floor: report an obstacle slightly near
     cm[r == np.inf] = max_cm + 1
     cm[r == -np.inf] = min_cm
     cm[np.isnan(r)] = np.nan
@@ -110,23 +120,31 @@ def _footprints_deg(scan: LaserScan) -> tuple[npt.NDArray[np.float64], npt.NDArr
     m = int(scan.ranges.size)
     inc = abs(float(scan.angle_increment)) if m > 1 else 0.0
     if inc == 0.0 or not math.isfinite(inc):
-        inc = math.radians(1.0)     # a single bin: give it a nominal 1 degree footprint
+        inc = math.radians(1.0)  # a single bin: give it a nominal 1 degree footprint
     theta = scan.angle_min + float(scan.angle_increment) * np.arange(m)
     return -np.degrees(theta + inc / 2.0), -np.degrees(theta - inc / 2.0)
 
 
-def _pool_min(out: npt.NDArray[np.float64], lo: np.ndarray, hi: np.ndarray, cm: np.ndarray,
-              left: float, width: float) -> None:
-    """out[j] = min(out[j], cm of every bin whose footprint [lo, hi) overlaps sector j); NaN skipped."""
+def _pool_min(
+    out: npt.NDArray[np.float64],
+    lo: np.ndarray,
+    hi: np.ndarray,
+    cm: np.ndarray,
+    left: float,
+    width: float,
+) -> None:
+    """out[j] = min(out[j], cm of bins whose footprint [lo, hi) overlaps sector j); NaN skipped."""
     n = out.size
-    eps = 1e-6      # footprints that only touch a sector boundary do not count as overlapping
+    eps = 1e-6  # footprints that only touch a sector boundary do not count as overlapping
     first = np.floor((lo - left) / width + eps).astype(np.int64)
     last = np.ceil((hi - left) / width - eps).astype(np.int64) - 1
     last = np.maximum(last, first)
     keep = ~np.isnan(cm) & (last >= 0) & (first <= n - 1)
     first, last, cm = np.clip(first[keep], 0, n - 1), np.clip(last[keep], 0, n - 1), cm[keep]
     span = last - first + 1
-    idx = np.repeat(first, span) + (np.arange(int(span.sum())) - np.repeat(np.cumsum(span) - span, span))
+    idx = np.repeat(first, span) + (
+        np.arange(int(span.sum())) - np.repeat(np.cumsum(span) - span, span)
+    )
     np.minimum.at(out, idx, np.repeat(cm, span))
 
 
@@ -166,8 +184,13 @@ def merge_cliff(obstacles: Sectors, cliff_scan: LaserScan) -> Sectors:
         lo, hi = _footprints_deg(cliff_scan)
         left = obstacles.angle_offset_deg - obstacles.increment_f_deg / 2.0
         _pool_min(out, lo, hi, cm, left, obstacles.increment_f_deg)
-    return Sectors(out.astype(np.uint16), obstacles.increment_f_deg, obstacles.angle_offset_deg,
-                   obstacles.min_cm, obstacles.max_cm)
+    return Sectors(
+        out.astype(np.uint16),
+        obstacles.increment_f_deg,
+        obstacles.angle_offset_deg,
+        obstacles.min_cm,
+        obstacles.max_cm,
+    )
 
 
 class _SerialLink:
@@ -180,8 +203,10 @@ class _SerialLink:
         try:
             self._port = serial.Serial(port, baudrate=baud, timeout=0, write_timeout=1.0)
         except (serial.SerialException, OSError, ValueError) as exc:
-            raise SinkError(f"mavlink sink: cannot open serial port {port!r}: {exc}",
-                            hint="check the port name and that your user is in the dialout group") from exc
+            raise SinkError(
+                f"mavlink sink: cannot open serial port {port!r}: {exc}",
+                hint="check the port name and that your user is in the dialout group",
+            ) from exc
         self._timeouts = RateLimitedLog(log)
         self.describe = f"serial {port} at {baud} baud"
 
@@ -213,8 +238,10 @@ class _UdpLink:
     def write(self, data: bytes) -> None:
         try:
             self._sock.send(data)
-        except OSError as exc:      # receiver gone (ICMP), buffer full, network down
-            self._errors.failed("mavlink sink: datagram to %s dropped: %s", self.describe, type(exc).__name__)
+        except OSError as exc:  # receiver gone (ICMP), buffer full, network down
+            self._errors.failed(
+                "mavlink sink: datagram to %s dropped: %s", self.describe, type(exc).__name__
+            )
 
     def close(self) -> None:
         self._sock.close()
@@ -228,10 +255,20 @@ class MavlinkSink:
     SinkError by the next ``write()``.
     """
 
-    def __init__(self, name: str, *, serial_port: str | None = None, baud: int = 57600,
-                 udp: tuple[str, int] | None = None, rate_hz: float = 10.0, stale_s: float = 0.5,
-                 sysid: int = 1, compid: int = MAV_COMP_ID_OBSTACLE_AVOIDANCE,
-                 sensor_type: int = SENSOR_TYPES["infrared"], cliff: bool = False) -> None:
+    def __init__(
+        self,
+        name: str,
+        *,
+        serial_port: str | None = None,
+        baud: int = 57600,
+        udp: tuple[str, int] | None = None,
+        rate_hz: float = 10.0,
+        stale_s: float = 0.5,
+        sysid: int = 1,
+        compid: int = MAV_COMP_ID_OBSTACLE_AVOIDANCE,
+        sensor_type: int = SENSOR_TYPES["infrared"],
+        cliff: bool = False,
+    ) -> None:
         self.name = name
         self.serial_port, self.baud, self.udp = serial_port, baud, udp
         self.rate_hz, self.stale_s = rate_hz, stale_s
@@ -239,7 +276,9 @@ class MavlinkSink:
         self._link: _SerialLink | _UdpLink | None = None
         self._mav: Any = None
         self._lock = threading.Lock()
-        self._latest: tuple[Sectors, int, float] | None = None  # sectors, time_usec, arrival (monotonic)
+        self._latest: tuple[Sectors, int, float] | None = (
+            None  # sectors, time_usec, arrival (monotonic)
+        )
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._error: BaseException | None = None
@@ -253,22 +292,31 @@ class MavlinkSink:
         if spec.scheme == "mavlink":
             check_options(spec, ("baud", *COMMON_OPTIONS), GRAMMAR)
             if not spec.target:
-                raise ConfigError(f"sink spec {spec.text!r} names no serial port",
-                                  hint="write mavlink:/dev/ttyUSB0?baud=57600 or mavlink+udp://HOST:PORT")
+                raise ConfigError(
+                    f"sink spec {spec.text!r} names no serial port",
+                    hint="write mavlink:/dev/ttyUSB0?baud=57600 or mavlink+udp://HOST:PORT",
+                )
             kw["serial_port"] = spec.target
             kw["baud"] = int(number_option(spec, "baud", 57600, 50, 4_000_000, integer=True))
         else:
             check_options(spec, COMMON_OPTIONS, GRAMMAR)
-            kw["udp"] = parse_host_port(spec, DEFAULT_UDP[0], DEFAULT_UDP[1] if not spec.target else None)
+            kw["udp"] = parse_host_port(
+                spec, DEFAULT_UDP[0], DEFAULT_UDP[1] if not spec.target else None
+            )
         sensor = spec.options.get("sensor", "infrared").strip().lower()
         if sensor not in SENSOR_TYPES:
-            raise ConfigError(f"option sensor={sensor!r} in {spec.text!r} is not one of {', '.join(SENSOR_TYPES)}")
+            raise ConfigError(
+                f"option sensor={sensor!r} in {spec.text!r} is not one of {', '.join(SENSOR_TYPES)}"
+            )
         return cls(
-            spec.text, **kw,
+            spec.text,
+            **kw,
             rate_hz=number_option(spec, "rate", 10.0, 1.0, 50.0),
             stale_s=number_option(spec, "stale", 0.5, 0.05, 10.0),
             sysid=int(number_option(spec, "sysid", 1, 1, 255, integer=True)),
-            compid=int(number_option(spec, "compid", MAV_COMP_ID_OBSTACLE_AVOIDANCE, 1, 255, integer=True)),
+            compid=int(
+                number_option(spec, "compid", MAV_COMP_ID_OBSTACLE_AVOIDANCE, 1, 255, integer=True)
+            ),
             sensor_type=SENSOR_TYPES[sensor],
             cliff=bool_option(spec, "cliff", False),
         )
@@ -282,13 +330,20 @@ class MavlinkSink:
         try:
             from pymavlink.dialects.v20 import common as mavlink2  # lazy: a large generated module
         except ModuleNotFoundError as exc:
-            raise SinkError("the mavlink sink needs the 'pymavlink' package", hint="pip install pymavlink") from exc
+            raise SinkError(
+                "the mavlink sink needs the 'pymavlink' package", hint="pip install pymavlink"
+            ) from exc
         if self.serial_port is not None:
             self._link = _SerialLink(self.serial_port, self.baud)
-            need = (self.rate_hz * MESSAGE_BYTES + 20) * 10          # 10 bits per byte on the wire
+            need = (self.rate_hz * MESSAGE_BYTES + 20) * 10  # 10 bits per byte on the wire
             if need > 0.8 * self.baud:
-                log.warning("mavlink sink: %.0f Hz of OBSTACLE_DISTANCE needs about %.0f baud; %d is too slow",
-                            self.rate_hz, need / 0.8, self.baud)
+                log.warning(
+                    "mavlink sink: %.0f Hz of OBSTACLE_DISTANCE needs about %.0f baud; "
+                    "%d is too slow",
+                    self.rate_hz,
+                    need / 0.8,
+                    self.baud,
+                )
         else:
             assert self.udp is not None
             self._link = _UdpLink(*self.udp)
@@ -296,8 +351,13 @@ class MavlinkSink:
         self._stop.clear()
         self._thread = threading.Thread(target=self._run, name=f"sink {self.name}", daemon=True)
         self._thread.start()
-        log.info("mavlink sink: OBSTACLE_DISTANCE at %g Hz on %s (sysid %d, compid %d)",
-                 self.rate_hz, self._link.describe, self.sysid, self.compid)
+        log.info(
+            "mavlink sink: OBSTACLE_DISTANCE at %g Hz on %s (sysid %d, compid %d)",
+            self.rate_hz,
+            self._link.describe,
+            self.sysid,
+            self.compid,
+        )
 
     def write(self, frame: Frame, result: Result) -> None:
         """Pool the scan into sectors and hand them to the sender thread.
@@ -306,8 +366,11 @@ class MavlinkSink:
             SinkError: the link failed in the sender thread.
         """
         if self._error is not None:
-            raise SinkError(f"mavlink sink: {self._link.describe if self._link else self.name} failed: {self._error}",
-                            hint="check the cable / port; the other sinks go on")
+            raise SinkError(
+                f"mavlink sink: {self._link.describe if self._link else self.name} failed: "
+                f"{self._error}",
+                hint="check the cable / port; the other sinks go on",
+            )
         if self._thread is None:
             raise SinkError(f"sink {self.name!r} is not open")
         sectors = obstacle_sectors(result.scan)
@@ -318,7 +381,7 @@ class MavlinkSink:
             self._latest = (sectors, int(now * 1e6), now)
 
     def latest_for(self, now: float) -> tuple[Sectors, int] | None:
-        """The sectors to send at monotonic time ``now``: the newest, unless older than ``stale_s``."""
+        """Sectors to send at monotonic time ``now``: the newest unless older than ``stale_s``."""
         with self._lock:
             latest = self._latest
         if latest is None or now - latest[2] > self.stale_s:
@@ -326,16 +389,22 @@ class MavlinkSink:
         return latest[0], latest[1]
 
     def _send_heartbeat(self) -> None:
-        # MAV_TYPE_ONBOARD_CONTROLLER, MAV_AUTOPILOT_INVALID, base_mode, custom_mode, MAV_STATE_ACTIVE
+        # MAV_TYPE_ONBOARD_CONTROLLER, MAV_AUTOPILOT_INVALID, base/custom mode 0, MAV_STATE_ACTIVE
         self._mav.heartbeat_send(18, 8, 0, 0, 4)
         self.sent_heartbeat += 1
 
     def _send_obstacles(self, sectors: Sectors, time_usec: int) -> None:
         inc_f = sectors.increment_f_deg
         self._mav.obstacle_distance_send(
-            time_usec, self.sensor_type, sectors.distances_cm.tolist(),
-            max(1, min(255, round(inc_f))),      # legacy integer field; ignored since increment_f != 0
-            sectors.min_cm, sectors.max_cm, inc_f, sectors.angle_offset_deg, MAV_FRAME_BODY_FRD,
+            time_usec,
+            self.sensor_type,
+            sectors.distances_cm.tolist(),
+            max(1, min(255, round(inc_f))),  # legacy integer field; ignored since increment_f != 0
+            sectors.min_cm,
+            sectors.max_cm,
+            inc_f,
+            sectors.angle_offset_deg,
+            MAV_FRAME_BODY_FRD,
         )
         self.sent_obstacle += 1
 
@@ -348,14 +417,14 @@ class MavlinkSink:
                 now = time.monotonic()
                 if now >= next_hb:
                     self._send_heartbeat()
-                    next_hb = max(next_hb + HEARTBEAT_PERIOD_S, now)   # never burst to catch up
+                    next_hb = max(next_hb + HEARTBEAT_PERIOD_S, now)  # never burst to catch up
                 if now >= next_obs:
                     pending = self.latest_for(now)
                     if pending is not None:
                         self._send_obstacles(*pending)
                     next_obs = max(next_obs + period, now)
                 self._stop.wait(max(0.0, min(next_hb, next_obs) - time.monotonic()))
-        except Exception as exc:     # a dead port: reported by the next write()
+        except Exception as exc:  # a dead port: reported by the next write()
             log.debug("mavlink sender thread failed", exc_info=True)
             self._error = exc
 
@@ -371,5 +440,5 @@ class MavlinkSink:
         if link is not None:
             try:
                 link.close()
-            except Exception:   # closing a port that already went away
+            except Exception:  # closing a port that already went away
                 log.debug("closing the mavlink link failed", exc_info=True)

@@ -32,7 +32,9 @@ class NullSink:
         """Build from a parsed spec. Raises ConfigError for a target or any option."""
         check_options(spec, (), GRAMMAR)
         if spec.target:
-            raise ConfigError(f"the null sink takes no target, got {spec.text!r}", hint=f"write {GRAMMAR}")
+            raise ConfigError(
+                f"the null sink takes no target, got {spec.text!r}", hint=f"write {GRAMMAR}"
+            )
         return cls(spec.text)
 
     def open(self, context: SinkContext) -> None:

@@ -17,7 +17,8 @@ Entities (the world is the level frame at the sensor's foot, x forward, y left, 
     /world/sensor/depth/obstacles SegmentationImage: pixels the scan counts as obstacles (class 1)
     /world/sensor/depth/cliffs    Boxes2D: detected cliff blocks
     /world/scan                   Points3D: scan hits, drawn on the floor
-    /world/cliff/points           Points3D: cliff floor points;  /world/cliff/scan: nearest drop-offs
+    /world/cliff/points           Points3D: cliff floor points
+    /world/cliff/scan             Points3D: nearest drop-off per bearing
     /stats/pose/{height_m,tilt_deg,roll_deg}, /stats/timing/<stage>_ms   Scalars
     /log                          TextLog: per-frame warnings
 Timelines: ``frame`` (= seq) and ``sensor_time`` (the frame timestamp, seconds, as a duration).
@@ -35,7 +36,14 @@ import numpy as np
 
 from depthnav_daemon.errors import ConfigError, SinkError
 from depthnav_daemon.pipeline.geometry import rot_x, rot_y
-from depthnav_daemon.sinks.base import SinkContext, SinkSpec, bool_option, check_options, number_option, parse_host_port
+from depthnav_daemon.sinks.base import (
+    SinkContext,
+    SinkSpec,
+    bool_option,
+    check_options,
+    number_option,
+    parse_host_port,
+)
 
 if TYPE_CHECKING:
     from depthnav_daemon.pipeline import Result
@@ -47,7 +55,7 @@ log = logging.getLogger(__name__)
 GRAMMAR = "rerun[?every=N&image=0|1], rerun+grpc://HOST:PORT[?...] or rerun:FILE.rrd[?...]"
 APP_ID = "depthnav"
 DEFAULT_GRPC = ("127.0.0.1", 9876)
-SCAN_Z_M = 0.01              # scan hits are drawn just above the floor, like a footprint map
+SCAN_Z_M = 0.01  # scan hits are drawn just above the floor, like a footprint map
 CLASS_OBSTACLE = 1
 STATS = "/stats"
 
@@ -74,7 +82,7 @@ def used_rows(intr: Intrinsics, params: Any) -> tuple[int, int]:
 
 
 def blueprint() -> Any:
-    """The default layout: depth + overlays and time series on the left, the 3-D view on the right."""
+    """The default layout: depth + overlays and time series left, the 3-D view right."""
     import rerun.blueprint as rrb
 
     return rrb.Blueprint(
@@ -109,7 +117,9 @@ class RerunSink:
         image: log the depth image and its overlays.
     """
 
-    def __init__(self, name: str, mode: str, target: str = "", every: int = 1, image: bool = True) -> None:
+    def __init__(
+        self, name: str, mode: str, target: str = "", every: int = 1, image: bool = True
+    ) -> None:
         self.name, self.mode, self.target, self.every, self.image = name, mode, target, every, image
         self._rec: Any = None
         self._rr: Any = None
@@ -131,8 +141,11 @@ class RerunSink:
         if not spec.target:
             return cls(spec.text, "spawn", "", every, image)
         if not spec.target.endswith(".rrd"):
-            raise ConfigError(f"rerun sink target {spec.target!r} is not an .rrd file",
-                              hint="write rerun:FILE.rrd to save, rerun+grpc://HOST:PORT to connect, rerun to spawn")
+            raise ConfigError(
+                f"rerun sink target {spec.target!r} is not an .rrd file",
+                hint="write rerun:FILE.rrd to save, rerun+grpc://HOST:PORT to connect, "
+                "rerun to spawn",
+            )
         return cls(spec.text, "save", spec.target, every, image)
 
     def open(self, context: SinkContext) -> None:
@@ -144,8 +157,10 @@ class RerunSink:
         try:
             import rerun as rr  # absolute: this module is depthnav_daemon.sinks.rerun, not rerun
         except ModuleNotFoundError as exc:
-            raise SinkError("the rerun sink needs the 'rerun-sdk' package",
-                            hint="pip install 'rerun-sdk>=0.41,<0.42'") from exc
+            raise SinkError(
+                "the rerun sink needs the 'rerun-sdk' package",
+                hint="pip install 'rerun-sdk>=0.41,<0.42'",
+            ) from exc
         self._rr, self._context = rr, context
         rec = rr.RecordingStream(APP_ID, recording_id=uuid.uuid4())
         try:
@@ -159,13 +174,18 @@ class RerunSink:
             else:
                 # without a display the viewer dies and spawn() blocks ~11 s, then drops data
                 if not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
-                    raise SinkError("rerun sink: no display to spawn a viewer on",
-                                    hint="use --sink rerun:FILE.rrd or --sink rerun+grpc://HOST:PORT on a headless robot")
+                    raise SinkError(
+                        "rerun sink: no display to spawn a viewer on",
+                        hint="use --sink rerun:FILE.rrd or --sink rerun+grpc://HOST:PORT "
+                        "on a headless robot",
+                    )
                 rec.spawn(default_blueprint=blueprint())
         except SinkError:
             raise
-        except Exception as exc:   # rerun raises plain RuntimeError/OSError subclasses
-            raise SinkError(f"rerun sink ({self.mode} {self.target or 'viewer'}) failed: {exc}") from exc
+        except Exception as exc:  # rerun raises plain RuntimeError/OSError subclasses
+            raise SinkError(
+                f"rerun sink ({self.mode} {self.target or 'viewer'}) failed: {exc}"
+            ) from exc
         self._rec = rec
         self._log_static()
         log.info("rerun sink: %s %s", self.mode, self.target or "viewer")
@@ -175,14 +195,30 @@ class RerunSink:
         rec.log("/world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
         lines = [[[x, -4.0, 0.0], [x, 4.0, 0.0]] for x in range(0, 7)]
         lines += [[[0.0, y, 0.0], [6.0, y, 0.0]] for y in range(-4, 5)]
-        rec.log("/world/floor", rr.LineStrips3D(lines, radii=0.004, colors=[110, 110, 110]), static=True)
-        rec.log("/world/sensor/depth/obstacles", rr.AnnotationContext(
-            [(CLASS_OBSTACLE, "obstacle", (255, 40, 40, 200))]), static=True)
+        rec.log(
+            "/world/floor", rr.LineStrips3D(lines, radii=0.004, colors=[110, 110, 110]), static=True
+        )
+        rec.log(
+            "/world/sensor/depth/obstacles",
+            rr.AnnotationContext([(CLASS_OBSTACLE, "obstacle", (255, 40, 40, 200))]),
+            static=True,
+        )
         series = {"height_m": (255, 128, 0), "tilt_deg": (0, 160, 255), "roll_deg": (160, 80, 255)}
         for key, color in series.items():
-            rec.log(f"{STATS}/pose/{key}", rr.SeriesLines(colors=[color], names=key, widths=2), static=True)
-        rec.log("/meta", rr.AnyValues(version=self._context.version, device=self._context.device.name,
-                                      spec=self._context.device.spec), static=True)
+            rec.log(
+                f"{STATS}/pose/{key}",
+                rr.SeriesLines(colors=[color], names=key, widths=2),
+                static=True,
+            )
+        rec.log(
+            "/meta",
+            rr.AnyValues(
+                version=self._context.version,
+                device=self._context.device.name,
+                spec=self._context.device.spec,
+            ),
+            static=True,
+        )
 
     def write(self, frame: Frame, result: Result) -> None:
         """Log one frame (every Nth).
@@ -206,18 +242,28 @@ class RerunSink:
         rec.set_time("frame", sequence=int(result.seq))
         rec.set_time("sensor_time", duration=float(result.timestamp_s))
         m = result.mount
-        rot = rot_y(m.tilt_rad) @ rot_x(m.roll_rad)     # sensor body (FLU) -> level, geometry.py's order
+        rot = rot_y(m.tilt_rad) @ rot_x(
+            m.roll_rad
+        )  # sensor body (FLU) -> level, geometry.py's order
         rec.log("/world/sensor", rr.Transform3D(translation=[0.0, 0.0, m.height_m], mat3x3=rot))
         if self.image:
             self._log_image(frame, result)
-        rec.log("/world/scan", rr.Points3D(scan_points(result.scan), radii=0.02, colors=[0, 220, 0]))
+        rec.log(
+            "/world/scan", rr.Points3D(scan_points(result.scan), radii=0.02, colors=[0, 220, 0])
+        )
         cliff = result.cliff
         if cliff is not None:
             pts = np.asarray(cliff.points_m, dtype=np.float32).reshape(-1, 2)
-            rec.log("/world/cliff/points", rr.Points3D(_xy_to_points3d(pts[:, 0], pts[:, 1], 0.0),
-                                                       radii=0.015, colors=[255, 0, 200]))
-            rec.log("/world/cliff/scan", rr.Points3D(scan_points(cliff.scan, 0.02), radii=0.025,
-                                                     colors=[255, 60, 60]))
+            rec.log(
+                "/world/cliff/points",
+                rr.Points3D(
+                    _xy_to_points3d(pts[:, 0], pts[:, 1], 0.0), radii=0.015, colors=[255, 0, 200]
+                ),
+            )
+            rec.log(
+                "/world/cliff/scan",
+                rr.Points3D(scan_points(cliff.scan, 0.02), radii=0.025, colors=[255, 60, 60]),
+            )
         rec.log(f"{STATS}/pose/height_m", rr.Scalars(m.height_m))
         rec.log(f"{STATS}/pose/tilt_deg", rr.Scalars(m.tilt_deg))
         rec.log(f"{STATS}/pose/roll_deg", rr.Scalars(m.roll_deg))
@@ -226,36 +272,72 @@ class RerunSink:
         if result.warning:
             rec.log("/log", rr.TextLog(f"frame {result.seq}: {result.warning}", level="WARN"))
         if result.pose is not None and not result.pose.ok:
-            rec.log("/log", rr.TextLog(f"frame {result.seq}: floor estimate rejected: {result.pose.reason}",
-                                       level="INFO"))
+            rec.log(
+                "/log",
+                rr.TextLog(
+                    f"frame {result.seq}: floor estimate rejected: {result.pose.reason}",
+                    level="INFO",
+                ),
+            )
 
     def _log_image(self, frame: Frame, result: Result) -> None:
         rr, rec, ctx = self._rr, self._rec, self._context
         intr = frame.intrinsics
-        if intr != self._pinhole:     # intrinsics rarely change: log the pinhole again only then
-            rec.log("/world/sensor/depth", rr.Pinhole(
-                focal_length=[intr.fx, intr.fy], principal_point=[intr.cx, intr.cy], width=intr.width,
-                height=intr.height, camera_xyz=rr.ViewCoordinates.FLU, image_plane_distance=0.3), static=True)
+        if intr != self._pinhole:  # intrinsics rarely change: log the pinhole again only then
+            rec.log(
+                "/world/sensor/depth",
+                rr.Pinhole(
+                    focal_length=[intr.fx, intr.fy],
+                    principal_point=[intr.cx, intr.cy],
+                    width=intr.width,
+                    height=intr.height,
+                    camera_xyz=rr.ViewCoordinates.FLU,
+                    image_plane_distance=0.3,
+                ),
+                static=True,
+            )
             self._pinhole = intr
         far_mm = max(1000.0, ctx.scan_params.range_max_m * 1000.0)
-        rec.log("/world/sensor/depth", rr.DepthImage(frame.depth_mm, meter=1000.0, colormap="turbo",
-                                                     depth_range=[0.0, far_mm]))
+        rec.log(
+            "/world/sensor/depth",
+            rr.DepthImage(
+                frame.depth_mm, meter=1000.0, colormap="turbo", depth_range=[0.0, far_mm]
+            ),
+        )
         first, stop = used_rows(intr, ctx.scan_params)
-        rec.log("/world/sensor/depth/band", rr.Boxes2D(mins=[[-0.5, first - 0.5]], sizes=[[intr.width, stop - first]],
-                                                       colors=[[255, 220, 0]], labels=["scan rows"]))
+        rec.log(
+            "/world/sensor/depth/band",
+            rr.Boxes2D(
+                mins=[[-0.5, first - 0.5]],
+                sizes=[[intr.width, stop - first]],
+                colors=[[255, 220, 0]],
+                labels=["scan rows"],
+            ),
+        )
         if ctx.scan_params.method == "exact":
             from depthnav_daemon.pipeline.scan import obstacle_pixels
 
             mask = obstacle_pixels(frame.depth_mm, intr, result.mount, ctx.scan_params)
-            rec.log("/world/sensor/depth/obstacles", rr.SegmentationImage(mask.astype(np.uint8) * CLASS_OBSTACLE,
-                                                                          opacity=0.6))
-        blocks = np.empty((0, 2)) if result.cliff is None else np.asarray(result.cliff.blocks).reshape(-1, 2)
+            rec.log(
+                "/world/sensor/depth/obstacles",
+                rr.SegmentationImage(mask.astype(np.uint8) * CLASS_OBSTACLE, opacity=0.6),
+            )
+        blocks = (
+            np.empty((0, 2))
+            if result.cliff is None
+            else np.asarray(result.cliff.blocks).reshape(-1, 2)
+        )
         # the cliff stage reports its own block size; the context's is the configured fallback
         size = float(getattr(result.cliff, "block_size", None) or ctx.cliff_block_size)
         # blocks are (row, col) of the top-left pixel; Boxes2D wants (x, y) = (col, row) pixel edges
-        rec.log("/world/sensor/depth/cliffs", rr.Boxes2D(mins=blocks[:, ::-1].astype(np.float32) - 0.5,
-                                                         sizes=np.full((len(blocks), 2), size, np.float32),
-                                                         colors=[[255, 0, 200]]))
+        rec.log(
+            "/world/sensor/depth/cliffs",
+            rr.Boxes2D(
+                mins=blocks[:, ::-1].astype(np.float32) - 0.5,
+                sizes=np.full((len(blocks), 2), size, np.float32),
+                colors=[[255, 0, 200]],
+            ),
+        )
 
     def close(self) -> None:
         """Flush and disconnect (which writes the .rrd footer). Safe to call twice."""
@@ -269,5 +351,7 @@ class RerunSink:
         try:
             rec.disconnect()
         except Exception:
-            log.warning("rerun sink: disconnecting %s failed", self.target or "viewer", exc_info=True)
+            log.warning(
+                "rerun sink: disconnecting %s failed", self.target or "viewer", exc_info=True
+            )
         log.info("rerun sink: %d frames logged to %s", self.logged, self.target or "viewer")

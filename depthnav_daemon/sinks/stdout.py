@@ -47,14 +47,19 @@ class StdoutSink:
         """Build from a parsed spec (no I/O). Raises ConfigError for a target or any option."""
         check_options(spec, (), GRAMMAR)
         if spec.target:
-            raise ConfigError(f"the stdout sink takes no target, got {spec.text!r}", hint=f"write {GRAMMAR}")
+            raise ConfigError(
+                f"the stdout sink takes no target, got {spec.text!r}", hint=f"write {GRAMMAR}"
+            )
         return cls(spec.text)
 
     def open(self, context: SinkContext) -> None:
         """Pick the stream and check that no log handler shares it."""
         stream = self._given_stream if self._given_stream is not None else sys.stdout
         if stream is None:
-            raise SinkError("stdout is closed", hint="run depthnav with a standard output, or drop --sink stdout")
+            raise SinkError(
+                "stdout is closed",
+                hint="run depthnav with a standard output, or drop --sink stdout",
+            )
         for handler in _all_handlers():
             if isinstance(handler, logging.StreamHandler) and handler.stream is stream:
                 raise SinkError(
@@ -81,7 +86,7 @@ class StdoutSink:
                 "stdout was closed by the reader (broken pipe)",
                 hint="keep the consumer of depthnav's stdout running, or drop --sink stdout",
             ) from None
-        except (OSError, ValueError) as exc:   # ValueError: write to a closed file object
+        except (OSError, ValueError) as exc:  # ValueError: write to a closed file object
             self._stream = None
             raise SinkError(f"writing to stdout failed: {exc}") from exc
         self.lines += 1

@@ -40,7 +40,7 @@ log = logging.getLogger(__name__)
 GRAMMAR = "udp://HOST:PORT[?max_bytes=N]"
 DEFAULT_HOST = "127.0.0.1"
 DEFAULT_MAX_BYTES = 60000
-MAX_UDP_PAYLOAD = 65507    # IPv4: 65535 - 20 (IP header) - 8 (UDP header)
+MAX_UDP_PAYLOAD = 65507  # IPv4: 65535 - 20 (IP header) - 8 (UDP header)
 
 
 class UdpSink:
@@ -73,7 +73,9 @@ class UdpSink:
         """Build from a parsed spec (no I/O). Raises ConfigError for a bad address or option."""
         check_options(spec, ("max_bytes",), GRAMMAR)
         host, port = parse_host_port(spec, DEFAULT_HOST, None)
-        max_bytes = int(number_option(spec, "max_bytes", DEFAULT_MAX_BYTES, 512, MAX_UDP_PAYLOAD, integer=True))
+        max_bytes = int(
+            number_option(spec, "max_bytes", DEFAULT_MAX_BYTES, 512, MAX_UDP_PAYLOAD, integer=True)
+        )
         return cls(spec.text, host, port, max_bytes)
 
     def open(self, context: SinkContext) -> None:
@@ -86,15 +88,17 @@ class UdpSink:
         try:
             infos = socket.getaddrinfo(self.host, self.port, type=socket.SOCK_DGRAM)
         except socket.gaierror as exc:
-            raise SinkError(f"udp sink: cannot resolve {self.host!r}: {exc}",
-                            hint="give an IP address or a resolvable host name") from exc
+            raise SinkError(
+                f"udp sink: cannot resolve {self.host!r}: {exc}",
+                hint="give an IP address or a resolvable host name",
+            ) from exc
         family, kind, proto, _, addr = infos[0]
         sock = socket.socket(family, kind, proto)
         try:
             if family == socket.AF_INET and addr[0].endswith(".255"):
                 sock.setsockopt(socket.SOL_SOCKET, socket.SO_BROADCAST, 1)
             sock.setblocking(False)
-            # connect() fixes the destination, so ICMP "port unreachable" is reported on a later send
+            # connect() fixes the destination, so ICMP "port unreachable" shows on a later send
             sock.connect(addr)
         except OSError as exc:
             sock.close()
@@ -108,8 +112,11 @@ class UdpSink:
             raise SinkError(f"sink {self.name!r} is not open")
         data = jsonmsg.fit_message(frame, result, self._version, time.time(), self.max_bytes)
         if data is None:
-            self._oversize.failed("udp sink: frame %d does not fit one %d-byte datagram; skipped",
-                                  result.seq, self.max_bytes)
+            self._oversize.failed(
+                "udp sink: frame %d does not fit one %d-byte datagram; skipped",
+                result.seq,
+                self.max_bytes,
+            )
             return
         try:
             try:
@@ -117,15 +124,21 @@ class UdpSink:
             except ConnectionRefusedError:
                 # the ICMP error belongs to an earlier datagram and was reported instead of sending
                 # this one: count it and try once more, so a receiver that came back gets this frame
-                self._send_errors.failed("udp sink: %s:%d is not receiving (ConnectionRefusedError)",
-                                         self.host, self.port)
+                self._send_errors.failed(
+                    "udp sink: %s:%d is not receiving (ConnectionRefusedError)",
+                    self.host,
+                    self.port,
+                )
                 self._sock.send(data)
         except (BlockingIOError, ConnectionRefusedError) as exc:
             # socket buffer full, or the receiver refused again: drop this frame, keep going
-            self._send_errors.failed("udp sink: datagram to %s:%d dropped: %s",
-                                     self.host, self.port, type(exc).__name__)
-        except OSError as exc:   # network unreachable, message too long for this route, ...
-            self._send_errors.failed("udp sink: datagram to %s:%d dropped: %s", self.host, self.port, exc)
+            self._send_errors.failed(
+                "udp sink: datagram to %s:%d dropped: %s", self.host, self.port, type(exc).__name__
+            )
+        except OSError as exc:  # network unreachable, message too long for this route, ...
+            self._send_errors.failed(
+                "udp sink: datagram to %s:%d dropped: %s", self.host, self.port, exc
+            )
         else:
             self.sent += 1
 

@@ -1,4 +1,4 @@
-"""Real Frames and Results for the sink tests: synthetic scenes run through the real scan and cliff stages."""
+"""Real Frames and Results for the sink tests: synthetic scenes through the real stages."""
 
 from __future__ import annotations
 
@@ -43,9 +43,16 @@ class PoseStandIn:
     reason: str = ""
 
 
-def make_pair(seq: int, mount: Mount = Mount(0.5, 12.0, 1.5), *, scene: Scene = SCENE,
-              intr: Intrinsics = ASYM_640, cliff: bool = True, pose: object | None = None,
-              warning: str | None = None) -> tuple[Frame, Result]:
+def make_pair(
+    seq: int,
+    mount: Mount = Mount(0.5, 12.0, 1.5),
+    *,
+    scene: Scene = SCENE,
+    intr: Intrinsics = ASYM_640,
+    cliff: bool = True,
+    pose: object | None = None,
+    warning: str | None = None,
+) -> tuple[Frame, Result]:
     """Render ``scene`` and run the real scan (and cliff) stage on it: one (Frame, Result)."""
     view = render(scene, intr, mount)
     frame = Frame(seq, 100.0 + seq / 30.0, view.depth_mm, intr)
@@ -54,8 +61,18 @@ def make_pair(seq: int, mount: Mount = Mount(0.5, 12.0, 1.5), *, scene: Scene = 
     if cliff:
         a0, inc, n = scan_layout(intr, mount, SCAN)
         cliff_result = detect_cliffs(view.depth_mm, intr, mount, CLIFF, a0, inc, n)
-    result = Result(seq, frame.timestamp_s, intr, mount, "config", scan, cliff_result, pose,
-                    {"scan": 0.004 + seq * 1e-4, "cliff": 0.002}, warning)
+    result = Result(
+        seq,
+        frame.timestamp_s,
+        intr,
+        mount,
+        "config",
+        scan,
+        cliff_result,
+        pose,
+        {"scan": 0.004 + seq * 1e-4, "cliff": 0.002},
+        warning,
+    )
     return frame, result
 
 
@@ -64,17 +81,31 @@ def pairs() -> list[tuple[Frame, Result]]:
     """Five frames whose mount height changes a little each frame (so time series are checkable)."""
     out = []
     for seq in range(5):
-        pose = PoseStandIn(True, 0.5 + seq * 0.01, 12.0, 1.5, 900, 0.9, 0.004, 1000) if seq == 2 else None
-        out.append(make_pair(seq, Mount(0.5 + seq * 0.01, 12.0, 1.5), pose=pose,
-                             warning="low valid depth" if seq == 3 else None))
+        pose = (
+            PoseStandIn(True, 0.5 + seq * 0.01, 12.0, 1.5, 900, 0.9, 0.004, 1000)
+            if seq == 2
+            else None
+        )
+        out.append(
+            make_pair(
+                seq,
+                Mount(0.5 + seq * 0.01, 12.0, 1.5),
+                pose=pose,
+                warning="low valid depth" if seq == 3 else None,
+            )
+        )
     return out
 
 
 @pytest.fixture(scope="session")
 def context() -> SinkContext:
     """What the daemon hands to open()."""
-    return SinkContext(DeviceInfo("synthetic", None, "replay:synthetic", ASYM_640), SCAN,
-                       CLIFF.block_size, __version__)
+    return SinkContext(
+        DeviceInfo("synthetic", None, "replay:synthetic", ASYM_640),
+        SCAN,
+        CLIFF.block_size,
+        __version__,
+    )
 
 
 def with_ranges(result: Result, ranges: np.ndarray) -> Result:

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import math
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -22,7 +23,7 @@ def test_special_ranges_round_trip_distinct(pairs):
     result = with_ranges(result, ranges)
     line = jsonmsg.dumps(jsonmsg.frame_message(frame, result, "9.9", 1.0))
     assert "NaN" not in line and "Infinity," not in line.replace('"Infinity"', "")
-    msg = json.loads(line)   # strict parsers (JS JSON.parse) accept it: no bare NaN/Infinity tokens
+    msg = json.loads(line)  # strict parsers (JS JSON.parse) accept it: no bare NaN/Infinity tokens
     assert msg["scan"]["ranges"][:4] == [None, "Infinity", "-Infinity", 1.235]
     back = jsonmsg.decode_ranges(msg["scan"]["ranges"])
     want = ranges.astype(np.float64)
@@ -30,7 +31,7 @@ def test_special_ranges_round_trip_distinct(pairs):
     assert np.array_equal(np.isposinf(back), np.isposinf(want))
     assert np.array_equal(np.isneginf(back), np.isneginf(want))
     fin = np.isfinite(want)
-    assert np.max(np.abs(back[fin] - want[fin])) <= 0.0005 + 1e-9    # rounded to 1 mm
+    assert np.max(np.abs(back[fin] - want[fin])) <= 0.0005 + 1e-9  # rounded to 1 mm
 
 
 def test_python_float_reads_the_inf_strings():
@@ -39,8 +40,17 @@ def test_python_float_reads_the_inf_strings():
 
 
 @settings(max_examples=60, deadline=None)
-@given(st.lists(st.one_of(st.floats(0.0, 100.0, width=32), st.just(math.nan), st.just(math.inf),
-                          st.just(-math.inf)), max_size=200))
+@given(
+    st.lists(
+        st.one_of(
+            st.floats(0.0, 100.0, width=32),
+            st.just(math.nan),
+            st.just(math.inf),
+            st.just(-math.inf),
+        ),
+        max_size=200,
+    )
+)
 def test_encode_decode_property(values):
     r = np.asarray(values, dtype=np.float32)
     enc = jsonmsg.encode_ranges(r)
@@ -60,22 +70,42 @@ def test_decode_rejects_unknown_tokens():
 
 
 def test_fields_and_values(pairs):
-    frame, result = pairs[2]                      # this frame carries a floor estimate
+    frame, result = pairs[2]  # this frame carries a floor estimate
     msg = json.loads(jsonmsg.dumps(jsonmsg.frame_message(frame, result, "0.1.0", 1795345761.5)))
     assert msg["v"] == 1 and msg["version"] == "0.1.0"
     assert msg["seq"] == 2 and msg["t_s"] == pytest.approx(frame.timestamp_s, abs=1e-6)
     assert msg["wall_s"] == 1795345761.5
     scan = msg["scan"]
-    assert set(scan) == {"angle_min", "angle_max", "angle_increment", "range_min", "range_max", "ranges"}
+    assert set(scan) == {
+        "angle_min",
+        "angle_max",
+        "angle_increment",
+        "range_min",
+        "range_max",
+        "ranges",
+    }
     assert scan["angle_min"] == pytest.approx(result.scan.angle_min, abs=1e-6)
     assert scan["angle_increment"] == pytest.approx(result.scan.angle_increment, rel=1e-6)
     assert len(scan["ranges"]) == result.scan.ranges.size
     assert scan["range_min"] == 0.4 and scan["range_max"] == 5.0
     pose = msg["pose"]
-    assert pose["height_m"] == pytest.approx(0.52) and pose["tilt_deg"] == 12.0 and pose["roll_deg"] == 1.5
+    assert (
+        pose["height_m"] == pytest.approx(0.52)
+        and pose["tilt_deg"] == 12.0
+        and pose["roll_deg"] == 1.5
+    )
     assert pose["source"] == "config"
-    assert pose["estimate"] == {"ok": True, "height_m": 0.52, "tilt_deg": 12.0, "roll_deg": 1.5, "inliers": 900,
-                                "inlier_ratio": 0.9, "residual_m": 0.004, "candidates": 1000, "reason": ""}
+    assert pose["estimate"] == {
+        "ok": True,
+        "height_m": 0.52,
+        "tilt_deg": 12.0,
+        "roll_deg": 1.5,
+        "inliers": 900,
+        "inlier_ratio": 0.9,
+        "residual_m": 0.004,
+        "candidates": 1000,
+        "reason": "",
+    }
     cliff = msg["cliff"]
     assert cliff["points_total"] == len(result.cliff.points_m) > 0 and cliff["points_dropped"] == 0
     assert np.allclose(cliff["points_m"], result.cliff.points_m, atol=0.0006)
@@ -86,7 +116,9 @@ def test_fields_and_values(pairs):
 
 def test_no_cliff_and_failed_estimate_are_null_not_nan(pairs):
     frame, result = pairs[0]
-    bad = PoseStandIn(False, math.nan, math.nan, math.nan, 3, 0.01, math.nan, 300, "too few floor points")
+    bad = PoseStandIn(
+        False, math.nan, math.nan, math.nan, 3, 0.01, math.nan, 300, "too few floor points"
+    )
     result = replace(result, cliff=None, pose=bad)
     msg = json.loads(jsonmsg.dumps(jsonmsg.frame_message(frame, result, "0.1.0", 1.0)))
     assert msg["cliff"] is None
@@ -99,7 +131,7 @@ def test_fit_message_caps_cliff_points_nearest_first(pairs):
     frame, result = pairs[0]
     rng = np.random.default_rng(1)
     pts = rng.uniform([0.5, -3.0], [5.0, 3.0], size=(6000, 2)).astype(np.float32)
-    pts[17] = [0.6, 0.0]                                  # the nearest drop-off must survive the cap
+    pts[17] = [0.6, 0.0]  # the nearest drop-off must survive the cap
     cliff = replace(result.cliff, points_m=pts, blocks=np.zeros((6000, 2), np.int64))
     result = replace(result, cliff=cliff)
     full = jsonmsg.dumps(jsonmsg.frame_message(frame, result, "0.1.0", 1.0)).encode()
@@ -115,7 +147,9 @@ def test_fit_message_caps_cliff_points_nearest_first(pairs):
     dist_kept = np.hypot(kept[:, 0], kept[:, 1])
     assert [0.6, 0.0] in kept.tolist()
     dropped_min = np.sort(np.hypot(pts[:, 0], pts[:, 1]))[len(kept)]
-    assert dist_kept.max() <= dropped_min + 0.001         # every kept point is nearer than every dropped one
+    assert (
+        dist_kept.max() <= dropped_min + 0.001
+    )  # every kept point is nearer than every dropped one
     # a message that cannot fit even without cliff points is refused
     assert jsonmsg.fit_message(frame, result, "0.1.0", 1.0, 600) is None
 
@@ -124,3 +158,33 @@ def test_each_frame_is_one_line(pairs):
     frame, result = make_pair(7, warning="two\nlines")
     line = jsonmsg.dumps(jsonmsg.frame_message(frame, result, "0.1.0", 1.0))
     assert "\n" not in line and json.loads(line)["warning"] == "two\nlines"
+
+
+def _keys(obj, prefix=""):
+    """Every dotted key path in a JSON object (lists: their first element)."""
+    out = set()
+    if isinstance(obj, dict):
+        for k, v in obj.items():
+            out.add(prefix + k)
+            out |= _keys(v, prefix + k + ".")
+    elif isinstance(obj, list) and obj and isinstance(obj[0], (dict, list)):
+        out |= _keys(obj[0], prefix)
+    return out
+
+
+def test_documented_example_has_exactly_the_real_fields(pairs):
+    doc = (Path(__file__).resolve().parents[2] / "docs" / "json_schema.md").read_text()
+    block = doc.split("```json", 1)[1].split("```", 1)[0]
+    example = json.loads(block.replace("\n", ""))
+    frame, result = pairs[2]  # a frame with cliff and a floor estimate
+    real = json.loads(jsonmsg.dumps(jsonmsg.frame_message(frame, result, "0.1.0", 1.0)))
+
+    def fixed(keys: set[str]) -> set[str]:
+        return {k for k in keys if not k.startswith("timings_s.")}  # one key per stage that ran
+
+    assert fixed(_keys(example)) == fixed(_keys(real))
+    assert jsonmsg.decode_ranges(example["scan"]["ranges"]).tolist()[:3] == [
+        pytest.approx(math.nan, nan_ok=True),
+        math.inf,
+        2.346,
+    ]

@@ -24,7 +24,9 @@ from depthnav_daemon.sinks.mavlink import UNKNOWN, MavlinkSink, merge_cliff, obs
 mavlink2 = pytest.importorskip("pymavlink.dialects.v20.common")
 
 
-def make_scan(ranges, fov_deg: float = 60.0, range_min: float = 0.4, range_max: float = 5.0) -> LaserScan:
+def make_scan(
+    ranges, fov_deg: float = 60.0, range_min: float = 0.4, range_max: float = 5.0
+) -> LaserScan:
     """A centred CCW scan over ``fov_deg`` with the given ranges (bin i at angle_min + i inc)."""
     r = np.asarray(ranges, dtype=np.float32)
     inc = math.radians(fov_deg) / r.size
@@ -61,7 +63,7 @@ def reference_sectors(scan: LaserScan, n: int = 72) -> np.ndarray:
 
 def test_left_obstacle_lands_in_a_left_sector_with_clockwise_bearing():
     ranges = np.full(600, np.inf)
-    i = 500                                   # bins grow counter-clockwise: bin 500 is left of centre
+    i = 500  # bins grow counter-clockwise: bin 500 is left of centre
     ranges[i] = 1.5
     scan = make_scan(ranges)
     bearing_ccw = math.degrees(scan.angles[i])
@@ -70,10 +72,10 @@ def test_left_obstacle_lands_in_a_left_sector_with_clockwise_bearing():
     hit = np.flatnonzero(s.distances_cm == 150)
     assert hit.size >= 1 and np.all(hit < 36)  # MAVLink element 0 is the left-most sector
     centre_cw = s.angle_offset_deg + hit * s.increment_f_deg
-    assert np.all(np.abs(centre_cw - (-bearing_ccw)) <= s.increment_f_deg)   # FRD: left = negative
+    assert np.all(np.abs(centre_cw - (-bearing_ccw)) <= s.increment_f_deg)  # FRD: left = negative
     assert s.increment_f_deg == pytest.approx(60.0 / 72)
     assert s.angle_offset_deg == pytest.approx(-30.0 + 60.0 / 144)
-    assert np.all(np.delete(s.distances_cm, hit) == 501)                     # no obstacle = max + 1
+    assert np.all(np.delete(s.distances_cm, hit) == 501)  # no obstacle = max + 1
 
 
 @settings(max_examples=40, deadline=None)
@@ -82,11 +84,11 @@ def test_matches_reference_and_keeps_single_bin_obstacles(n, data):
     choices = st.sampled_from([math.nan, math.inf, -math.inf, 0.2, 0.9, 2.5, 4.99, 7.0])
     ranges = np.asarray(data.draw(st.lists(choices, min_size=n, max_size=n)), dtype=np.float32)
     spike = data.draw(st.integers(0, n - 1))
-    ranges[spike] = 0.55                      # a one-bin obstacle, nearer than anything else but -inf
+    ranges[spike] = 0.55  # a one-bin obstacle, nearer than anything else but -inf
     scan = make_scan(ranges, fov_deg=data.draw(st.sampled_from([40.0, 58.0, 87.0])))
     s = obstacle_sectors(scan)
     assert np.array_equal(s.distances_cm, reference_sectors(scan))
-    assert (s.distances_cm <= 55).any()       # never resampled away
+    assert (s.distances_cm <= 55).any()  # never resampled away
 
 
 def test_coarse_scan_leaves_no_holes():
@@ -98,13 +100,13 @@ def test_special_values_and_limits():
     s = obstacle_sectors(make_scan(np.full(640, np.nan)))
     assert np.all(s.distances_cm == UNKNOWN)  # no data anywhere
     s = obstacle_sectors(make_scan(np.full(640, -np.inf)))
-    assert np.all(s.distances_cm == 40)       # closer than range_min -> min_distance
+    assert np.all(s.distances_cm == 40)  # closer than range_min -> min_distance
     s = obstacle_sectors(make_scan(np.full(640, 1.2349)))
-    assert np.all(s.distances_cm == 123) and (s.min_cm, s.max_cm) == (40, 500)   # floored to cm
+    assert np.all(s.distances_cm == 123) and (s.min_cm, s.max_cm) == (40, 500)  # floored to cm
 
 
 def test_real_scene_thin_post_on_the_right(pairs):
-    _, result = pairs[0]                      # a 4 cm post at x=1.2, y=-0.3 (right), a box left at 1.6 m
+    _, result = pairs[0]  # a 4 cm post at x=1.2, y=-0.3 (right), a box left at 1.6 m
     s = obstacle_sectors(result.scan)
     assert np.array_equal(s.distances_cm, reference_sectors(result.scan))
     bearing_cw = math.degrees(math.atan2(0.3, 1.2 - 0.02))
@@ -117,16 +119,18 @@ def test_cliff_merge_only_adds_detections():
     obstacles = obstacle_sectors(make_scan(np.full(640, np.inf)))
     cliff = np.full(640, np.inf)
     cliff[:100] = np.nan
-    cliff[600] = 2.0                          # a drop-off ahead-left
+    cliff[600] = 2.0  # a drop-off ahead-left
     merged = merge_cliff(obstacles, make_scan(cliff))
-    assert (merged.distances_cm == 200).sum() >= 1 and np.flatnonzero(merged.distances_cm == 200)[0] < 36
+    assert (merged.distances_cm == 200).sum() >= 1 and np.flatnonzero(merged.distances_cm == 200)[
+        0
+    ] < 36
     assert np.all(merged.distances_cm[merged.distances_cm != 200] == 501)
 
 
 def test_stale_scans_are_not_repeated(pairs):
     sink = MavlinkSink("x", udp=("127.0.0.1", 9), stale_s=0.5)
     frame, result = pairs[0]
-    sink._thread = object()                   # write() without open(): only the hand-over is tested
+    sink._thread = object()  # write() without open(): only the hand-over is tested
     sink.write(frame, result)
     sent_at = sink._latest[2]
     assert sink.latest_for(sent_at + 0.4) is not None
@@ -136,7 +140,9 @@ def test_stale_scans_are_not_repeated(pairs):
 # --- real transports ------------------------------------------------------------------------------
 
 
-def collect(read: Callable[[float], bytes], want: Callable[[list], bool], timeout_s: float = 10.0) -> list:
+def collect(
+    read: Callable[[float], bytes], want: Callable[[list], bool], timeout_s: float = 10.0
+) -> list:
     """Decode MAVLink from ``read`` until ``want(messages)`` or the deadline (bounded wait)."""
     parser = mavlink2.MAVLink(None)
     msgs: list = []
@@ -170,13 +176,14 @@ def pty_reader(master: int) -> Callable[[float], bytes]:
     def read(timeout: float) -> bytes:
         ready, _, _ = select.select([master], [], [], timeout)
         return os.read(master, 65536) if ready else b""
+
     return read
 
 
 def check_obstacle_message(msg, result, sysid: int, compid: int) -> None:
     s = obstacle_sectors(result.scan)
     assert list(msg.distances) == s.distances_cm.tolist()
-    assert msg.frame == 12 and msg.sensor_type == 2          # MAV_FRAME_BODY_FRD, infrared
+    assert msg.frame == 12 and msg.sensor_type == 2  # MAV_FRAME_BODY_FRD, infrared
     assert msg.increment_f == pytest.approx(s.increment_f_deg, rel=1e-6)
     assert msg.angle_offset == pytest.approx(s.angle_offset_deg, rel=1e-6)
     assert (msg.min_distance, msg.max_distance) == (40, 500)
@@ -190,12 +197,15 @@ def test_serial_over_pty(pty_pair, pairs, context):
     try:
         frame, result = pairs[1]
         sink.write(frame, result)
-        msgs = collect(pty_reader(master), lambda m: of_type(m, "OBSTACLE_DISTANCE") and of_type(m, "HEARTBEAT"))
+        msgs = collect(
+            pty_reader(master),
+            lambda m: of_type(m, "OBSTACLE_DISTANCE") and of_type(m, "HEARTBEAT"),
+        )
     finally:
         sink.close()
         sink.close()
     hb = of_type(msgs, "HEARTBEAT")[0]
-    assert hb.type == 18 and hb.autopilot == 8                # ONBOARD_CONTROLLER, AUTOPILOT_INVALID
+    assert hb.type == 18 and hb.autopilot == 8  # ONBOARD_CONTROLLER, AUTOPILOT_INVALID
     assert (hb.get_srcSystem(), hb.get_srcComponent()) == (1, 196)
     check_obstacle_message(of_type(msgs, "OBSTACLE_DISTANCE")[0], result, 1, 196)
 
@@ -204,7 +214,7 @@ def test_unplugged_serial_port_is_a_sink_error(pty_pair, pairs, context):
     master, port = pty_pair
     sink = create_sink(f"mavlink:{port}")
     sink.open(context)
-    os.close(master)                          # the far end goes away: writes on the slave fail
+    os.close(master)  # the far end goes away: writes on the slave fail
     frame, result = pairs[0]
     deadline = time.monotonic() + 10.0
     with pytest.raises(SinkError, match="failed"):
@@ -229,6 +239,7 @@ def udp_reader(sock: socket.socket) -> Callable[[float], bytes]:
             return sock.recv(65536)
         except TimeoutError:
             return b""
+
     return read
 
 
@@ -269,9 +280,18 @@ def test_udp_without_receiver_never_raises(pairs, context):
     assert sink.sent_heartbeat >= 1
 
 
-@pytest.mark.parametrize("spec", ["mavlink:", "mavlink:/dev/x?rate=0.5", "mavlink:/dev/x?rate=abc",
-                                  "mavlink:/dev/x?sysid=0", "mavlink+udp://h:1?baud=9600",
-                                  "mavlink:/dev/x?sensor=sonar", "mavlink:/dev/x?cliff=maybe"])
+@pytest.mark.parametrize(
+    "spec",
+    [
+        "mavlink:",
+        "mavlink:/dev/x?rate=0.5",
+        "mavlink:/dev/x?rate=abc",
+        "mavlink:/dev/x?sysid=0",
+        "mavlink+udp://h:1?baud=9600",
+        "mavlink:/dev/x?sensor=sonar",
+        "mavlink:/dev/x?cliff=maybe",
+    ],
+)
 def test_bad_specs(spec):
     with pytest.raises(ConfigError):
         create_sink(spec)
@@ -281,4 +301,9 @@ def test_spec_defaults():
     sink = create_sink("mavlink+udp://")
     assert sink.udp == ("127.0.0.1", 14550) and sink.rate_hz == 10.0
     sink = create_sink("mavlink:/dev/ttyACM0?baud=921600&cliff=1&sensor=laser")
-    assert (sink.serial_port, sink.baud, sink.cliff, sink.sensor_type) == ("/dev/ttyACM0", 921600, True, 0)
+    assert (sink.serial_port, sink.baud, sink.cliff, sink.sensor_type) == (
+        "/dev/ttyACM0",
+        921600,
+        True,
+        0,
+    )

@@ -21,8 +21,12 @@ def offline_rerun(tmp_path, monkeypatch):
     """Keep rerun's config/analytics out of the real home and never reach a display."""
     home = tmp_path / "home"
     home.mkdir()
-    for var, sub in (("HOME", ""), ("XDG_CONFIG_HOME", ".config"), ("XDG_DATA_HOME", ".local/share"),
-                     ("XDG_CACHE_HOME", ".cache")):
+    for var, sub in (
+        ("HOME", ""),
+        ("XDG_CONFIG_HOME", ".config"),
+        ("XDG_DATA_HOME", ".local/share"),
+        ("XDG_CACHE_HOME", ".cache"),
+    ):
         monkeypatch.setenv(var, str(home / sub))
     monkeypatch.delenv("DISPLAY", raising=False)
     monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
@@ -35,7 +39,7 @@ def record(path, pairs, context, options: str = "") -> RerunSink:
     for frame, result in pairs:
         sink.write(frame, result)
     sink.close()
-    sink.close()                                    # safe twice
+    sink.close()  # safe twice
     return sink
 
 
@@ -61,14 +65,25 @@ def test_rrd_has_every_entity_per_frame(tmp_path, pairs, context):
     record(path, pairs, context)
     reader = rrchunk.RrdReader(str(path))
     assert [r.application_id for r in reader.recordings()] == ["depthnav"]
-    assert len(reader.blueprints()) == 1                        # the default layout travels in the file
-    reader.store()                                              # only a footer-complete file loads lazily
+    assert len(reader.blueprints()) == 1  # the default layout travels in the file
+    reader.store()  # only a footer-complete file loads lazily
     ent = temporal(path)
     n = len(pairs)
-    for entity in ("/world/sensor", "/world/sensor/depth", "/world/sensor/depth/band",
-                   "/world/sensor/depth/obstacles", "/world/sensor/depth/cliffs", "/world/scan",
-                   "/world/cliff/points", "/world/cliff/scan", "/stats/pose/height_m", "/stats/pose/tilt_deg",
-                   "/stats/pose/roll_deg", "/stats/timing/scan_ms", "/stats/timing/cliff_ms"):
+    for entity in (
+        "/world/sensor",
+        "/world/sensor/depth",
+        "/world/sensor/depth/band",
+        "/world/sensor/depth/obstacles",
+        "/world/sensor/depth/cliffs",
+        "/world/scan",
+        "/world/cliff/points",
+        "/world/cliff/scan",
+        "/stats/pose/height_m",
+        "/stats/pose/tilt_deg",
+        "/stats/pose/roll_deg",
+        "/stats/timing/scan_ms",
+        "/stats/timing/cliff_ms",
+    ):
         assert sum(rb.num_rows for rb in ent[entity]) == n, entity
     assert column(ent["/world/scan"], "frame") == [r.seq for _, r in pairs]
     # one warning (frame 3); the accepted floor estimate of frame 2 logs nothing
@@ -84,12 +99,18 @@ def test_values_match_the_results(tmp_path, pairs, context):
     assert heights == pytest.approx([r.mount.height_m for _, r in pairs])
     timing = [v[0] for v in column(ent["/stats/timing/scan_ms"], "Scalars:scalars")]
     assert timing == pytest.approx([r.timings_s["scan"] * 1000 for _, r in pairs])
-    secs = sorted(ns / 1e9 for rb in ent["/world/sensor"] for ns in rb.column("sensor_time").cast("int64").to_pylist())
+    secs = sorted(
+        ns / 1e9
+        for rb in ent["/world/sensor"]
+        for ns in rb.column("sensor_time").cast("int64").to_pylist()
+    )
     assert secs == pytest.approx([r.timestamp_s for _, r in pairs], abs=1e-6)
     frame, result = pairs[1]
     # depth image: the very bytes of the frame, with meter = 1000 (millimetres)
     buf = column(ent["/world/sensor/depth"], "DepthImage:buffer")[1][0]
-    assert np.array_equal(np.frombuffer(bytes(buf), np.uint16).reshape(frame.depth_mm.shape), frame.depth_mm)
+    assert np.array_equal(
+        np.frombuffer(bytes(buf), np.uint16).reshape(frame.depth_mm.shape), frame.depth_mm
+    )
     assert column(ent["/world/sensor/depth"], "DepthImage:meter")[1] == [1000.0]
     # scan points: every finite range, on its bearing (x forward, y left)
     pts = np.asarray(column(ent["/world/scan"], "Points3D:positions")[1])
@@ -101,14 +122,18 @@ def test_values_match_the_results(tmp_path, pairs, context):
     assert np.allclose(pts[:, 1], r[ok] * np.sin(a), atol=1e-4)
     # cliff points on the floor (z = 0), blocks drawn at (col, row) with the block size
     cliff_pts = np.asarray(column(ent["/world/cliff/points"], "Points3D:positions")[1])
-    assert np.allclose(cliff_pts[:, :2], result.cliff.points_m, atol=1e-5) and np.all(cliff_pts[:, 2] == 0)
+    assert np.allclose(cliff_pts[:, :2], result.cliff.points_m, atol=1e-5) and np.all(
+        cliff_pts[:, 2] == 0
+    )
     centers = np.asarray(column(ent["/world/sensor/depth/cliffs"], "Boxes2D:centers")[1])
     blocks = np.asarray(result.cliff.blocks)
     bs = context.cliff_block_size
     assert np.allclose(centers, blocks[:, ::-1] - 0.5 + bs / 2.0)
     # obstacle overlay: exactly the scan's obstacle pixels
-    seg = np.frombuffer(bytes(column(ent["/world/sensor/depth/obstacles"], "SegmentationImage:buffer")[1][0]),
-                        np.uint8).reshape(frame.depth_mm.shape)
+    seg = np.frombuffer(
+        bytes(column(ent["/world/sensor/depth/obstacles"], "SegmentationImage:buffer")[1][0]),
+        np.uint8,
+    ).reshape(frame.depth_mm.shape)
     want = obstacle_pixels(frame.depth_mm, frame.intrinsics, result.mount, context.scan_params)
     assert want.any() and np.array_equal(seg == 1, want)
 
@@ -120,12 +145,14 @@ def test_sensor_pose_transform_pins_tilt_sign(tmp_path, pairs, context):
     _, result = pairs[0]
     t = column(ent["/world/sensor"], "Transform3D:translation")[0][0]
     assert t == pytest.approx([0.0, 0.0, result.mount.height_m])
-    mat = np.asarray(column(ent["/world/sensor"], "Transform3D:mat3x3")[0][0]).reshape(3, 3).T  # stored column-major
+    mat = (
+        np.asarray(column(ent["/world/sensor"], "Transform3D:mat3x3")[0][0]).reshape(3, 3).T
+    )  # stored column-major
     assert np.allclose(mat, rot_y(result.mount.tilt_rad) @ rot_x(result.mount.roll_rad), atol=1e-6)
     forward = mat @ [1.0, 0.0, 0.0]
-    assert forward[2] < 0                       # tilt 12 deg = nose down: the optical axis points at the floor
+    assert forward[2] < 0  # tilt 12 deg = nose down: the optical axis points at the floor
     left = mat @ [0.0, 1.0, 0.0]
-    assert left[2] > 0                          # roll 1.5 deg = left side up
+    assert left[2] > 0  # roll 1.5 deg = left side up
 
 
 def test_static_scene_logged_once(tmp_path, pairs, context):
@@ -136,7 +163,7 @@ def test_static_scene_logged_once(tmp_path, pairs, context):
         if chunk.is_static:
             static[chunk.entity_path] = static.get(chunk.entity_path, 0) + chunk.num_rows
     assert static["/world"] == 1 and static["/world/floor"] == 1
-    assert static["/world/sensor/depth"] == 1   # the pinhole: the intrinsics never changed
+    assert static["/world/sensor/depth"] == 1  # the pinhole: the intrinsics never changed
 
 
 def test_every_and_image_options(tmp_path, pairs, context):
@@ -171,7 +198,9 @@ def test_save_into_missing_folder(tmp_path, context):
         sink.open(context)
 
 
-@pytest.mark.parametrize("spec", ["rerun:run.txt", "rerun://host:9876", "rerun:x.rrd?every=0", "rerun?fps=3"])
+@pytest.mark.parametrize(
+    "spec", ["rerun:run.txt", "rerun://host:9876", "rerun:x.rrd?every=0", "rerun?fps=3"]
+)
 def test_bad_specs(spec):
     with pytest.raises(ConfigError):
         create_sink(spec)

@@ -31,7 +31,9 @@ def test_every_registered_sink_builds_and_follows_the_protocol():
         sink = create_sink(spec)
         assert isinstance(sink, Sink) and sink.name == spec
         module, cls = SINKS[scheme]
-        assert module.rsplit(".", 1)[1] == scheme.split("+")[0]     # one module per sink, named after its key
+        assert (
+            module.rsplit(".", 1)[1] == scheme.split("+")[0]
+        )  # one module per sink, named after its key
         assert type(sink).__name__ == cls
 
 
@@ -56,18 +58,31 @@ def test_malformed(text):
 
 def test_grammar_forms():
     spec = parse_sink_spec("MAVLINK:///dev/ttyS0?Baud=57600&rate=%32%30")
-    assert (spec.scheme, spec.target, dict(spec.options)) == ("mavlink", "/dev/ttyS0", {"baud": "57600", "rate": "20"})
+    assert (spec.scheme, spec.target, dict(spec.options)) == (
+        "mavlink",
+        "/dev/ttyS0",
+        {"baud": "57600", "rate": "20"},
+    )
     assert parse_sink_spec("rerun:run.rrd").target == "run.rrd"
     assert parse_sink_spec("udp:5600").target == "5600"
     assert create_sink("udp:5600").port == 5600
 
 
 def test_creating_sinks_does_no_heavy_imports_or_io():
-    code = ("import sys, json; from depthnav_daemon.sinks import create_sink\n"
-            f"specs = {list(EXAMPLES.values())!r}\n"
-            "[create_sink(s) for s in specs]\n"
-            "print(json.dumps(sorted(m for m in ('rerun', 'pymavlink', 'serial') if m in sys.modules)))")
-    out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=60, check=True)
+    code = (
+        "import sys, json; from depthnav_daemon.sinks import create_sink\n"
+        f"specs = {list(EXAMPLES.values())!r}\n"
+        "[create_sink(s) for s in specs]\n"
+        "print(json.dumps(sorted(m for m in ('rerun', 'pymavlink', 'serial') if m in sys.modules)))"
+    )
+    out = subprocess.run(
+        [sys.executable, "-c", code],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=60,
+        check=True,
+    )
     assert json.loads(out.stdout) == []
 
 

@@ -1,4 +1,4 @@
-"""The stdout sink over real pipes: one strict JSON line per frame, a closed reader is a SinkError."""
+"""stdout sink, real pipes: one strict JSON line per frame; a closed reader is a SinkError."""
 
 from __future__ import annotations
 
@@ -31,7 +31,7 @@ def test_lines_over_a_pipe(pairs, context):
             for frame, result in pairs:
                 sink.write(frame, result)
             sink.close()
-            sink.close()                                   # safe twice
+            sink.close()  # safe twice
             writer.close()
             lines = text.result(timeout=60).splitlines()
     assert len(lines) == len(pairs)
@@ -58,7 +58,7 @@ def test_each_line_is_flushed_at_once(pairs, context):
 
 def test_broken_pipe_is_a_sink_error(pairs, context):
     r, w = os.pipe()
-    os.close(r)                                        # the reader went away (`| head -1` exited)
+    os.close(r)  # the reader went away (`| head -1` exited)
     with os.fdopen(w, "w") as writer:
         sink = StdoutSink(stream=writer)
         sink.open(context)
@@ -105,8 +105,14 @@ def test_real_stdout_closed_by_reader_exits_cleanly():
             logging.getLogger("test").error("sink dropped: %s", exc)
         sink.close()
     """)
-    proc = subprocess.run(f"{sys.executable} -c '{script}' | head -1", shell=True, cwd=ROOT,
-                          capture_output=True, text=True, timeout=120)
+    proc = subprocess.run(
+        f"{sys.executable} -c '{script}' | head -1",
+        shell=True,
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     first = json.loads(proc.stdout)
     assert first["seq"] == 0
     assert "sink dropped: stdout was closed by the reader" in proc.stderr

@@ -1,4 +1,4 @@
-"""The udp sink over a real loopback socket: one datagram per frame, a lost receiver never stalls."""
+"""udp sink, real loopback socket: one datagram per frame; a lost receiver never stalls."""
 
 from __future__ import annotations
 
@@ -19,14 +19,14 @@ from depthnav_daemon.sinks.udp import UdpSink
 def receiver():
     sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     sock.bind(("127.0.0.1", 0))
-    sock.settimeout(5.0)                       # bounded wait; loopback delivers at once
+    sock.settimeout(5.0)  # bounded wait; loopback delivers at once
     yield sock
     sock.close()
 
 
 def test_one_datagram_per_frame(receiver, pairs, context):
     port = receiver.getsockname()[1]
-    sink = create_sink(f"udp://:{port}")       # empty host = loopback
+    sink = create_sink(f"udp://:{port}")  # empty host = loopback
     assert isinstance(sink, UdpSink) and sink.host == "127.0.0.1"
     sink.open(context)
     for frame, result in pairs:
@@ -38,7 +38,9 @@ def test_one_datagram_per_frame(receiver, pairs, context):
     frame, result = pairs[0]
     got = jsonmsg.decode_ranges(msgs[0]["scan"]["ranges"])
     want = result.scan.ranges.astype(np.float64)
-    assert np.array_equal(np.isnan(got), np.isnan(want)) and np.array_equal(np.isinf(got), np.isinf(want))
+    assert np.array_equal(np.isnan(got), np.isnan(want)) and np.array_equal(
+        np.isinf(got), np.isinf(want)
+    )
     fin = np.isfinite(want)
     assert np.allclose(got[fin], want[fin], atol=0.0006)
     assert msgs[0]["message"] is None and sink.sent == len(pairs) and sink.send_errors == 0
@@ -77,13 +79,13 @@ def test_oversize_message_drops_far_cliff_points_and_says_so(receiver, pairs, co
 
 def test_lost_receiver_is_counted_never_raised(receiver, pairs, context, caplog):
     port = receiver.getsockname()[1]
-    receiver.close()                           # nobody listens: ICMP port unreachable on loopback
+    receiver.close()  # nobody listens: ICMP port unreachable on loopback
     sink = create_sink(f"udp://127.0.0.1:{port}")
     sink.open(context)
     frame, result = pairs[0]
     with caplog.at_level(logging.WARNING, logger="depthnav_daemon.sinks.udp"):
         for seq in range(20):
-            sink.write(frame, replace(result, seq=seq))   # must not raise
+            sink.write(frame, replace(result, seq=seq))  # must not raise
     sink.close()
     assert sink.send_errors >= 1
     # at most one warning per 10 s, however many datagrams were lost
@@ -112,7 +114,9 @@ def test_receiver_coming_back_gets_data_again(pairs, context):
         sink.close()
 
 
-@pytest.mark.parametrize("spec", ["udp://", "udp://host", "udp://:0", "udp://h:1?max_bytes=99", "udp://h:1?ttl=3"])
+@pytest.mark.parametrize(
+    "spec", ["udp://", "udp://host", "udp://:0", "udp://h:1?max_bytes=99", "udp://h:1?ttl=3"]
+)
 def test_bad_specs(spec):
     with pytest.raises(ConfigError):
         create_sink(spec)
