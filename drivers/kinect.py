@@ -13,7 +13,7 @@ Spec: ``kinect[://INDEX][?accel=usb|freenect|none&tilt_deg=D&led=NAME&lib=PATH&f
 - ``const_shift``: the device's zero-plane constant for disparity -> mm when libfreenect only
   gives 11-bit disparity (fakenect); default 200.
 
-Depth is 640x480 uint16 mm with the KINECT_V1 intrinsics. Debian ships no OpenNI2 driver for the
+Depth is 640x480 uint16 mm with the KINECT_V1 intrinsics unless ``fx, fy, cx, cy`` (pixels) are given. Debian ships no OpenNI2 driver for the
 Kinect 360, hence libfreenect.
 """
 
@@ -37,15 +37,23 @@ from drivers.errors import (
 from drivers.freenect_lib import FreenectDepth, find_library
 from drivers.kinect_axes import accel_counts_to_camera, tilt_status_name
 from drivers.kinect_motor import LED, KinectMotor, describe_kinects
-from drivers.spec import Spec, check_options, choice_option, float_option
+from drivers.spec import (
+    INTRINSICS_OPTIONS,
+    Spec,
+    check_options,
+    choice_option,
+    float_option,
+    intrinsics_options,
+    with_overrides,
+)
 
 log = logging.getLogger(__name__)
 
 GRAMMAR = (
     "kinect[://INDEX][?accel=usb|freenect|none&tilt_deg=D&led=NAME&lib=PATH"
-    "&fakenect=DIR&const_shift=C]"
+    "&fakenect=DIR&const_shift=C&fx=..&fy=..&cx=..&cy=..]"
 )
-OPTIONS = ("accel", "tilt_deg", "led", "lib", "fakenect", "const_shift")
+OPTIONS = ("accel", "tilt_deg", "led", "lib", "fakenect", "const_shift", *INTRINSICS_OPTIONS)
 
 
 def check_fakenect_recording(folder: Path) -> int:
@@ -106,6 +114,7 @@ class KinectDriver:
         self.fakenect_dir = fakenect_dir
         self.const_shift = const_shift
         self.usb_backend = usb_backend
+        self.intrinsics = KINECT_V1
         self.spec_text = spec_text or f"kinect://{index}"
         self._depth: FreenectDepth | None = None
         self._motor: KinectMotor | None = None
@@ -132,7 +141,7 @@ class KinectDriver:
         led = spec.options.get("led")
         if led is not None and led not in LED:
             raise DeviceSpecError(f"led={led!r} in {spec.text!r} is not one of {', '.join(LED)}")
-        return cls(
+        driver = cls(
             index,
             accel=accel,
             tilt_deg=float_option(spec, "tilt_deg", None, -31.0, 31.0),
@@ -143,6 +152,8 @@ class KinectDriver:
             or fakenect_format.CONST_SHIFT,
             spec_text=spec.text,
         )
+        driver.intrinsics = with_overrides(KINECT_V1, intrinsics_options(spec), spec.text)
+        return driver
 
     @staticmethod
     def detect() -> list[tuple[str, str]]:
@@ -218,7 +229,7 @@ class KinectDriver:
             name=name,
             serial=serial,
             spec=self.spec_text,
-            intrinsics=KINECT_V1,
+            intrinsics=self.intrinsics,
             has_accel=self.accel != "none",
         )
 
@@ -272,7 +283,7 @@ class KinectDriver:
             seq=self._seq,
             timestamp_s=t_s,
             depth_mm=depth,
-            intrinsics=KINECT_V1,
+            intrinsics=self.intrinsics,
             accel_mps2=accel,
             tilt=tilt,
         )

@@ -4,6 +4,8 @@ Spec: ``openni://[URI][?mode=WxH@FPS]`` for a live device (first device when URI
 ``openni://Dummy`` is OpenNI's built-in test device), or
 ``openni:FILE.oni[?rate=realtime|max&loop=0|1]``
 for a recording. ``rate=max`` (default for files) plays every frame in order as fast as it is read.
+``fx, fy, cx, cy`` (pixels) replace the intrinsics, which otherwise come from the stream's field of
+view with the principal point at the image centre (58 x 45 degrees when the device reports none).
 
 Uses PyPI ``openni`` over the system libOpenNI2 (Debian: ``apt-get install libopenni2-0``), found
 without user setup: a private folder of two symlinks is built next to the system library, because
@@ -38,13 +40,24 @@ from drivers.errors import (
     RecordingError,
 )
 from drivers.oni_format import check_oni
-from drivers.spec import Spec, bool_option, check_options, choice_option
+from drivers.spec import (
+    INTRINSICS_OPTIONS,
+    Spec,
+    bool_option,
+    check_options,
+    choice_option,
+    intrinsics_options,
+    with_overrides,
+)
 
 log = logging.getLogger(__name__)
 
-GRAMMAR = "openni://[URI][?mode=WxH@FPS] or openni:FILE.oni[?rate=realtime|max&loop=0|1]"
-LIVE_OPTIONS = ("mode",)
-FILE_OPTIONS = ("rate", "loop")
+GRAMMAR = (
+    "openni://[URI][?mode=WxH@FPS&fx=..&fy=..&cx=..&cy=..] or "
+    "openni:FILE.oni[?rate=realtime|max&loop=0|1&fx=..&fy=..&cx=..&cy=..]"
+)
+LIVE_OPTIONS = ("mode", *INTRINSICS_OPTIONS)
+FILE_OPTIONS = ("rate", "loop", *INTRINSICS_OPTIONS)
 LIB_NAME = "libOpenNI2.so.0"
 LIB_DIRS = (
     "/usr/lib/x86_64-linux-gnu",
@@ -163,8 +176,10 @@ class OpenNIDriver:
         realtime: bool = False,
         loop: bool = False,
         spec_text: str = "",
+        intrinsics_override: dict[str, float] | None = None,
     ) -> None:
         self.uri = uri
+        self.intrinsics_override = dict(intrinsics_override or {})
         self.file = file
         self.mode = mode
         self.realtime = realtime
@@ -190,16 +205,35 @@ class OpenNIDriver:
                 realtime=choice_option(spec, "rate", ("realtime", "max"), "max") == "realtime",
                 loop=bool_option(spec, "loop", False),
                 spec_text=spec.text,
+                intrinsics_override=intrinsics_options(spec),
             )
         check_options(spec, LIVE_OPTIONS, GRAMMAR)
-        return cls(spec.target or None, mode=_parse_mode(spec), spec_text=spec.text)
+        return cls(
+            spec.target or None,
+            mode=_parse_mode(spec),
+            spec_text=spec.text,
+            intrinsics_override=intrinsics_options(spec),
+        )
 
     @classmethod
     def for_file(
-        cls, path: Path, *, realtime: bool = False, loop: bool = False, spec_text: str = ""
+        cls,
+        path: Path,
+        *,
+        realtime: bool = False,
+        loop: bool = False,
+        spec_text: str = "",
+        intrinsics_override: dict[str, float] | None = None,
     ) -> OpenNIDriver:
         """A driver playing an ``.oni`` file."""
-        return cls(None, file=Path(path), realtime=realtime, loop=loop, spec_text=spec_text)
+        return cls(
+            None,
+            file=Path(path),
+            realtime=realtime,
+            loop=loop,
+            spec_text=spec_text,
+            intrinsics_override=intrinsics_override,
+        )
 
     @staticmethod
     def detect() -> list[tuple[str, str]]:
@@ -271,7 +305,11 @@ class OpenNIDriver:
             if self.mode is not None:
                 self._set_mode(openni2)
             vm = self._stream.get_video_mode()
-            self._intrinsics = self._intrinsics_for(vm.resolutionX, vm.resolutionY)
+            self._intrinsics = with_overrides(
+                self._intrinsics_for(vm.resolutionX, vm.resolutionY),
+                self.intrinsics_override,
+                self.spec_text,
+            )
             self._stream.start()
             info = self._dev.get_device_info()
         except OpenNIError as exc:

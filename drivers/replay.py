@@ -32,7 +32,14 @@ from drivers.base import KINECT_V1, DeviceInfo, Driver, Frame, Intrinsics, TiltS
 from drivers.errors import DriverError, RecordingError
 from drivers.kinect_axes import accel_counts_to_camera, tilt_status_name
 from drivers.recording import read_recording
-from drivers.spec import Spec, bool_option, check_options, choice_option, float_option
+from drivers.spec import (
+    Spec,
+    bool_option,
+    check_options,
+    choice_option,
+    float_option,
+    intrinsics_options,
+)
 
 log = logging.getLogger(__name__)
 
@@ -85,11 +92,7 @@ class ReplayDriver:
         check_options(spec, OPTIONS, GRAMMAR)
         if not spec.target:
             raise RecordingError(f"{spec.text!r} names no recording", hint=f"write {GRAMMAR}")
-        overrides = {}
-        for key in ("fx", "fy", "cx", "cy"):
-            value = float_option(spec, key, None, -0.5, 1e5)
-            if value is not None:
-                overrides[key] = value
+        overrides = intrinsics_options(spec)
         return cls(
             spec.target,
             realtime=choice_option(spec, "rate", ("realtime", "max"), "realtime") == "realtime",
@@ -214,7 +217,11 @@ class ReplayDriver:
             from drivers.openni import OpenNIDriver  # only .oni replay needs OpenNI2
 
             self._inner = OpenNIDriver.for_file(
-                self.path, realtime=self.realtime, loop=self.loop, spec_text=self.spec_text
+                self.path,
+                realtime=self.realtime,
+                loop=self.loop,
+                spec_text=self.spec_text,
+                intrinsics_override=self.overrides,
             )
             info = self._inner.open()
         else:

@@ -11,6 +11,7 @@ from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from urllib.parse import unquote
 
+from drivers.base import Intrinsics
 from drivers.errors import DeviceSpecError
 
 _SCHEME = re.compile(r"[a-z][a-z0-9+.-]*\Z")
@@ -143,3 +144,31 @@ def int_option(spec: Spec, key: str, default: int, low: int = 0, high: int = 2**
     if not low <= value <= high:
         raise DeviceSpecError(f"option {key}={raw!r} in {spec.text!r} is outside {low}..{high}")
     return value
+
+
+INTRINSICS_OPTIONS = ("fx", "fy", "cx", "cy")
+
+
+def intrinsics_options(spec: Spec) -> dict[str, float]:
+    """The ``fx, fy, cx, cy`` options (pixels) that override a device's own intrinsics."""
+    out = {}
+    for key in INTRINSICS_OPTIONS:
+        value = float_option(spec, key, None, -0.5, 1e5)
+        if value is not None:
+            out[key] = value
+    return out
+
+
+def with_overrides(base: Intrinsics, overrides: Mapping[str, float], what: str) -> Intrinsics:
+    """``base`` with some of fx, fy, cx, cy replaced.
+
+    Raises:
+        DeviceSpecError: the result is not valid for the image size.
+    """
+    if not overrides:
+        return base
+    values = {"fx": base.fx, "fy": base.fy, "cx": base.cx, "cy": base.cy, **overrides}
+    try:
+        return Intrinsics(base.width, base.height, **values)
+    except ValueError as exc:
+        raise DeviceSpecError(f"{what}: intrinsics options do not fit the image: {exc}") from None

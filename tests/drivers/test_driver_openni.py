@@ -140,3 +140,9 @@ def test_writer_layout_matches_the_documented_header(oni_file):
     summary = check_oni(oni_file)
     assert (summary.depth_nodes, summary.frames, summary.has_end) == (1, 4, True)
     assert math.isclose(np.float32(0.0), 0.0)
+
+
+def test_calibration_options_replace_the_fov_intrinsics(oni_file):
+    spec = f"openni:{oni_file}?fx={SMALL.fx}&fy={SMALL.fy}&cx={SMALL.cx}&cy={SMALL.cy}"
+    frames = run(spec)["frames"]
+    assert frames[0]["intr"] == [SMALL.width, SMALL.height, SMALL.fx, SMALL.fy, SMALL.cx, SMALL.cy]
