@@ -101,7 +101,8 @@ class RosParams:
             for keys the file sets (e.g. ``values["mount"]["tilt_deg"]``, degrees, positive down).
         node: "laserscan_kinect", "cliff_detector" or "depth_sensor_pose".
         ros_version: 1 or 2 (the file's layout).
-        warnings: one line each, for everything that did not carry over one to one.
+        warnings: one line each (without the file name), for everything that did not carry over
+            one to one.
     """
 
     values: dict[str, dict[str, object]]
@@ -233,7 +234,7 @@ def load_ros_params(path: str | Path, node: str | None = None) -> RosParams:
         if isinstance(tilt, float) and tilt != 0.0:
             values["mount"]["tilt_deg"] = -tilt
             warnings.append(
-                f"{where}: sensor_tilt_angle {tilt:g} read as tilt_deg {-tilt:g} ("
+                f"sensor_tilt_angle {tilt:g} read as tilt_deg {-tilt:g} ("
                 f"{'down' if -tilt > 0 else 'up'}): laserscan_kinect >= 1.1.0 (and every ROS 2 release) "
                 f"counts negative as pitched down, depthnav positive; if the file was written for "
                 f"laserscan_kinect <= 1.0.x (positive = down), override with --tilt-deg {tilt:g}"
@@ -241,7 +242,7 @@ def load_ros_params(path: str | Path, node: str | None = None) -> RosParams:
         if {"scan_height", "depth_img_row_step", "ground_remove_en", "tilt_compensation_en"} & set(params):
             values.setdefault("scan", {})["method"] = "paper"
             warnings.append(
-                f"{where}: scan.method set to 'paper' so scan_height, depth_img_row_step, ground_remove_en "
+                f"scan.method set to 'paper' so scan_height, depth_img_row_step, ground_remove_en "
                 f"and tilt_compensation_en act as in laserscan_kinect; with method 'exact' (depthnav's "
                 f"level-frame scan) they are unused"
             )
@@ -249,7 +250,7 @@ def load_ros_params(path: str | Path, node: str | None = None) -> RosParams:
         odd = [k for k in ("depth_img_step_row", "depth_img_step_col") if k in params]
         if odd:
             warnings.append(
-                f"{where}: {' and '.join(odd)} are not parameters of the ROS 2 cliff_detector (it declares "
+                f"{' and '.join(odd)} are not parameters of the ROS 2 cliff_detector (it declares "
                 f"depth_img_row_step/depth_img_col_step), so that node ran with strides 2; depthnav applies "
                 f"the file's values, set cliff.row_step/col_step = 2 to match what the node did"
             )
@@ -257,12 +258,12 @@ def load_ros_params(path: str | Path, node: str | None = None) -> RosParams:
         dist = values.get("pose", {}).get("inlier_dist_m")
         if isinstance(dist, float) and dist < TIGHT_RANSAC_DIST_M:
             warnings.append(
-                f"{where}: ransac_dist_thresh {dist:g} m is far below Kinect-class depth noise (about 1 cm "
+                f"ransac_dist_thresh {dist:g} m is far below Kinect-class depth noise (about 1 cm "
                 f"at 2 m); few points will count as floor inliers, consider pose.inlier_dist_m = 0.02"
             )
     if ignored:
-        warnings.append(f"{where}: ignored (no depthnav equivalent): {', '.join(ignored)}")
+        warnings.append(f"ignored (no depthnav equivalent): {', '.join(ignored)}")
     if unknown:
-        warnings.append(f"{where}: unknown keys (not {name} parameters), ignored: {', '.join(unknown)}")
+        warnings.append(f"unknown keys (not {name} parameters), ignored: {', '.join(unknown)}")
     _validate(values, where)
     return RosParams(values, name, version, warnings)
