@@ -107,7 +107,7 @@ def detect_devices() -> list[tuple[str, str]]:
             detect = getattr(_driver_class(scheme, scheme), "detect", None)
             if detect is not None:
                 found.extend(detect())
-        except Exception:
+        except Exception:  # discovery must never fail the command
             log.debug("device detection for %s failed", scheme, exc_info=True)
     return found
 
@@ -121,7 +121,7 @@ def describe_backends() -> list[tuple[str, str]]:
             out.extend(status() if status else [(scheme, "available")])
         except DriverError as exc:
             out.append((scheme, f"missing: {exc}"))
-        except Exception as exc:
+        except Exception as exc:  # `depthnav info` reports, never fails
             log.debug("backend status for %s failed", scheme, exc_info=True)
             out.append((scheme, f"error: {exc}"))
     out.append(("serialtilt", _serial_tilt_status()))

@@ -13,8 +13,8 @@ Spec: ``kinect[://INDEX][?accel=usb|freenect|none&tilt_deg=D&led=NAME&lib=PATH&f
 - ``const_shift``: the device's zero-plane constant for disparity -> mm when libfreenect only
   gives 11-bit disparity (fakenect); default 200.
 
-Depth is 640x480 uint16 mm with the KINECT_V1 intrinsics unless ``fx, fy, cx, cy`` (pixels) are given. Debian ships no OpenNI2 driver for the
-Kinect 360, hence libfreenect.
+Depth is 640x480 uint16 mm with the KINECT_V1 intrinsics unless ``fx, fy, cx, cy`` (pixels) are
+given. Debian ships no OpenNI2 driver for the Kinect 360, hence libfreenect.
 """
 
 from __future__ import annotations

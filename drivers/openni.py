@@ -132,7 +132,7 @@ def initialize() -> Any:
         )
         try:
             openni2.initialize(folder)  # note: chdir()s while loading; done once, under the lock
-        except Exception as exc:
+        except Exception as exc:  # ctypes/OpenNI raise several types here
             raise DriverNotAvailable(
                 f"libOpenNI2 at {lib} failed to initialise: {exc}", hint="reinstall libopenni2-0"
             ) from exc
@@ -356,7 +356,7 @@ class OpenNIDriver:
     def _intrinsics_for(self, width: int, height: int) -> Intrinsics:
         try:
             hfov, vfov = self._stream.get_horizontal_fov(), self._stream.get_vertical_fov()
-        except Exception:
+        except Exception:  # Dummy and some drivers lack the FOV property
             log.info(
                 "%s reports no field of view; assuming %.0f x %.0f deg",
                 self.spec_text,
@@ -435,10 +435,10 @@ class OpenNIDriver:
                 if self.file is None:
                     time.sleep(STOP_SETTLE_S)
                 stream.close()
-            except Exception:
+            except Exception:  # closing must not raise
                 log.debug("closing OpenNI2 stream failed", exc_info=True)
         if dev is not None:
             try:
                 dev.close()
-            except Exception:
+            except Exception:  # closing must not raise
                 log.debug("closing OpenNI2 device failed", exc_info=True)

@@ -229,7 +229,7 @@ class SerialTiltSource:
         if self._serial is not None:
             try:
                 self._serial.close()
-            except Exception:
+            except Exception:  # closing must not raise
                 log.debug("closing %s failed", self.port, exc_info=True)
             self._serial = None
 
