@@ -2,7 +2,14 @@
 
 from __future__ import annotations
 
+import os
+import signal
+import socket
+import subprocess
+import time
+import warnings
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -216,3 +223,61 @@ def test_module_name_does_not_shadow_rerun():
 
     # sinks/rerun.py does `import rerun as rr`: that must be the SDK, not the module itself
     assert "depthnav_daemon" not in rerun.__file__ and hasattr(rerun, "RecordingStream")
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def scan_rows(path: Path) -> int:
+    """Temporal rows of /world/scan in a (possibly still growing, footer-less) .rrd."""
+    if not path.exists():
+        return 0
+    try:
+        with warnings.catch_warnings():  # "no footer": expected while the server still writes
+            warnings.simplefilter("ignore")
+            chunks = list(rrchunk.RrdReader(str(path)).stream())
+    except Exception:  # a file the server has only just created
+        return 0
+    return sum(c.num_rows for c in chunks if c.entity_path == "/world/scan" and not c.is_static)
+
+
+def test_connect_to_a_real_grpc_server(tmp_path, pairs, context):
+    """rerun+grpc:// against the real rerun binary, which saves what it receives to an .rrd."""
+    import rerun_cli
+
+    binary = Path(rerun_cli.__file__).with_name("rerun")  # the real binary, not the Python shim
+    if not binary.exists():
+        pytest.skip("rerun_cli binary not installed")
+    port, out = free_port(), tmp_path / "received.rrd"
+    log_path = tmp_path / "server.log"
+    with open(log_path, "wb") as log_file:
+        server = subprocess.Popen(
+            [str(binary), "--bind", "127.0.0.1", "--port", str(port), "--save", str(out)],
+            stdout=log_file,
+            stderr=subprocess.STDOUT,
+            start_new_session=True,
+        )
+    try:
+        deadline = time.monotonic() + 30
+        while b"Listening for gRPC" not in log_path.read_bytes():
+            assert server.poll() is None and time.monotonic() < deadline, log_path.read_text()
+            time.sleep(0.1)
+        sink = create_sink(f"rerun+grpc://127.0.0.1:{port}")
+        sink.open(context)
+        for frame, result in pairs[:3]:
+            sink.write(frame, result)
+        sink.close()  # flushes to the server
+        # the server writes what it received in its own time: wait (bounded) for all 3 frames
+        deadline = time.monotonic() + 30
+        while scan_rows(out) < 3 and time.monotonic() < deadline:
+            time.sleep(0.2)
+        server.send_signal(signal.SIGINT)  # Ctrl-C: the server closes the file
+        server.wait(timeout=30)
+    finally:
+        if server.poll() is None:
+            os.killpg(server.pid, signal.SIGKILL)
+            server.wait(timeout=10)
+    assert scan_rows(out) == 3
