@@ -193,6 +193,40 @@ def merge_cliff(obstacles: Sectors, cliff_scan: LaserScan) -> Sectors:
     )
 
 
+def _advance(due: float, period: float, now: float) -> float:
+    """The next due time: one period on (keeping the phase), or one period from now if that passed."""
+    nxt = due + period
+    return nxt if nxt > now else now + period
+
+
+class Schedule:
+    """When the sender thread sends: HEARTBEAT every second, OBSTACLE_DISTANCE every ``period_s``.
+
+    A late tick (a slow machine, a blocked serial write) sends once and moves on; it never bursts
+    to catch up, so the link never carries a backlog of stale scans.
+    """
+
+    def __init__(self, period_s: float, start_s: float) -> None:
+        self.period_s = period_s
+        self.next_heartbeat = start_s
+        self.next_obstacles = start_s
+
+    def due(self, now: float) -> tuple[bool, bool]:
+        """(send a heartbeat, send obstacles) at monotonic time ``now``; advances the schedule."""
+        heartbeat = now >= self.next_heartbeat
+        if heartbeat:
+            self.next_heartbeat = _advance(self.next_heartbeat, HEARTBEAT_PERIOD_S, now)
+        obstacles = now >= self.next_obstacles
+        if obstacles:
+            self.next_obstacles = _advance(self.next_obstacles, self.period_s, now)
+        return heartbeat, obstacles
+
+    @property
+    def next_wakeup(self) -> float:
+        """Monotonic time of the next send."""
+        return min(self.next_heartbeat, self.next_obstacles)
+
+
 class _SerialLink:
     """A serial port through pyserial; write failures other than timeouts are fatal."""
 
@@ -409,21 +443,18 @@ class MavlinkSink:
         self.sent_obstacle += 1
 
     def _run(self) -> None:
-        period = 1.0 / self.rate_hz
-        now = time.monotonic()
-        next_hb, next_obs = now, now
+        clock = Schedule(1.0 / self.rate_hz, time.monotonic())
         try:
             while not self._stop.is_set():
                 now = time.monotonic()
-                if now >= next_hb:
+                heartbeat, obstacles = clock.due(now)
+                if heartbeat:
                     self._send_heartbeat()
-                    next_hb = max(next_hb + HEARTBEAT_PERIOD_S, now)  # never burst to catch up
-                if now >= next_obs:
+                if obstacles:
                     pending = self.latest_for(now)
                     if pending is not None:
                         self._send_obstacles(*pending)
-                    next_obs = max(next_obs + period, now)
-                self._stop.wait(max(0.0, min(next_hb, next_obs) - time.monotonic()))
+                self._stop.wait(max(0.0, clock.next_wakeup - time.monotonic()))
         except Exception as exc:  # a dead port: reported by the next write()
             log.debug("mavlink sender thread failed", exc_info=True)
             self._error = exc

@@ -19,7 +19,13 @@ from hypothesis import strategies as st
 from depthnav_daemon.errors import ConfigError, SinkError
 from depthnav_daemon.pipeline.scan import LaserScan
 from depthnav_daemon.sinks import create_sink
-from depthnav_daemon.sinks.mavlink import UNKNOWN, MavlinkSink, merge_cliff, obstacle_sectors
+from depthnav_daemon.sinks.mavlink import (
+    UNKNOWN,
+    MavlinkSink,
+    Schedule,
+    merge_cliff,
+    obstacle_sectors,
+)
 
 mavlink2 = pytest.importorskip("pymavlink.dialects.v20.common")
 
@@ -307,3 +313,25 @@ def test_spec_defaults():
         True,
         0,
     )
+
+
+@pytest.mark.parametrize("rate", [10.0, 15.0, 50.0])
+def test_schedule_rates_on_a_simulated_clock(rate):
+    # wake-ups at jittery times, as the thread sees them on a busy machine
+    rng = np.random.default_rng(0)
+    clock = Schedule(1.0 / rate, 1000.0)
+    now, beats, scans = 1000.0, 0, 0
+    while now < 1010.0:
+        hb, obs = clock.due(now)
+        beats += hb
+        scans += obs
+        now = max(now, clock.next_wakeup) + rng.uniform(0.0, 0.2 / rate)
+    assert 10 <= beats <= 11  # 1 Hz over 10 s
+    assert 0.8 * rate * 10 <= scans <= rate * 10 + 1
+
+
+def test_schedule_never_bursts_after_a_stall():
+    clock = Schedule(0.1, 0.0)
+    clock.due(0.0)
+    assert clock.due(5.0) == (True, True)  # a 5 s stall: one of each, not 50 queued scans
+    assert clock.due(5.01) == (False, False)
