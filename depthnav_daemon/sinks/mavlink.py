@@ -194,7 +194,7 @@ def merge_cliff(obstacles: Sectors, cliff_scan: LaserScan) -> Sectors:
 
 
 def _advance(due: float, period: float, now: float) -> float:
-    """The next due time: one period on (keeping the phase), or one period from now if that passed."""
+    """Next due time: one period on (keeping the phase), or one period from now if that passed."""
     nxt = due + period
     return nxt if nxt > now else now + period
 
