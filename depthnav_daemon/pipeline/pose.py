@@ -42,7 +42,8 @@ from drivers.base import Intrinsics
 G_MPS2 = 9.80665
 PRIOR_SLACK_DEG = 2.0   # fitted angles may exceed the prior by this much (noise at its edges)
 PRIOR_SLACK_M = 0.02
-SCORE_CHUNK = 64        # RANSAC hypotheses scored per batched mat-mul
+SCORE_CHUNK = 32        # RANSAC hypotheses scored per batch
+RANSAC_CONFIDENCE = 0.999
 
 
 @dataclass(frozen=True, slots=True)
@@ -244,6 +245,9 @@ def ransac_plane(
         accept: optional (3, 2) bounds [[tilt_lo, tilt_hi], [|roll| hi, unused], [h_lo, h_hi]]
             (radians, metres); hypotheses outside are skipped.
 
+    Stops early (in batches of SCORE_CHUNK) once, at the best inlier share w so far, an all-inlier
+    sample has been drawn with probability RANSAC_CONFIDENCE: log(1 - p) / log(1 - w^3) hypotheses.
+
     Returns:
         (plane, inliers): plane (4,) = (n, d) with unit n pointing toward the origin's side, and its
         inlier count; inliers 0 if no hypothesis was acceptable.
@@ -265,11 +269,24 @@ def ransac_plane(
         good &= (d >= accept[2, 0]) & (d <= accept[2, 1])
     counts = np.zeros(iterations, dtype=np.int64)
     cand = np.flatnonzero(good)
-    p32 = pts.astype(np.float32)
-    for s in range(0, cand.size, SCORE_CHUNK):
+    px, py, pz = (np.ascontiguousarray(pts[:, i : i + 1], dtype=np.float32) for i in range(3))  # (K, 1)
+    n32 = n.astype(np.float32)
+    d32 = d.astype(np.float32)
+    need = iterations
+    s = 0
+    while s < min(cand.size, need):
         k = cand[s : s + SCORE_CHUNK]
-        dist = np.abs(p32 @ n[k].T.astype(np.float32) + d[k].astype(np.float32))  # (K, chunk)
-        counts[k] = (dist <= inlier_dist_m).sum(axis=0)
+        # explicit broadcasting: a (K, 3) @ (3, chunk) BLAS call is several times slower here
+        dist = np.abs(px * n32[k, 0] + py * n32[k, 1] + pz * n32[k, 2] + d32[k])   # (K, chunk)
+        counts[k] = np.count_nonzero(dist <= inlier_dist_m, axis=0)
+        s += k.size
+        # adaptive stop (as PCL): enough hypotheses that an all-inlier sample was drawn with
+        # probability RANSAC_CONFIDENCE, given the best inlier share so far
+        w = counts[cand[:s]].max() / len(pts)
+        if 0 < w < 1:
+            need = min(need, math.ceil(math.log(1 - RANSAC_CONFIDENCE) / math.log(1 - w**3)))
+        elif w >= 1:
+            need = 0
     if cand.size == 0:
         return np.array([0.0, -1.0, 0.0, 0.0]), 0
     best = int(cand[np.argmax(counts[cand])])
