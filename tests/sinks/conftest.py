@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, replace
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -12,6 +12,7 @@ from depthnav_daemon import __version__
 from depthnav_daemon.pipeline import Result
 from depthnav_daemon.pipeline.cliff import CliffParams, detect_cliffs
 from depthnav_daemon.pipeline.geometry import Mount
+from depthnav_daemon.pipeline.pose import PoseEstimate
 from depthnav_daemon.pipeline.scan import ScanParams, depth_to_scan, scan_layout
 from depthnav_daemon.sinks import SinkContext
 from depthnav_daemon.synthetic import Box, Scene, render, step_down
@@ -26,21 +27,6 @@ SCENE = Scene(
     boxes=(Box(1.6, 0.35, 0.3, 0.3, 0.4), Box(1.2, -0.3, 0.04, 0.04, 0.6)),
     holes=(step_down(2.2, 0.3),),
 )
-
-
-@dataclass(frozen=True)
-class PoseStandIn:
-    """The agreed PoseEstimate attributes (pipeline/pose.py is not committed yet)."""
-
-    ok: bool
-    height_m: float
-    tilt_deg: float
-    roll_deg: float
-    inliers: int
-    inlier_ratio: float
-    residual_m: float
-    candidates: int
-    reason: str = ""
 
 
 def make_pair(
@@ -82,7 +68,7 @@ def pairs() -> list[tuple[Frame, Result]]:
     out = []
     for seq in range(5):
         pose = (
-            PoseStandIn(True, 0.5 + seq * 0.01, 12.0, 1.5, 900, 0.9, 0.004, 1000)
+            PoseEstimate(True, 0.5 + seq * 0.01, 12.0, 1.5, 900, 0.9, 0.004, 1000)
             if seq == 2
             else None
         )

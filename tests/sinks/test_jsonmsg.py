@@ -12,8 +12,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from depthnav_daemon.pipeline.pose import PoseEstimate
 from depthnav_daemon.sinks import jsonmsg
-from tests.sinks.conftest import PoseStandIn, make_pair, with_ranges
+from tests.sinks.conftest import make_pair, with_ranges
 
 
 def test_special_ranges_round_trip_distinct(pairs):
@@ -116,7 +117,7 @@ def test_fields_and_values(pairs):
 
 def test_no_cliff_and_failed_estimate_are_null_not_nan(pairs):
     frame, result = pairs[0]
-    bad = PoseStandIn(
+    bad = PoseEstimate(
         False, math.nan, math.nan, math.nan, 3, 0.01, math.nan, 300, "too few floor points"
     )
     result = replace(result, cliff=None, pose=bad)
