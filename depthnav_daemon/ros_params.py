@@ -28,6 +28,10 @@ from typing import Any
 import yaml
 
 from depthnav_daemon.errors import ConfigError
+from depthnav_daemon.pipeline.cliff import CliffParams
+from depthnav_daemon.pipeline.geometry import Mount
+from depthnav_daemon.pipeline.pose import PoseParams
+from depthnav_daemon.pipeline.scan import ScanParams
 
 NODES = ("laserscan_kinect", "cliff_detector", "depth_sensor_pose")
 
@@ -52,9 +56,9 @@ _MAP: dict[str, dict[str, tuple[str, str, str]]] = {
         "used_depth_height": ("cliff", "used_depth_height", "int"),
         "block_size": ("cliff", "block_size", "int"),
         "block_points_thresh": ("cliff", "block_points_thresh", "int"),
-        "depth_img_step_row": ("cliff", "row_step", "int"),   # ROS 1 name (and the shipped files)
+        "depth_img_step_row": ("cliff", "row_step", "int"),  # ROS 1 name (and the shipped files)
         "depth_img_step_col": ("cliff", "col_step", "int"),
-        "depth_img_row_step": ("cliff", "row_step", "int"),   # what the ROS 2 node declares
+        "depth_img_row_step": ("cliff", "row_step", "int"),  # what the ROS 2 node declares
         "depth_img_col_step": ("cliff", "col_step", "int"),
         "ground_margin": ("cliff", "ground_margin_m", "float"),
     },
@@ -85,8 +89,15 @@ _IGNORED = {
 _SIGNATURE = {
     "laserscan_kinect": {"scan_height", "ground_remove_en", "tilt_compensation_en", "threads_num"},
     "cliff_detector": {"block_size", "block_points_thresh", "publish_depth"},
-    "depth_sensor_pose": {"mount_height_min", "mount_height_max", "tilt_angle_min", "tilt_angle_max",
-                          "ground_max_points", "ransac_max_iter", "ransac_dist_thresh"},
+    "depth_sensor_pose": {
+        "mount_height_min",
+        "mount_height_max",
+        "tilt_angle_min",
+        "tilt_angle_max",
+        "ground_max_points",
+        "ransac_max_iter",
+        "ransac_dist_thresh",
+    },
 }
 
 TIGHT_RANSAC_DIST_M = 0.005
@@ -131,7 +142,9 @@ def _infer(keys: set[str], where: str) -> str:
 def _split(doc: Any, where: str, node: str | None) -> tuple[str, int, dict[str, Any]]:
     """(node, ROS version, flat parameter dict) of a parsed YAML document."""
     if not isinstance(doc, dict) or not doc:
-        raise ConfigError(f"{where}: not a YAML mapping of parameters (accepted: ROS 1 or ROS 2 parameter YAML)")
+        raise ConfigError(
+            f"{where}: not a YAML mapping of parameters (accepted: ROS 1 or ROS 2 parameter YAML)"
+        )
     sections = {k: v for k, v in doc.items() if isinstance(v, dict)}
     if sections and len(sections) == len(doc):
         # ROS 2 (<node>: ros__parameters: ...) or ROS 1 namespaced (<node>: {...})
@@ -149,7 +162,8 @@ def _split(doc: Any, where: str, node: str | None) -> tuple[str, int, dict[str, 
         if len(found) != 1:
             names = ", ".join(str(k) for k in sections)
             raise ConfigError(
-                f"{where}: expected the parameters of one depth_nav_tools node, found sections: {names} "
+                f"{where}: expected the parameters of one depth_nav_tools node, found sections: "
+                f"{names} "
                 f"(accepted: {', '.join(NODES)}; pass node=... to choose)"
             )
         return found[0]
@@ -173,11 +187,6 @@ def _convert(value: Any, kind: str, where: str, key: str) -> object:
 
 def _validate(values: dict[str, dict[str, object]], where: str) -> None:
     """Build the depthnav parameter classes so out-of-range values fail now, naming the file."""
-    from depthnav_daemon.pipeline.cliff import CliffParams
-    from depthnav_daemon.pipeline.geometry import Mount
-    from depthnav_daemon.pipeline.pose import PoseParams
-    from depthnav_daemon.pipeline.scan import ScanParams
-
     classes = {"mount": Mount, "scan": ScanParams, "cliff": CliffParams, "pose": PoseParams}
     for section, fields in values.items():
         try:
@@ -205,7 +214,9 @@ def load_ros_params(path: str | Path, node: str | None = None) -> RosParams:
     p = Path(path)
     where = str(p)
     if node is not None and node not in NODES:
-        raise ConfigError(f"node={node!r} is not a depth_nav_tools node (accepted: {', '.join(NODES)})")
+        raise ConfigError(
+            f"node={node!r} is not a depth_nav_tools node (accepted: {', '.join(NODES)})"
+        )
     try:
         text = p.read_text(encoding="utf-8")
     except OSError as e:
@@ -221,8 +232,8 @@ def load_ros_params(path: str | Path, node: str | None = None) -> RosParams:
     values: dict[str, dict[str, object]] = {}
     warnings: list[str] = []
     ignored, unknown = [], []
-    for key, raw in params.items():
-        key = str(key)
+    for raw_key, raw in params.items():
+        key = str(raw_key)
         if key not in mapping:
             (ignored if key in _IGNORED[name] else unknown).append(key)
             continue
@@ -235,23 +246,28 @@ def load_ros_params(path: str | Path, node: str | None = None) -> RosParams:
             values["mount"]["tilt_deg"] = -tilt
             warnings.append(
                 f"sensor_tilt_angle {tilt:g} read as tilt_deg {-tilt:g} ("
-                f"{'down' if -tilt > 0 else 'up'}): laserscan_kinect >= 1.1.0 (and every ROS 2 release) "
+                f"{'down' if -tilt > 0 else 'up'}): laserscan_kinect >= 1.1.0 (and every ROS 2 "
+                "release) "
                 f"counts negative as pitched down, depthnav positive; if the file was written for "
                 f"laserscan_kinect <= 1.0.x (positive = down), override with --tilt-deg {tilt:g}"
             )
-        if {"scan_height", "depth_img_row_step", "ground_remove_en", "tilt_compensation_en"} & set(params):
+        if {"scan_height", "depth_img_row_step", "ground_remove_en", "tilt_compensation_en"} & set(
+            params
+        ):
             values.setdefault("scan", {})["method"] = "paper"
             warnings.append(
-                f"scan.method set to 'paper' so scan_height, depth_img_row_step, ground_remove_en "
-                f"and tilt_compensation_en act as in laserscan_kinect; with method 'exact' (depthnav's "
-                f"level-frame scan) they are unused"
+                "scan.method set to 'paper' so scan_height, depth_img_row_step, ground_remove_en "
+                "and tilt_compensation_en act as in laserscan_kinect; with method 'exact' "
+                "(depthnav's "
+                "level-frame scan) they are unused"
             )
     if name == "cliff_detector" and version == 2:
         odd = [k for k in ("depth_img_step_row", "depth_img_step_col") if k in params]
         if odd:
             warnings.append(
                 f"{' and '.join(odd)} are not parameters of the ROS 2 cliff_detector (it declares "
-                f"depth_img_row_step/depth_img_col_step), so that node ran with strides 2; depthnav applies "
+                "depth_img_row_step/depth_img_col_step), so that node ran with strides 2; "
+                "depthnav applies "
                 f"the file's values, set cliff.row_step/col_step = 2 to match what the node did"
             )
     if name == "depth_sensor_pose":
@@ -259,7 +275,8 @@ def load_ros_params(path: str | Path, node: str | None = None) -> RosParams:
         if isinstance(dist, float) and dist < TIGHT_RANSAC_DIST_M:
             warnings.append(
                 f"ransac_dist_thresh {dist:g} m is far below Kinect-class depth noise (about 1 cm "
-                f"at 2 m); few points will count as floor inliers, consider pose.inlier_dist_m = 0.02"
+                "at 2 m); few points will count as floor inliers, consider pose.inlier_dist_m = "
+                "0.02"
             )
     if ignored:
         warnings.append(f"ignored (no depthnav equivalent): {', '.join(ignored)}")

@@ -20,10 +20,16 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from depthnav_daemon.pipeline.pose import PoseParams, estimate_pose  # noqa: E402
-from drivers.base import Intrinsics  # noqa: E402
+from depthnav_daemon.pipeline.pose import PoseParams, estimate_pose
+from drivers.base import Intrinsics
 
-DEFAULT = Path(__file__).resolve().parents[2] / "shared" / "data" / "real" / "cmu_panoptic_kinoptic_10view"
+DEFAULT = (
+    Path(__file__).resolve().parents[2]
+    / "shared"
+    / "data"
+    / "real"
+    / "cmu_panoptic_kinoptic_10view"
+)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -38,7 +44,10 @@ def main(argv: list[str] | None = None) -> int:
     params = PoseParams(height_max_m=args.height_max_m)
     times: list[float] = []
     worst = np.zeros(3)
-    print(f"{'view':>4} {'seed':>4} {'ok':>3} {'dh mm':>7} {'dtilt':>7} {'droll':>7} {'inliers':>8} {'resid mm':>8}")
+    print(
+        f"{'view':>4} {'seed':>4} {'ok':>3} {'dh mm':>7} {'dtilt':>7} {'droll':>7} {'inliers':>8} "
+        f"{'resid mm':>8}"
+    )
     for i in range(depth.shape[0]):
         fx, fy, cx, cy = (float(v) for v in intrinsics[i])
         intr = Intrinsics(depth.shape[2], depth.shape[1], fx, fy, cx, cy)
@@ -48,12 +57,24 @@ def main(argv: list[str] | None = None) -> int:
             t0 = time.perf_counter()
             est = estimate_pose(frame, intr, params, np.random.default_rng(seed))
             times.append(time.perf_counter() - t0)
-            err = np.array([est.height_m - r["height_m"], est.tilt_deg - r["pitch_down_deg"], est.roll_deg + r["roll_deg"]])
+            err = np.array(
+                [
+                    est.height_m - r["height_m"],
+                    est.tilt_deg - r["pitch_down_deg"],
+                    est.roll_deg + r["roll_deg"],
+                ]
+            )
             worst = np.fmax(worst, np.abs(err))
-            print(f"{i:>4} {seed:>4} {'y' if est.ok else 'n':>3} {err[0] * 1000:>7.1f} {err[1]:>7.2f} {err[2]:>7.2f} "
-                  f"{est.inliers:>8} {est.residual_m * 1000:>8.1f}  {est.reason}")
-    print(f"worst |dh| {worst[0] * 1000:.1f} mm, |dtilt| {worst[1]:.2f} deg, |droll| {worst[2]:.2f} deg; "
-          f"median {np.median(times) * 1000:.1f} ms per estimate ({depth.shape[2]}x{depth.shape[1]})")
+            print(
+                f"{i:>4} {seed:>4} {'y' if est.ok else 'n':>3} {err[0] * 1000:>7.1f} "
+                f"{err[1]:>7.2f} {err[2]:>7.2f} "
+                f"{est.inliers:>8} {est.residual_m * 1000:>8.1f}  {est.reason}"
+            )
+    print(
+        f"worst |dh| {worst[0] * 1000:.1f} mm, |dtilt| {worst[1]:.2f} deg, |droll| {worst[2]:.2f} "
+        "deg; "
+        f"median {np.median(times) * 1000:.1f} ms per estimate ({depth.shape[2]}x{depth.shape[1]})"
+    )
     return 0
 
 

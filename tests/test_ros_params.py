@@ -22,19 +22,49 @@ SHIPPED = SHARED / "reference" / "original_params"
 # what each shipped file says, in depthnav's names (copied by hand from the YAML files)
 EXPECTED = {
     "laserscan_kinect": {
-        "scan": {"range_min_m": 0.4, "range_max_m": 5.0, "scan_height": 400, "depth_img_row_step": 1,
-                 "ground_remove": True, "ground_margin_m": 0.05, "tilt_compensation": True, "method": "paper"},
-        "mount": {"height_m": 0.8, "tilt_deg": 45.0},  # -45.0 in laserscan_kinect >= 1.1.0 = 45 down
+        "scan": {
+            "range_min_m": 0.4,
+            "range_max_m": 5.0,
+            "scan_height": 400,
+            "depth_img_row_step": 1,
+            "ground_remove": True,
+            "ground_margin_m": 0.05,
+            "tilt_compensation": True,
+            "method": "paper",
+        },
+        "mount": {
+            "height_m": 0.8,
+            "tilt_deg": 45.0,
+        },  # -45.0 in laserscan_kinect >= 1.1.0 = 45 down
     },
     "cliff_detector": {
-        "cliff": {"range_min_m": 0.5, "range_max_m": 5.0, "used_depth_height": 400, "block_size": 16,
-                  "block_points_thresh": 3, "row_step": 8, "col_step": 8, "ground_margin_m": 0.05},
+        "cliff": {
+            "range_min_m": 0.5,
+            "range_max_m": 5.0,
+            "used_depth_height": 400,
+            "block_size": 16,
+            "block_points_thresh": 3,
+            "row_step": 8,
+            "col_step": 8,
+            "ground_margin_m": 0.05,
+        },
         "mount": {"height_m": 0.55, "tilt_deg": 15.0},
     },
     "depth_sensor_pose": {
-        "pose": {"range_min_m": 0.5, "range_max_m": 8.0, "height_min_m": 0.7, "height_max_m": 1.0,
-                 "tilt_min_deg": 30.0, "tilt_max_deg": 35.0, "used_depth_height": 400, "row_step": 8,
-                 "col_step": 8, "max_points": 2500, "ransac_iterations": 2000, "inlier_dist_m": 0.001},
+        "pose": {
+            "range_min_m": 0.5,
+            "range_max_m": 8.0,
+            "height_min_m": 0.7,
+            "height_max_m": 1.0,
+            "tilt_min_deg": 30.0,
+            "tilt_max_deg": 35.0,
+            "used_depth_height": 400,
+            "row_step": 8,
+            "col_step": 8,
+            "max_points": 2500,
+            "ransac_iterations": 2000,
+            "inlier_dist_m": 0.001,
+        },
     },
 }
 
@@ -59,7 +89,8 @@ def test_each_shipped_file_loads_with_the_expected_warnings(ros: str, node: str)
         assert "--tilt-deg -45" in text and "scan.method set to 'paper'" in text
     # the ROS 2 cliff_detector never declared the stride names its own file uses
     assert ("depth_img_step_row and depth_img_step_col are not parameters" in text) == (
-        node == "cliff_detector" and ros == "ros2_master")
+        node == "cliff_detector" and ros == "ros2_master"
+    )
     assert ("ransac_dist_thresh 0.001 m" in text) == (node == "depth_sensor_pose")
     assert "ignored (no depthnav equivalent): " in text and "cam_model_update" in text
     assert "unknown keys" not in text
@@ -103,17 +134,26 @@ def test_out_of_range_value_names_file_and_depthnav_field(tmp_path: Path) -> Non
     p = write(tmp_path, "block_size: 16\nblock_points_thresh: 0\n")
     with pytest.raises(ConfigError) as e:
         load_ros_params(p)
-    assert str(e.value).startswith(f"{p}: cliff.block_points_thresh=0 is out of range (accepted: integers 1..4)")
+    assert str(e.value).startswith(
+        f"{p}: cliff.block_points_thresh=0 is out of range (accepted: integers 1..4)"
+    )
 
 
 def test_unknown_keys_and_positive_laserscan_tilt(tmp_path: Path) -> None:
-    p = write(tmp_path, "laserscan_kinect:\n  ros__parameters:\n    sensor_tilt_angle: 10.0\n    foo_bar: 3\n")
+    p = write(
+        tmp_path,
+        "laserscan_kinect:\n  ros__parameters:\n    sensor_tilt_angle: 10.0\n    foo_bar: 3\n",
+    )
     r = load_ros_params(p)
     assert r.values == {"mount": {"tilt_deg": -10.0}}  # positive = up in laserscan_kinect >= 1.1.0
     assert any("read as tilt_deg -10 (up)" in w and "--tilt-deg 10" in w for w in r.warnings)
-    assert any("unknown keys (not laserscan_kinect parameters), ignored: foo_bar" in w for w in r.warnings)
+    assert any(
+        "unknown keys (not laserscan_kinect parameters), ignored: foo_bar" in w for w in r.warnings
+    )
     r = load_ros_params(write(tmp_path, "sensor_tilt_angle: 0.0\nscan_height: 300\n"))
-    assert r.values["mount"] == {"tilt_deg": 0.0} and not any("sensor_tilt_angle" in w for w in r.warnings)
+    assert r.values["mount"] == {"tilt_deg": 0.0} and not any(
+        "sensor_tilt_angle" in w for w in r.warnings
+    )
 
 
 def test_multi_node_files_and_namespaces(tmp_path: Path) -> None:
@@ -123,13 +163,19 @@ def test_multi_node_files_and_namespaces(tmp_path: Path) -> None:
         "depth_sensor_pose:\n  ros__parameters:\n    ransac_max_iter: 100\n"
     )
     p = write(tmp_path, text)
-    with pytest.raises(ConfigError, match="found sections: /robot/cliff_detector, depth_sensor_pose"):
+    with pytest.raises(
+        ConfigError, match="found sections: /robot/cliff_detector, depth_sensor_pose"
+    ):
         load_ros_params(p)
     r = load_ros_params(p, node="cliff_detector")
     # the names the ROS 2 node really declares: no stride warning
     assert r.values == {"cliff": {"block_size": 8, "row_step": 2, "col_step": 2}} and not r.warnings
-    assert load_ros_params(p, node="depth_sensor_pose").values == {"pose": {"ransac_iterations": 100}}
-    wild = load_ros_params(write(tmp_path, "/**:\n  ros__parameters:\n    block_size: 16\n    publish_depth: true\n"))
+    assert load_ros_params(p, node="depth_sensor_pose").values == {
+        "pose": {"ransac_iterations": 100}
+    }
+    wild = load_ros_params(
+        write(tmp_path, "/**:\n  ros__parameters:\n    block_size: 16\n    publish_depth: true\n")
+    )
     assert wild.node == "cliff_detector" and wild.ros_version == 2
 
 

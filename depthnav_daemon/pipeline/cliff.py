@@ -5,9 +5,9 @@ floor plane. Samples are taken on a grid (``row_step`` x ``col_step``) inside sq
 ``block_size`` pixels over the bottom ``used_depth_height`` rows (eq. 7); a block with at least
 ``block_points_thresh`` samples is a negative obstacle (eq. 8).
 
-``exact`` (the default, the fix): a sample counts when its reading lies more than ``ground_margin_m``
-*below the floor plane*, with tilt AND roll, from ``level_rays``: the floor depth of a pixel is
-``h / -kz`` (kz = level-frame z per metre of optical depth), so the test is
+``exact`` (the default, the fix): a sample counts when its reading lies more than
+``ground_margin_m`` *below the floor plane*, with tilt AND roll (as ``level_rays``): the floor
+depth of a pixel is ``h / -kz`` (kz = level-frame z per metre of optical depth), so the test is
 ``depth > (h + margin) / -kz``. A vertical margin keeps Kinect quantisation (centimetres of depth
 at 4 m, but millimetres of height along a grazing ray) from faking drops. Only pixels whose ray
 meets the floor within [range_min_m, range_max_m] of horizontal range are used; rays at or above
@@ -49,7 +49,7 @@ from drivers.base import Intrinsics
 
 METHODS = ("exact", "paper")
 MAX_SPAN_BINS = 64  # a sample looking almost straight down covers many bearings; cap its footprint
-NEVER_MM = 65535    # a lower bound no uint16 reading exceeds: the sample never counts
+NEVER_MM = 65535  # a lower bound no uint16 reading exceeds: the sample never counts
 
 
 @dataclass(frozen=True, slots=True)
@@ -79,12 +79,15 @@ class CliffParams:
 
     def __post_init__(self) -> None:
         if self.method not in METHODS:
-            raise ConfigError(f"cliff.method={self.method!r} is not known (accepted: {', '.join(METHODS)})")
+            raise ConfigError(
+                f"cliff.method={self.method!r} is not known (accepted: {', '.join(METHODS)})"
+            )
         check_range("cliff.range_min_m", self.range_min_m, 0.0, 100.0, " m")
         check_range("cliff.range_max_m", self.range_max_m, 0.01, 100.0, " m")
         if self.range_min_m >= self.range_max_m:
             raise ConfigError(
-                f"cliff.range_min_m ({self.range_min_m}) must be below cliff.range_max_m ({self.range_max_m})"
+                f"cliff.range_min_m ({self.range_min_m}) must be below cliff.range_max_m "
+                f"({self.range_max_m})"
             )
         check_int("cliff.used_depth_height", self.used_depth_height, 1, 8192)
         check_int("cliff.block_size", self.block_size, 1, 256)
@@ -121,16 +124,16 @@ class CliffResult:
 class _CliffTable:
     """Sample grid and thresholds for one (intrinsics, mount, params, layout); read-only arrays."""
 
-    rows: npt.NDArray[np.intp]       # (nbr * nj,) image row of every sample row, bottom block first
-    cols: npt.NDArray[np.intp]       # (nbc * ni,) image column of every sample column
+    rows: npt.NDArray[np.intp]  # (nbr * nj,) image row of every sample row, bottom block first
+    cols: npt.NDArray[np.intp]  # (nbc * ni,) image column of every sample column
     shape4: tuple[int, int, int, int]  # (nbr, nj, nbc, ni)
-    lo_mm: npt.NDArray[np.uint16]    # (nbr * nj, nbc * ni) sample counts iff lo < d < hi
+    lo_mm: npt.NDArray[np.uint16]  # (nbr * nj, nbc * ni) sample counts iff lo < d < hi
     hi_mm: npt.NDArray[np.uint16]
-    range_m: F32                     # (nbr * nj, nbc * ni) horizontal range of the floor point, +inf none
-    block_xy_m: F32                  # (nbr, nbc, 2) floor point of each block's centre ray, NaN none
-    src: npt.NDArray[np.intp]        # (M,) flat sample index, grouped by scan bin
-    offsets: npt.NDArray[np.intp]    # (N,) start of each bin's group in src
-    covered: npt.NDArray[np.bool_]   # (N,) bins that some sample covers
+    range_m: F32  # (nbr * nj, nbc * ni) horizontal range of the floor point, +inf none
+    block_xy_m: F32  # (nbr, nbc, 2) floor point of each block's centre ray, NaN none
+    src: npt.NDArray[np.intp]  # (M,) flat sample index, grouped by scan bin
+    offsets: npt.NDArray[np.intp]  # (N,) start of each bin's group in src
+    covered: npt.NDArray[np.bool_]  # (N,) bins that some sample covers
 
 
 def _floor_hits(intr: Intrinsics, rot: F64, u: F64, v: F64) -> tuple[F64, F64, F64]:
@@ -149,8 +152,8 @@ def _bin_groups(
 ) -> tuple[npt.NDArray[np.intp], npt.NDArray[np.intp], npt.NDArray[np.bool_]]:
     """Group items by the scan bins their bearing interval [lo_b, hi_b] (radians) overlaps.
 
-    Bin i covers [angle_min + (i - 1/2) inc, angle_min + (i + 1/2) inc). Items with a NaN interval or
-    one that crosses the +-pi seam are left out.
+    Bin i covers [angle_min + (i - 1/2) inc, angle_min + (i + 1/2) inc). Items with a NaN
+    interval or one that crosses the +-pi seam are left out.
 
     Returns:
         (src, offsets, covered): item indices grouped by bin, (M,); start of each bin's group, (n,);
@@ -199,8 +202,8 @@ def _cliff_table(
     kx, ky, kz = _floor_hits(intr, rot, u, v)
     down = kz < 0
     with np.errstate(divide="ignore", invalid="ignore"):
-        t_floor = np.where(down, h / np.where(down, -kz, 1.0), np.inf)    # floor depth, m
-        range_m = np.where(down, t_floor * np.hypot(kx, ky), np.inf)       # (nr, nc)
+        t_floor = np.where(down, h / np.where(down, -kz, 1.0), np.inf)  # floor depth, m
+        range_m = np.where(down, t_floor * np.hypot(kx, ky), np.inf)  # (nr, nc)
     if params.method == "exact":
         in_range = down & (range_m >= params.range_min_m) & (range_m <= params.range_max_m)
         with np.errstate(divide="ignore", invalid="ignore"):
@@ -232,19 +235,33 @@ def _cliff_table(
     rx, ry, _ = _floor_hits(intr, rot, u + e, v)
     b_l = np.arctan2(ly, lx)
     b_r = np.arctan2(ry, rx)
-    src, offsets, covered = _bin_groups(np.minimum(b_l, b_r), np.maximum(b_l, b_r), angle_min, inc, n_bins)
+    src, offsets, covered = _bin_groups(
+        np.minimum(b_l, b_r), np.maximum(b_l, b_r), angle_min, inc, n_bins
+    )
 
     range32 = range_m.astype(np.float32)
     for arr in (rows, cols, lo_mm, hi_mm, range32, block_xy, src, offsets, covered):
         arr.setflags(write=False)
     return _CliffTable(
-        rows, cols, (nbr, j.size, nbc, i.size), lo_mm, hi_mm, range32, block_xy, src, offsets, covered
+        rows,
+        cols,
+        (nbr, j.size, nbc, i.size),
+        lo_mm,
+        hi_mm,
+        range32,
+        block_xy,
+        src,
+        offsets,
+        covered,
     )
 
 
 def drop_samples(
-    depth_mm: npt.NDArray[np.uint16], rows: npt.NDArray[np.intp], cols: npt.NDArray[np.intp],
-    lo_mm: npt.NDArray[np.uint16], hi_mm: npt.NDArray[np.uint16],
+    depth_mm: npt.NDArray[np.uint16],
+    rows: npt.NDArray[np.intp],
+    cols: npt.NDArray[np.intp],
+    lo_mm: npt.NDArray[np.uint16],
+    hi_mm: npt.NDArray[np.uint16],
 ) -> tuple[npt.NDArray[np.uint16], npt.NDArray[np.bool_]]:
     """Gather the sample grid and mark drop-off samples (the stage's core, kept compilable).
 
@@ -260,7 +277,9 @@ def drop_samples(
     return d, (d > lo_mm) & (d < hi_mm)
 
 
-def block_counts(mask: npt.NDArray[np.bool_], shape4: tuple[int, int, int, int]) -> npt.NDArray[np.int32]:
+def block_counts(
+    mask: npt.NDArray[np.bool_], shape4: tuple[int, int, int, int]
+) -> npt.NDArray[np.int32]:
     """Eq. 7: drop-off samples per block, (nbr, nbc), from the (nbr * nj, nbc * ni) sample mask."""
     return mask.reshape(shape4).sum(axis=(1, 3), dtype=np.int32)
 
@@ -312,7 +331,11 @@ def detect_cliffs(
         ranges = np.full(n_bins, np.nan, dtype=np.float32)
     ranges[~t.covered] = np.nan
     scan = LaserScan(
-        float(angle_min), float(angle_min + (n_bins - 1) * angle_increment), float(angle_increment),
-        params.range_min_m, params.range_max_m, ranges,
+        float(angle_min),
+        float(angle_min + (n_bins - 1) * angle_increment),
+        float(angle_increment),
+        params.range_min_m,
+        params.range_max_m,
+        ranges,
     )
     return CliffResult(points.astype(np.float32), blocks, bs, scan)

@@ -28,14 +28,20 @@ def _distances(name: str, values: npt.ArrayLike, hi: float) -> F64:
     try:
         arr = np.asarray(values, dtype=np.float64)
     except (TypeError, ValueError):
-        raise ConfigError(f"{name}={values!r} is not a number or array of numbers (accepted: 0..{hi:g} m)") from None
+        raise ConfigError(
+            f"{name}={values!r} is not a number or array of numbers (accepted: 0..{hi:g} m)"
+        ) from None
     bad = ~(np.isfinite(arr) & (arr >= 0) & (arr <= hi))
     if bad.any():
-        raise ConfigError(f"{name}={float(arr[bad].flat[0])!r} is out of range (accepted: 0..{hi:g} m)")
+        raise ConfigError(
+            f"{name}={float(arr[bad].flat[0])!r} is out of range (accepted: 0..{hi:g} m)"
+        )
     return arr
 
 
-def lower_dead_zone_m(height_m: float, tilt_deg: float, vfov_deg: float, h1_m: npt.ArrayLike = 0.0) -> F64:
+def lower_dead_zone_m(
+    height_m: float, tilt_deg: float, vfov_deg: float, h1_m: npt.ArrayLike = 0.0
+) -> F64:
     """Eq. 15: d_m = (h - h1) tan(pi/2 - theta/2 - alpha), the blind length in front of the sensor.
 
     Args:
@@ -60,8 +66,10 @@ def lower_dead_zone_m(height_m: float, tilt_deg: float, vfov_deg: float, h1_m: n
     return np.maximum((h - h1) * math.tan(math.pi / 2 - depression), 0.0)
 
 
-def max_visible_height_m(height_m: float, tilt_deg: float, vfov_deg: float, distance_m: npt.ArrayLike) -> F64:
-    """Eq. 16: h_max = h + sgn(theta/2 - alpha) l1 tan|theta/2 - alpha|, the highest point seen at l1.
+def max_visible_height_m(
+    height_m: float, tilt_deg: float, vfov_deg: float, distance_m: npt.ArrayLike
+) -> F64:
+    """Eq. 16: h_max = h + sgn(theta/2 - alpha) l1 tan|theta/2 - alpha|, highest point seen at l1.
 
     Args:
         height_m, tilt_deg, vfov_deg: as ``lower_dead_zone_m``.
@@ -80,7 +88,9 @@ def max_visible_height_m(height_m: float, tilt_deg: float, vfov_deg: float, dist
     return h + l1 * math.tan(elevation)
 
 
-def min_visible_height_m(height_m: float, tilt_deg: float, vfov_deg: float, distance_m: npt.ArrayLike) -> F64:
+def min_visible_height_m(
+    height_m: float, tilt_deg: float, vfov_deg: float, distance_m: npt.ArrayLike
+) -> F64:
     """The lowest point seen at horizontal distance l1: h - l1 tan(theta/2 + alpha), metres (eq. 15
     solved for h1); negative means the floor itself is in view there (the value is where the lower
     edge of the view would meet a plane at that height)."""
@@ -92,13 +102,15 @@ def min_visible_height_m(height_m: float, tilt_deg: float, vfov_deg: float, dist
     return h - l1 * math.tan(depression)
 
 
-def plan_table(height_m: float, tilt_deg: float, vfov_deg: float, distances_m: npt.ArrayLike) -> list[dict[str, float | bool]]:
+def plan_table(
+    height_m: float, tilt_deg: float, vfov_deg: float, distances_m: npt.ArrayLike
+) -> list[dict[str, float | bool]]:
     """Rows for a CLI table: what the sensor sees at each distance.
 
     Returns:
-        One dict per distance: ``distance_m``; ``lowest_seen_m`` (height of the lowest point seen,
-        0 when the floor is seen); ``highest_seen_m`` (eq. 16); ``floor_seen`` (beyond the lower dead
-        zone of eq. 15).
+        One dict per distance: ``distance_m``; ``lowest_seen_m`` (height of the lowest point
+        seen, 0 when the floor is seen); ``highest_seen_m`` (eq. 16); ``floor_seen`` (beyond the
+        lower dead zone of eq. 15).
     """
     d = np.atleast_1d(_distances("distances_m", distances_m, 1e4))
     lo = min_visible_height_m(height_m, tilt_deg, vfov_deg, d)

@@ -40,9 +40,9 @@ from depthnav_daemon.pipeline.geometry import (
 from drivers.base import Intrinsics
 
 G_MPS2 = 9.80665
-PRIOR_SLACK_DEG = 2.0   # fitted angles may exceed the prior by this much (noise at its edges)
+PRIOR_SLACK_DEG = 2.0  # fitted angles may exceed the prior by this much (noise at its edges)
 PRIOR_SLACK_M = 0.02
-SCORE_CHUNK = 32        # RANSAC hypotheses scored per batch
+SCORE_CHUNK = 32  # RANSAC hypotheses scored per batch
 RANSAC_CONFIDENCE = 0.999
 
 
@@ -85,20 +85,23 @@ class PoseParams:
         check_range("pose.height_max_m", self.height_max_m, 0.01, MAX_MOUNT_HEIGHT_M, " m")
         if self.height_min_m > self.height_max_m:
             raise ConfigError(
-                f"pose.height_min_m ({self.height_min_m}) must not exceed pose.height_max_m ({self.height_max_m})"
+                f"pose.height_min_m ({self.height_min_m}) must not exceed pose.height_max_m "
+                f"({self.height_max_m})"
             )
         check_range("pose.tilt_min_deg", self.tilt_min_deg, -MAX_TILT_DEG, MAX_TILT_DEG, " deg")
         check_range("pose.tilt_max_deg", self.tilt_max_deg, -MAX_TILT_DEG, MAX_TILT_DEG, " deg")
         if self.tilt_min_deg > self.tilt_max_deg:
             raise ConfigError(
-                f"pose.tilt_min_deg ({self.tilt_min_deg}) must not exceed pose.tilt_max_deg ({self.tilt_max_deg})"
+                f"pose.tilt_min_deg ({self.tilt_min_deg}) must not exceed pose.tilt_max_deg "
+                f"({self.tilt_max_deg})"
             )
         check_range("pose.roll_max_deg", self.roll_max_deg, 0.0, MAX_ROLL_DEG, " deg")
         check_range("pose.range_min_m", self.range_min_m, 0.0, 100.0, " m")
         check_range("pose.range_max_m", self.range_max_m, 0.01, 100.0, " m")
         if self.range_min_m >= self.range_max_m:
             raise ConfigError(
-                f"pose.range_min_m ({self.range_min_m}) must be below pose.range_max_m ({self.range_max_m})"
+                f"pose.range_min_m ({self.range_min_m}) must be below pose.range_max_m "
+                f"({self.range_max_m})"
             )
         check_int("pose.used_depth_height", self.used_depth_height, 1, 8192)
         check_int("pose.row_step", self.row_step, 1, 256)
@@ -152,19 +155,22 @@ def tilt_roll_from_accel(accel_mps2: npt.ArrayLike) -> tuple[float, float]:
 
     Args:
         accel_mps2: (3,) specific force in the camera frame (x right, y down, z forward), m/s^2.
-            At rest it points up: level reads (0, -g, 0); pitched down by t, (0, -g cos t, -g sin t).
+            At rest it points up: level reads (0, -g, 0); pitched down by t,
+            (0, -g cos t, -g sin t).
 
     Returns:
-        (tilt_deg, roll_deg): tilt = atan2(-az, hypot(ax, ay)), positive down; roll = atan2(-ax, -ay),
-        positive = left side up.
+        (tilt_deg, roll_deg): tilt = atan2(-az, hypot(ax, ay)), positive down;
+        roll = atan2(-ax, -ay), positive = left side up.
 
     Raises:
-        ConfigError: not 3 finite numbers, or a magnitude outside 0.5..1.5 g (moving or wrong units).
+        ConfigError: not 3 finite numbers, or a magnitude outside 0.5..1.5 g (moving, wrong units).
     """
     try:
         a = np.asarray(accel_mps2, dtype=np.float64).reshape(3)
     except (TypeError, ValueError):
-        raise ConfigError(f"accelerometer vector {accel_mps2!r} is not 3 numbers (accepted: (ax, ay, az) m/s^2)") from None
+        raise ConfigError(
+            f"accelerometer vector {accel_mps2!r} is not 3 numbers (accepted: (ax, ay, az) m/s^2)"
+        ) from None
     norm = float(np.linalg.norm(a))
     if not np.isfinite(a).all() or not 0.5 * G_MPS2 <= norm <= 1.5 * G_MPS2:
         raise ConfigError(
@@ -181,25 +187,31 @@ def tilt_roll_from_accel(accel_mps2: npt.ArrayLike) -> tuple[float, float]:
 class _PoseTable:
     rows: slice
     cols: slice
-    zlo_mm: npt.NDArray[np.uint16]   # (Hs, Ws) candidate iff zlo <= d <= zhi
+    zlo_mm: npt.NDArray[np.uint16]  # (Hs, Ws) candidate iff zlo <= d <= zhi
     zhi_mm: npt.NDArray[np.uint16]
-    rays: F32                        # (Hs, Ws, 3) camera ray per metre of depth (eq. 12)
+    rays: F32  # (Hs, Ws, 3) camera ray per metre of depth (eq. 12)
 
 
 @functools.lru_cache(maxsize=8)
 def _pose_table(intr: Intrinsics, params: PoseParams) -> _PoseTable:
     used = min(params.used_depth_height, intr.height)
     # bottom-up from the last row, as the original, so the bottom row is always used
-    rows = slice(intr.height - 1 - ((used - 1) // params.row_step) * params.row_step, intr.height, params.row_step)
+    rows = slice(
+        intr.height - 1 - ((used - 1) // params.row_step) * params.row_step,
+        intr.height,
+        params.row_step,
+    )
     cols = slice(0, intr.width, params.col_step)
-    rays = pixel_rays(intr)[rows, cols]                              # (Hs, Ws, 3)
+    rays = pixel_rays(intr)[rows, cols]  # (Hs, Ws, 3)
     lo_kz = np.full(rays.shape[:2], np.inf)
     hi_kz = np.full(rays.shape[:2], -np.inf)
     tilts = np.radians(np.linspace(params.tilt_min_deg, params.tilt_max_deg, 9))
     rolls = np.radians(np.linspace(-params.roll_max_deg, params.roll_max_deg, 5))
     for t in tilts:
         for r in rolls:
-            down = -(rays @ cam_to_level(float(t), float(r))[2])      # -kz: metres down per metre of depth
+            down = -(
+                rays @ cam_to_level(float(t), float(r))[2]
+            )  # -kz: metres down per metre of depth
             lo_kz = np.minimum(lo_kz, down)
             hi_kz = np.maximum(hi_kz, down)
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -208,7 +220,9 @@ def _pose_table(intr: Intrinsics, params: PoseParams) -> _PoseTable:
     zlo = np.maximum(zlo, params.range_min_m)
     zhi = np.minimum(zhi, params.range_max_m)
     with np.errstate(invalid="ignore"):
-        zlo_mm = np.where(np.isfinite(zlo), np.clip(np.ceil(zlo * 1000.0), 1, 65535), 65535).astype(np.uint16)
+        zlo_mm = np.where(np.isfinite(zlo), np.clip(np.ceil(zlo * 1000.0), 1, 65535), 65535).astype(
+            np.uint16
+        )
         zhi_mm = np.clip(np.floor(zhi * 1000.0), 0, 65535).astype(np.uint16)
     rays32 = rays.astype(np.float32)
     for arr in (zlo_mm, zhi_mm, rays32):
@@ -233,7 +247,11 @@ def floor_candidates(depth: np.ndarray, intr: Intrinsics, params: PoseParams) ->
 
 
 def ransac_plane(
-    pts: F32, iterations: int, inlier_dist_m: float, rng: np.random.Generator, accept: F64 | None = None
+    pts: F32,
+    iterations: int,
+    inlier_dist_m: float,
+    rng: np.random.Generator,
+    accept: F64 | None = None,
 ) -> tuple[F64, int]:
     """Best plane by RANSAC over batched hypotheses (the stage's core).
 
@@ -253,13 +271,13 @@ def ransac_plane(
         inlier count; inliers 0 if no hypothesis was acceptable.
     """
     idx = rng.integers(0, len(pts), size=(iterations, 3))
-    p = pts.astype(np.float64)[idx]                                   # (I, 3, 3)
-    n = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])               # (I, 3)
+    p = pts.astype(np.float64)[idx]  # (I, 3, 3)
+    n = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])  # (I, 3)
     norm = np.linalg.norm(n, axis=1)
     good = norm > 1e-9
     n = n / np.where(good, norm, 1.0)[:, None]
     d = -np.einsum("ij,ij->i", n, p[:, 0])
-    flip = np.where(d < 0, -1.0, 1.0)                                  # orient: origin above the plane
+    flip = np.where(d < 0, -1.0, 1.0)  # orient: origin above the plane
     n *= flip[:, None]
     d *= flip
     if accept is not None:
@@ -269,7 +287,9 @@ def ransac_plane(
         good &= (d >= accept[2, 0]) & (d <= accept[2, 1])
     counts = np.zeros(iterations, dtype=np.int64)
     cand = np.flatnonzero(good)
-    px, py, pz = (np.ascontiguousarray(pts[:, i : i + 1], dtype=np.float32) for i in range(3))  # (K, 1)
+    px, py, pz = (
+        np.ascontiguousarray(pts[:, i : i + 1], dtype=np.float32) for i in range(3)
+    )  # (K, 1)
     n32 = n.astype(np.float32)
     d32 = d.astype(np.float32)
     need = iterations
@@ -277,7 +297,7 @@ def ransac_plane(
     while s < min(cand.size, need):
         k = cand[s : s + SCORE_CHUNK]
         # explicit broadcasting: a (K, 3) @ (3, chunk) BLAS call is several times slower here
-        dist = np.abs(px * n32[k, 0] + py * n32[k, 1] + pz * n32[k, 2] + d32[k])   # (K, chunk)
+        dist = np.abs(px * n32[k, 0] + py * n32[k, 1] + pz * n32[k, 2] + d32[k])  # (K, chunk)
         counts[k] = np.count_nonzero(dist <= inlier_dist_m, axis=0)
         s += k.size
         # adaptive stop (as PCL): enough hypotheses that an all-inlier sample was drawn with
@@ -293,7 +313,9 @@ def ransac_plane(
     return np.concatenate([n[best], [d[best]]]), int(counts[best])
 
 
-def refine_plane(pts: F32, plane: F64, inlier_dist_m: float, rounds: int = 3) -> tuple[F64, npt.NDArray[np.bool_]]:
+def refine_plane(
+    pts: F32, plane: F64, inlier_dist_m: float, rounds: int = 3
+) -> tuple[F64, npt.NDArray[np.bool_]]:
     """Least-squares plane (smallest eigenvector of the inliers' scatter), re-selecting inliers.
 
     Returns:
@@ -315,11 +337,15 @@ def refine_plane(pts: F32, plane: F64, inlier_dist_m: float, rounds: int = 3) ->
     return plane, inl
 
 
-def _fail(reason: str, inliers: int = 0, ratio: float = 0.0, residual: float = math.nan, cand: int = 0) -> PoseEstimate:
+def _fail(
+    reason: str, inliers: int = 0, ratio: float = 0.0, residual: float = math.nan, cand: int = 0
+) -> PoseEstimate:
     return PoseEstimate(False, math.nan, math.nan, math.nan, inliers, ratio, residual, cand, reason)
 
 
-def estimate_pose(depth: np.ndarray, intr: Intrinsics, params: PoseParams, rng: np.random.Generator) -> PoseEstimate:
+def estimate_pose(
+    depth: np.ndarray, intr: Intrinsics, params: PoseParams, rng: np.random.Generator
+) -> PoseEstimate:
     """Estimate the sensor's height, tilt and roll from the floor it sees.
 
     Args:
@@ -339,31 +365,44 @@ def estimate_pose(depth: np.ndarray, intr: Intrinsics, params: PoseParams, rng: 
     k = len(pts)
     if k < params.min_inliers:
         return _fail(
-            f"too little floor: {k} candidate points (need {params.min_inliers}); point the sensor at open floor "
+            f"too little floor: {k} candidate points (need {params.min_inliers}); point the "
+            "sensor at open floor "
             f"or widen the prior (height {params.height_min_m:g}..{params.height_max_m:g} m, "
             f"tilt {params.tilt_min_deg:g}..{params.tilt_max_deg:g} deg)",
             cand=k,
         )
     s = math.radians(PRIOR_SLACK_DEG)
-    accept = np.array([
-        [math.radians(params.tilt_min_deg) - s, math.radians(params.tilt_max_deg) + s],
-        [math.radians(params.roll_max_deg) + s, 0.0],
-        [params.height_min_m - PRIOR_SLACK_M, params.height_max_m + PRIOR_SLACK_M],
-    ])
+    accept = np.array(
+        [
+            [math.radians(params.tilt_min_deg) - s, math.radians(params.tilt_max_deg) + s],
+            [math.radians(params.roll_max_deg) + s, 0.0],
+            [params.height_min_m - PRIOR_SLACK_M, params.height_max_m + PRIOR_SLACK_M],
+        ]
+    )
     plane, n0 = ransac_plane(pts, params.ransac_iterations, params.inlier_dist_m, rng, accept)
     if n0 < 3:
-        return _fail(f"no floor plane inside the prior among {k} candidate points; check the prior", cand=k)
+        return _fail(
+            f"no floor plane inside the prior among {k} candidate points; check the prior", cand=k
+        )
     plane, inl = refine_plane(pts, plane, params.inlier_dist_m)
     n_in = int(inl.sum())
     ratio = n_in / k
-    resid = float(np.sqrt(np.mean((pts[inl].astype(np.float64) @ plane[:3] + plane[3]) ** 2))) if n_in else math.nan
+    resid = (
+        float(np.sqrt(np.mean((pts[inl].astype(np.float64) @ plane[:3] + plane[3]) ** 2)))
+        if n_in
+        else math.nan
+    )
     height = float(plane[3])
     tilt, roll = tilt_roll_from_normal(plane[:3])
     if n_in < params.min_inliers or ratio < params.min_inlier_ratio:
         return _fail(
-            f"too little floor: {n_in} of {k} candidate points fit one plane (need {params.min_inliers} "
+            f"too little floor: {n_in} of {k} candidate points fit one plane (need "
+            f"{params.min_inliers} "
             f"and {params.min_inlier_ratio:.0%}); point the sensor at open floor",
-            n_in, ratio, resid, k,
+            n_in,
+            ratio,
+            resid,
+            k,
         )
     inside = (
         params.height_min_m - PRIOR_SLACK_M <= height <= params.height_max_m + PRIOR_SLACK_M
@@ -372,8 +411,12 @@ def estimate_pose(depth: np.ndarray, intr: Intrinsics, params: PoseParams, rng: 
     )
     if not inside:
         return _fail(
-            f"no floor inside the prior: the best plane (height {height:.3f} m, tilt {tilt:.1f} deg, "
+            f"no floor inside the prior: the best plane (height {height:.3f} m, tilt {tilt:.1f} "
+            "deg, "
             f"roll {roll:.1f} deg) is outside it; widen the prior if the sensor really sits there",
-            n_in, ratio, resid, k,
+            n_in,
+            ratio,
+            resid,
+            k,
         )
     return PoseEstimate(True, height, tilt, roll, n_in, ratio, resid, k)

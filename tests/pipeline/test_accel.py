@@ -16,7 +16,9 @@ def test_fifteen_degrees_down_reads_minus_9p47_minus_2p54() -> None:
     # at rest the specific force points up; pitched down 15 deg: (0, -g cos 15, -g sin 15)
     # = (0, -9.4726, -2.5382) m/s^2 with g = 9.80665
     assert tilt_roll_from_accel((0.0, -9.47, -2.54)) == pytest.approx((15.0, 0.0), abs=0.02)
-    assert tilt_roll_from_accel((0.0, -9.47, 2.54))[0] == pytest.approx(-15.0, abs=0.02)  # pitched up
+    assert tilt_roll_from_accel((0.0, -9.47, 2.54))[0] == pytest.approx(
+        -15.0, abs=0.02
+    )  # pitched up
 
 
 def test_level_and_rolled() -> None:
@@ -26,7 +28,9 @@ def test_level_and_rolled() -> None:
     assert tilt == pytest.approx(0.0, abs=1e-9) and roll == pytest.approx(10.0, abs=0.01)
 
 
-@pytest.mark.parametrize(("tilt_deg", "roll_deg"), [(0, 0), (30, 0), (-20, 5), (45, -12), (70, 30), (10, 44)])
+@pytest.mark.parametrize(
+    ("tilt_deg", "roll_deg"), [(0, 0), (30, 0), (-20, 5), (45, -12), (70, 30), (10, 44)]
+)
 def test_recovers_the_mount_that_cam_to_level_defines(tilt_deg: float, roll_deg: float) -> None:
     # "up" in the level frame (0, 0, g), expressed in the camera frame by the inverse of cam_to_level
     rot = cam_to_level(math.radians(tilt_deg), math.radians(roll_deg))

@@ -28,12 +28,18 @@ from tests.pipeline.scenes import ASYM_640, random_boxes_in_view
 PARAMS = CliffParams()  # the shipped params.yaml: block 16, strides 8, threshold 3, 400 rows
 
 
-def run(view: SyntheticView, params: CliffParams = PARAMS, depth: np.ndarray | None = None) -> CliffResult:
+def run(
+    view: SyntheticView, params: CliffParams = PARAMS, depth: np.ndarray | None = None
+) -> CliffResult:
     lay = scan_layout(view.intrinsics, view.mount, ScanParams())
-    return detect_cliffs(view.depth_mm if depth is None else depth, view.intrinsics, view.mount, params, *lay)
+    return detect_cliffs(
+        view.depth_mm if depth is None else depth, view.intrinsics, view.mount, params, *lay
+    )
 
 
-def block_footprints_m(intr: Intrinsics, mount: Mount, blocks: np.ndarray, bs: int, centre: np.ndarray) -> np.ndarray:
+def block_footprints_m(
+    intr: Intrinsics, mount: Mount, blocks: np.ndarray, bs: int, centre: np.ndarray
+) -> np.ndarray:
     """(K,) largest floor distance from each block's reported point to its corner pixels' floor points.
 
     The floor point of a pixel is where its ray meets z = -h in the level frame (independent of the
@@ -57,22 +63,35 @@ def assert_points_on_drop_offs(view: SyntheticView, res: CliffResult) -> None:
     """Every detected block lies on a true drop-off within one block's floor footprint."""
     fp = block_footprints_m(view.intrinsics, view.mount, res.blocks, res.block_size, res.points_m)
     x, y = res.points_m[:, 0], res.points_m[:, 1]
-    ok = np.array([in_drop_off(view.scene, x[k], y[k], margin_m=fp[k]) for k in range(len(x))], dtype=bool)
-    assert ok.all(), f"blocks off every drop-off at {res.points_m[~ok][:5]} (footprints {fp[~ok][:5]})"
+    ok = np.array(
+        [in_drop_off(view.scene, x[k], y[k], margin_m=fp[k]) for k in range(len(x))], dtype=bool
+    )
+    assert ok.all(), (
+        f"blocks off every drop-off at {res.points_m[~ok][:5]} (footprints {fp[~ok][:5]})"
+    )
 
 
-STEP_MOUNTS = [Mount(0.55, 15.0, 0.0), Mount(0.3, 5.0, -6.0), Mount(1.0, 35.0, 8.0), Mount(0.8, 25.0, 0.0)]
+STEP_MOUNTS = [
+    Mount(0.55, 15.0, 0.0),
+    Mount(0.3, 5.0, -6.0),
+    Mount(1.0, 35.0, 8.0),
+    Mount(0.8, 25.0, 0.0),
+]
 
 
 @pytest.mark.parametrize("drop_m", [0.10, 0.30])
-@pytest.mark.parametrize("mount", STEP_MOUNTS, ids=lambda m: f"h{m.height_m}_t{m.tilt_deg:.0f}_r{m.roll_deg:.0f}")
+@pytest.mark.parametrize(
+    "mount", STEP_MOUNTS, ids=lambda m: f"h{m.height_m}_t{m.tilt_deg:.0f}_r{m.roll_deg:.0f}"
+)
 def test_step_down_found_at_its_floor_position_and_range(mount: Mount, drop_m: float) -> None:
     # the step edge sits where the image centre column meets the floor at 70 % of the used rows' depth
     rays = level_rays(ASYM_640, mount.tilt_rad, mount.roll_rad)
     d = rays[int(ASYM_640.height * 0.55), int(ASYM_640.cx)]
     edge_m = round(mount.height_m / -d[2] * d[0], 2)
     scene = Scene(holes=(step_down(edge_m, drop_m),))
-    view = render(scene, ASYM_640, mount, KinectNoise(), np.random.default_rng(11), min_range_m=0.05)
+    view = render(
+        scene, ASYM_640, mount, KinectNoise(), np.random.default_rng(11), min_range_m=0.05
+    )
     res = run(view)
     assert len(res.points_m) >= 10, f"step {drop_m} m at {edge_m} m: {len(res.points_m)} blocks"
     assert_points_on_drop_offs(view, res)
@@ -80,19 +99,23 @@ def test_step_down_found_at_its_floor_position_and_range(mount: Mount, drop_m: f
     truth = truth_drop_ranges(scene, res.scan.angles)
     got = res.scan.ranges.astype(np.float64)
     seen = np.isfinite(got)
-    assert seen.sum() > 0.5 * np.isfinite(truth).sum(), f"{seen.sum()} of {np.isfinite(truth).sum()} bins hold the step"
+    assert seen.sum() > 0.5 * np.isfinite(truth).sum(), (
+        f"{seen.sum()} of {np.isfinite(truth).sum()} bins hold the step"
+    )
     # a drop-off sample's floor point lies beyond the edge (minus noise) and within the first block
     # past it that reaches the threshold. One block's radial footprint: ray length L, block angle
     # bs/fy -> L^2 (bs/fy) / h (derivative of r = h cot(depression) w.r.t. the ray angle), taken at
     # the reported range. The block row straddling the edge may miss the threshold (few samples
     # beyond the edge, Kinect dropout on the edge), so single bins may be up to two footprints out.
-    length2 = got[seen] ** 2 + mount.height_m ** 2
+    length2 = got[seen] ** 2 + mount.height_m**2
     footprint = length2 * (PARAMS.block_size / ASYM_640.fy) / mount.height_m
     err = got[seen] - truth[seen]
     assert err.min() >= -0.02, f"drop reported {-err.min():.3f} m in front of the edge"
     assert np.median(err / footprint) <= 1.0, f"median error {np.median(err):.3f} m"
     worst = np.argmax(err / footprint)
-    assert err[worst] <= 2 * footprint[worst], f"{err[worst]:.3f} m past the edge (footprint {footprint[worst]:.3f})"
+    assert err[worst] <= 2 * footprint[worst], (
+        f"{err[worst]:.3f} m past the edge (footprint {footprint[worst]:.3f})"
+    )
 
 
 @pytest.mark.parametrize("mount", [Mount(0.55, 15.0, 0.0), Mount(0.7, 30.0, -5.0)], ids=str)
@@ -110,7 +133,9 @@ def test_20cm_hole_found_inside_its_footprint(mount: Mount) -> None:
 
 
 @pytest.mark.parametrize(
-    "mount", [Mount(0.55, 15.0, 0.0), Mount(0.3, 0.0, 10.0), Mount(1.2, 45.0, -10.0), Mount(0.8, 25.0, 4.0)], ids=str
+    "mount",
+    [Mount(0.55, 15.0, 0.0), Mount(0.3, 0.0, 10.0), Mount(1.2, 45.0, -10.0), Mount(0.8, 25.0, 4.0)],
+    ids=str,
 )
 def test_flat_floor_with_noise_and_boxes_has_no_cliff(mount: Mount) -> None:
     rng = np.random.default_rng(int(mount.tilt_deg) + 100)
@@ -139,7 +164,7 @@ def test_missing_readings_never_count_and_give_nan() -> None:
     mount = Mount(0.55, 15.0, 0.0)
     view = render(Scene(holes=(step_down(1.5, 0.3),)), ASYM_640, mount)
     depth = view.depth_mm.copy()
-    depth[view.height_m < -0.01] = 0         # the sensor sees nothing where the step is
+    depth[view.height_m < -0.01] = 0  # the sensor sees nothing where the step is
     res = run(view, depth=depth)
     assert len(res.points_m) == 0
     assert not np.isfinite(res.scan.ranges).any()
@@ -188,7 +213,10 @@ def test_block_points_are_the_block_centre_rays_floor_points() -> None:
         ({"method": "fast"}, "cliff.method='fast'"),
         ({"block_size": 0}, "cliff.block_size=0"),
         ({"row_step": 20}, "cliff.row_step=20 is out of range (accepted: integers 1..16)"),
-        ({"block_points_thresh": 5}, "cliff.block_points_thresh=5 is out of range (accepted: integers 1..4)"),
+        (
+            {"block_points_thresh": 5},
+            "cliff.block_points_thresh=5 is out of range (accepted: integers 1..4)",
+        ),
         ({"ground_margin_m": -0.1}, "cliff.ground_margin_m=-0.1"),
         ({"range_min_m": 6.0}, "cliff.range_min_m (6.0) must be below"),
         ({"used_depth_height": 0}, "cliff.used_depth_height=0"),
@@ -207,8 +235,15 @@ def test_bad_frame_and_layout_are_rejected() -> None:
     with pytest.raises(ConfigError, match="angle_increment"):
         detect_cliffs(np.zeros((480, 640), np.uint16), ASYM_640, mount, PARAMS, -0.5, 0.0, 100)
     with pytest.raises(ConfigError, match="block_size=256"):
-        detect_cliffs(np.zeros((48, 64), np.uint16), Intrinsics(64, 48, 50.0, 50.0, 31.5, 24.0), mount,
-                      CliffParams(block_size=256, row_step=8, col_step=8), -0.5, 0.01, 100)
+        detect_cliffs(
+            np.zeros((48, 64), np.uint16),
+            Intrinsics(64, 48, 50.0, 50.0, 31.5, 24.0),
+            mount,
+            CliffParams(block_size=256, row_step=8, col_step=8),
+            -0.5,
+            0.01,
+            100,
+        )
 
 
 def test_box_in_front_of_a_step_hides_only_what_it_covers() -> None:

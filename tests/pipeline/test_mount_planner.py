@@ -35,7 +35,9 @@ def test_eq15_by_hand() -> None:
 def test_eq16_by_hand() -> None:
     # tilt 15: upper edge 21.5 - 15 = 6.5 deg above the horizon, tan 6.5 = 0.113936:
     # at 2 m, 0.55 + 2 * 0.113936 = 0.77787 m; at 0 m, the sensor height itself
-    np.testing.assert_allclose(max_visible_height_m(0.55, 15.0, 43.0, [0.0, 2.0]), [0.55, 0.77787], atol=1e-5)
+    np.testing.assert_allclose(
+        max_visible_height_m(0.55, 15.0, 43.0, [0.0, 2.0]), [0.55, 0.77787], atol=1e-5
+    )
     # tilt 30: the upper edge points 8.5 deg DOWN (sgn negative): 0.55 - 2 * tan 8.5 = 0.55 - 0.29890
     assert float(max_visible_height_m(0.55, 30.0, 43.0, 2.0)) == pytest.approx(0.25110, abs=1e-5)
     # lowest point seen at 2 m with tilt 15: 0.55 - 2 tan 36.5 = 0.55 - 2 * 0.739961 < 0: the floor is seen
@@ -70,11 +72,26 @@ def test_plan_table_rows() -> None:
 @pytest.mark.parametrize(
     ("call", "text"),
     [
-        (lambda: lower_dead_zone_m(0.0, 15.0, 43.0), "height_m=0.0 is out of range (accepted: 0.01..10 m)"),
-        (lambda: lower_dead_zone_m(0.5, 95.0, 43.0), "tilt_deg=95.0 is out of range (accepted: -89..89 deg)"),
-        (lambda: lower_dead_zone_m(0.5, 15.0, 0.0), "vfov_deg=0.0 is out of range (accepted: 1..179 deg)"),
-        (lambda: lower_dead_zone_m(0.5, 15.0, 43.0, 0.8), "h1_m=0.8 is out of range (accepted: 0..0.5 m)"),
-        (lambda: max_visible_height_m(0.5, 15.0, 43.0, [1.0, -2.0]), "distance_m=-2.0 is out of range"),
+        (
+            lambda: lower_dead_zone_m(0.0, 15.0, 43.0),
+            "height_m=0.0 is out of range (accepted: 0.01..10 m)",
+        ),
+        (
+            lambda: lower_dead_zone_m(0.5, 95.0, 43.0),
+            "tilt_deg=95.0 is out of range (accepted: -89..89 deg)",
+        ),
+        (
+            lambda: lower_dead_zone_m(0.5, 15.0, 0.0),
+            "vfov_deg=0.0 is out of range (accepted: 1..179 deg)",
+        ),
+        (
+            lambda: lower_dead_zone_m(0.5, 15.0, 43.0, 0.8),
+            "h1_m=0.8 is out of range (accepted: 0..0.5 m)",
+        ),
+        (
+            lambda: max_visible_height_m(0.5, 15.0, 43.0, [1.0, -2.0]),
+            "distance_m=-2.0 is out of range",
+        ),
         (lambda: plan_table(0.5, 15.0, 43.0, ["x"]), "distances_m=['x'] is not a number"),
     ],
 )

@@ -20,11 +20,11 @@ SHARED = Path(__file__).resolve().parents[2].parent / "shared"
 CMU = SHARED / "data" / "real" / "cmu_panoptic_kinoptic_10view"
 
 MOUNTS = [
-    Mount(0.55, 15.0, 0.0),    # cliff_detector's shipped mount
+    Mount(0.55, 15.0, 0.0),  # cliff_detector's shipped mount
     Mount(0.3, 5.0, -6.0),
     Mount(1.0, 35.0, 8.0),
     Mount(1.4, 0.0, 3.0),
-    Mount(0.8, -4.0, 2.0),     # pitched UP: the sign must survive (the original lost it)
+    Mount(0.8, -4.0, 2.0),  # pitched UP: the sign must survive (the original lost it)
     Mount(0.85, 32.0, -9.0),
 ]
 
@@ -35,9 +35,15 @@ def ids(m: Mount) -> str:
 
 def assert_pose(est: PoseEstimate, mount: Mount, h_tol: float, ang_tol: float) -> None:
     assert est.ok, est.reason
-    assert abs(est.height_m - mount.height_m) <= h_tol, f"height {est.height_m:.4f} vs {mount.height_m}"
-    assert abs(est.tilt_deg - mount.tilt_deg) <= ang_tol, f"tilt {est.tilt_deg:.3f} vs {mount.tilt_deg}"
-    assert abs(est.roll_deg - mount.roll_deg) <= ang_tol, f"roll {est.roll_deg:.3f} vs {mount.roll_deg}"
+    assert abs(est.height_m - mount.height_m) <= h_tol, (
+        f"height {est.height_m:.4f} vs {mount.height_m}"
+    )
+    assert abs(est.tilt_deg - mount.tilt_deg) <= ang_tol, (
+        f"tilt {est.tilt_deg:.3f} vs {mount.tilt_deg}"
+    )
+    assert abs(est.roll_deg - mount.roll_deg) <= ang_tol, (
+        f"roll {est.roll_deg:.3f} vs {mount.roll_deg}"
+    )
 
 
 @pytest.mark.parametrize("mount", MOUNTS, ids=ids)
@@ -62,7 +68,9 @@ def cluttered(rng: np.random.Generator, mount: Mount, fraction: float) -> tuple[
         if p is None or not 0.6 < math.hypot(*p) < 4.0:
             continue
         size = 0.25 * math.hypot(*p)
-        box = Box(p[0] + size / 2, p[1], size, size, rng.uniform(0.1, 0.6), yaw_deg=rng.uniform(-30, 30))
+        box = Box(
+            p[0] + size / 2, p[1], size, size, rng.uniform(0.1, 0.6), yaw_deg=rng.uniform(-30, 30)
+        )
         if any(math.hypot(box.x_m - b.x_m, box.y_m - b.y_m) < size + 0.1 for b in boxes):
             continue
         boxes.append(box)
@@ -87,13 +95,19 @@ def test_noise_and_boxes_over_a_third_of_the_floor_within_1cm_and_0p5deg(mount: 
 
 
 @pytest.mark.parametrize(
-    "scene", [Scene(floor=False), Scene(boxes=(wall(0.8),)), Scene(boxes=(Box(1.0, 0.0, 1.2, 4.0, 0.3),))],
+    "scene",
+    [Scene(floor=False), Scene(boxes=(wall(0.8),)), Scene(boxes=(Box(1.0, 0.0, 1.2, 4.0, 0.3),))],
     ids=["nothing", "wall", "table_top_only"],
 )
 def test_no_floor_gives_the_error_result_not_a_guess(scene: Scene) -> None:
     mount = Mount(0.6, 10.0, 0.0)
     view = render(scene, ASYM_640, mount, KinectNoise(), np.random.default_rng(4))
-    est = estimate_pose(view.depth_mm, ASYM_640, PoseParams(height_min_m=0.4, height_max_m=1.0), np.random.default_rng(0))
+    est = estimate_pose(
+        view.depth_mm,
+        ASYM_640,
+        PoseParams(height_min_m=0.4, height_max_m=1.0),
+        np.random.default_rng(0),
+    )
     assert not est.ok
     assert math.isnan(est.height_m) and math.isnan(est.tilt_deg) and math.isnan(est.roll_deg)
     assert "floor" in est.reason and "\n" not in est.reason
@@ -103,7 +117,7 @@ def test_too_few_candidates_reason_names_the_counts() -> None:
     mount = Mount(0.6, 20.0, 0.0)
     view = render(Scene(), ASYM_640, mount)
     depth = view.depth_mm.copy()
-    depth[:-8] = 0                                   # only the bottom 8 rows read anything
+    depth[:-8] = 0  # only the bottom 8 rows read anything
     # default strides 4 x 4: grid rows 479 and 475, 640 / 4 = 160 columns each -> 320 candidates
     est = estimate_pose(depth, ASYM_640, PoseParams(min_inliers=400), np.random.default_rng(0))
     assert not est.ok and est.candidates == 320
@@ -113,13 +127,24 @@ def test_too_few_candidates_reason_names_the_counts() -> None:
 def test_floor_outside_the_prior_is_not_reported() -> None:
     mount = Mount(1.2, 20.0, 0.0)
     view = render(Scene(), ASYM_640, mount)
-    est = estimate_pose(view.depth_mm, ASYM_640, PoseParams(height_min_m=0.2, height_max_m=0.6), np.random.default_rng(0))
+    est = estimate_pose(
+        view.depth_mm,
+        ASYM_640,
+        PoseParams(height_min_m=0.2, height_max_m=0.6),
+        np.random.default_rng(0),
+    )
     assert not est.ok and math.isnan(est.height_m)
 
 
 def test_same_seed_same_result_and_float_metres_equal_millimetres() -> None:
     mount = Mount(0.7, 25.0, 3.0)
-    view = render(Scene(boxes=(Box(1.5, 0.2, 0.4, 0.4, 0.3),)), ASYM_640, mount, KinectNoise(), np.random.default_rng(8))
+    view = render(
+        Scene(boxes=(Box(1.5, 0.2, 0.4, 0.4, 0.3),)),
+        ASYM_640,
+        mount,
+        KinectNoise(),
+        np.random.default_rng(8),
+    )
     a = estimate_pose(view.depth_mm, ASYM_640, PoseParams(), np.random.default_rng(3))
     b = estimate_pose(view.depth_mm, ASYM_640, PoseParams(), np.random.default_rng(3))
     assert a == b
@@ -137,7 +162,9 @@ def test_swapped_axes_would_fail_here() -> None:
     est = estimate_pose(view.depth_mm, ASYM_640, PoseParams(), np.random.default_rng(0))
     assert_pose(est, mount, 0.002, 0.1)
     swapped = Intrinsics(480, 640, ASYM_640.fy, ASYM_640.fx, ASYM_640.cy, ASYM_640.cx)
-    bad = estimate_pose(np.ascontiguousarray(view.depth_mm.T), swapped, PoseParams(), np.random.default_rng(0))
+    bad = estimate_pose(
+        np.ascontiguousarray(view.depth_mm.T), swapped, PoseParams(), np.random.default_rng(0)
+    )
     assert not bad.ok or abs(bad.tilt_deg - mount.tilt_deg) > 1.0 or abs(bad.roll_deg) > 1.0
 
 
@@ -163,7 +190,9 @@ def test_bad_parameters_name_value_and_range(kwargs: dict, text: str) -> None:
 
 def test_bad_frame_is_rejected() -> None:
     with pytest.raises(FrameError):
-        estimate_pose(np.zeros((480, 640), np.int32), ASYM_640, PoseParams(), np.random.default_rng(0))
+        estimate_pose(
+            np.zeros((480, 640), np.int32), ASYM_640, PoseParams(), np.random.default_rng(0)
+        )
 
 
 # --- real Kinect v2 frames ------------------------------------------------------------------------
@@ -192,6 +221,15 @@ def test_cmu_panoptic_real_frames_within_2cm_and_1deg() -> None:
         est = estimate_pose(depth[i], intr, params, np.random.default_rng(0))
         r = ref[i]["reference_leave_one_out"]
         assert est.ok, f"view {i}: {est.reason}"
-        errors.append((i, est.height_m - r["height_m"], est.tilt_deg - r["pitch_down_deg"], est.roll_deg + r["roll_deg"]))
+        errors.append(
+            (
+                i,
+                est.height_m - r["height_m"],
+                est.tilt_deg - r["pitch_down_deg"],
+                est.roll_deg + r["roll_deg"],
+            )
+        )
     worst = np.abs(np.array(errors)[:, 1:]).max(axis=0)
-    assert worst[0] <= 0.02 and worst[1] <= 1.0 and worst[2] <= 1.0, f"errors (view, dh, dtilt, droll): {errors}"
+    assert worst[0] <= 0.02 and worst[1] <= 1.0 and worst[2] <= 1.0, (
+        f"errors (view, dh, dtilt, droll): {errors}"
+    )
