@@ -231,8 +231,12 @@ class _SerialLink:
     """A serial port through pyserial; write failures other than timeouts are fatal."""
 
     def __init__(self, port: str, baud: int) -> None:
-        import serial  # lazy: only this sink needs pyserial
-
+        try:
+            import serial  # lazy: only this sink needs pyserial
+        except ModuleNotFoundError as exc:
+            raise SinkError(
+                "the mavlink serial sink needs the 'pyserial' package", hint="pip install pyserial"
+            ) from exc
         self._serial_mod = serial
         try:
             self._port = serial.Serial(port, baudrate=baud, timeout=0, write_timeout=1.0)
