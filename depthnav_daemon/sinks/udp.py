@@ -148,4 +148,6 @@ class UdpSink:
         if sock is not None:
             sock.close()
             if self.send_errors:
-                log.info("udp sink %s: %d sent, %d send errors", self.name, self.sent, self.send_errors)
+                log.info(
+                    "udp sink %s: %d sent, %d send errors", self.name, self.sent, self.send_errors
+                )
