@@ -65,13 +65,13 @@ GRAMMAR = (
 COMMON_OPTIONS = ("rate", "stale", "sysid", "compid", "sensor", "cliff")
 SECTORS = 72
 UNKNOWN = 65535  # UINT16_MAX: no data in this sector
-SENSOR_TYPES = {
+SENSOR_TYPES = {  # option value -> MAV_DISTANCE_SENSOR
     "laser": 0,
     "ultrasound": 1,
     "infrared": 2,
     "radar": 3,
     "unknown": 4,
-}  # MAV_DISTANCE_SENSOR
+}
 MAV_COMP_ID_OBSTACLE_AVOIDANCE = 196
 MAV_FRAME_BODY_FRD = 12
 DEFAULT_UDP = ("127.0.0.1", 14550)
@@ -174,13 +174,16 @@ def merge_cliff(obstacles: Sectors, cliff_scan: LaserScan) -> Sectors:
 
     Only detections count (finite ranges, and -inf = a drop-off closer than range_min): the cliff
     scan's "no drop-off" (+inf) or "no data" (NaN) leave the obstacle scan's verdict unchanged.
-    Drop-offs outside the obstacle sectors' field of view are not reported.
+    Drop-offs outside the obstacle sectors' field of view or beyond max_distance are not reported.
     """
     out = obstacles.distances_cm.astype(np.float64)
     if cliff_scan.ranges.size:
         r = np.asarray(cliff_scan.ranges, dtype=np.float64)
         cm = bins_to_cm(r, obstacles.min_cm, obstacles.max_cm)
         cm[~(np.isfinite(r) | (r == -np.inf))] = np.nan
+        with np.errstate(invalid="ignore"):
+            # a drop-off beyond the obstacle scan's max range is out of this message's range
+            cm[np.floor(r * 100.0) > obstacles.max_cm] = np.nan
         lo, hi = _footprints_deg(cliff_scan)
         left = obstacles.angle_offset_deg - obstacles.increment_f_deg / 2.0
         _pool_min(out, lo, hi, cm, left, obstacles.increment_f_deg)

@@ -131,6 +131,9 @@ def test_cliff_merge_only_adds_detections():
         0
     ] < 36
     assert np.all(merged.distances_cm[merged.distances_cm != 200] == 501)
+    far = np.full(640, np.inf)
+    far[300] = 6.0  # beyond the 5 m max_distance: not an obstacle at 5 m
+    assert np.all(merge_cliff(obstacles, make_scan(far)).distances_cm == 501)
 
 
 def test_stale_scans_are_not_repeated(pairs):
