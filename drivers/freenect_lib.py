@@ -37,6 +37,7 @@ WIDTH, HEIGHT = 640, 480
 RESOLUTION_MEDIUM = 1
 DEPTH_11BIT, DEPTH_MM = 0, 5
 DEVICE_MOTOR, DEVICE_CAMERA = 0x01, 0x02
+LIBUSB_ERROR_INTERRUPTED = -10
 
 
 class FrameMode(ctypes.Structure):
@@ -223,6 +224,8 @@ class FreenectDepth:
         tv = TimeVal(0, 100_000)
         while not self._stop.is_set():
             status = self._lib.freenect_process_events_timeout(self._ctx, ctypes.byref(tv))
+            if status == LIBUSB_ERROR_INTERRUPTED:  # a signal arrived; not a device problem
+                continue
             if status < 0:
                 self.end_status = status
                 break

@@ -22,7 +22,6 @@ import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 import numpy.typing as npt
@@ -85,6 +84,7 @@ class ReplayDriver:
         self._last_t_s = 0.0
         self._wall0: float | None = None
         self._is_open = False
+        self._has_accel = False
 
     @classmethod
     def from_spec(cls, spec: Spec) -> ReplayDriver:
@@ -128,6 +128,7 @@ class ReplayDriver:
 
     def _depthnav_items(self) -> tuple[Iterator[Item], Intrinsics, str]:
         rec = read_recording(self.path, default_fps=self.fps)
+        self._has_accel = rec.accel_mps2 is not None
         intr = self._intrinsics_with(rec.intrinsics, None)
 
         def items() -> Iterator[Item]:
@@ -167,7 +168,8 @@ class ReplayDriver:
         return items(), intr, self.path.name
 
     def _fakenect_items(self) -> tuple[Iterator[Item], Intrinsics, str]:
-        fakenect_format.read_index(self.path)  # fail at open, not at the first frame
+        entries = fakenect_format.read_index(self.path)  # fail at open, not at the first frame
+        self._has_accel = any(e.kind == "a" for e in entries)
         intr = self._intrinsics_with(KINECT_V1, None)
 
         def items() -> Iterator[Item]:
@@ -232,7 +234,7 @@ class ReplayDriver:
                 serial=None,
                 spec=self.spec_text,
                 intrinsics=self._intrinsics,
-                has_accel=False,
+                has_accel=self._has_accel,
             )
         self._is_open = True
         with ReplayDriver._count_lock:
@@ -288,7 +290,3 @@ class ReplayDriver:
             self._is_open = False
             with ReplayDriver._count_lock:
                 ReplayDriver.open_count -= 1
-
-    def describe(self) -> dict[str, Any]:
-        """Settings, for logs."""
-        return {"path": str(self.path), "realtime": self.realtime, "loop": self.loop}

@@ -114,6 +114,10 @@ def contract_report(spec: str, max_frames: int = 8, timeout_s: float = 5.0) -> d
             if info.intrinsics is not None and frame.intrinsics != info.intrinsics:
                 report["problems"].append(f"frame {frame.seq}: intrinsics differ from open()")
             if frame.accel_mps2 is not None:
+                if not info.has_accel:
+                    report["problems"].append(
+                        f"frame {frame.seq}: accel but open() said has_accel=False"
+                    )
                 norm = math.sqrt(sum(a * a for a in frame.accel_mps2))
                 if len(frame.accel_mps2) != 3 or not 5.0 <= norm <= 15.0:
                     report["problems"].append(
