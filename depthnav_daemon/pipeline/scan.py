@@ -23,6 +23,7 @@ import numpy as np
 import numpy.typing as npt
 
 from depthnav_daemon.errors import ConfigError
+from depthnav_daemon.pipeline.scan_kernels import exact_scan_kernel, paper_scan_kernel
 from depthnav_daemon.pipeline.geometry import (
     F32,
     F64,
@@ -156,18 +157,26 @@ def depth_to_scan(depth: np.ndarray, intr: Intrinsics, mount: Mount, params: Sca
 
 @dataclass(frozen=True, slots=True)
 class _ExactTable:
-    """Per-pixel tables for one (intrinsics, mount, params); pixels are the used grid (Hs, Ws)."""
+    """Per-pixel tables for one (intrinsics, mount, params) over the used grid (Hs, Ws) of pixels.
 
-    rows: slice
-    cols: slice
-    zlo_mm: npt.NDArray[np.uint16]   # (Hs, Ws) obstacle iff zlo <= d <= zhi (empty: zlo > zhi)
+    Binning: bin b is centred on ``angle_min + b * angle_increment`` (by default the angular width of
+    the pixel at the principal point). In each row a bin takes the pixels whose centres fall in it,
+    or, where pixels are wider than bins (the lower rows of a tilted camera), the pixel whose
+    footprint covers the bin's centre. Every pixel is used and no bin is empty because of the binning.
+    """
+
+    rows: npt.NDArray[np.int32]         # (Hs,) image rows
+    col0: int
+    col_step: int
+    zlo_mm: npt.NDArray[np.uint16]      # (Hs, Ws) obstacle iff zlo <= d <= zhi (empty: zlo > zhi)
     zhi_mm: npt.NDArray[np.uint16]
     near_lo_mm: npt.NDArray[np.uint16]  # (Hs, Ws) obstacle height but closer than range_min iff
     near_hi_mm: npt.NDArray[np.uint16]  # near_lo <= d <= near_hi
-    kr_m_per_mm: F32                 # (Hs, Ws) horizontal range per millimetre of depth
-    src: npt.NDArray[np.intp]        # (M,) used-pixel flat index, grouped by bin
-    offsets: npt.NDArray[np.intp]    # (N,) start of each bin's group in src
-    covered: npt.NDArray[np.bool_]   # (N,) bins that some pixel covers
+    kr_m_per_mm: F32                    # (Hs, Ws) horizontal range per millimetre of depth
+    g_lo: npt.NDArray[np.int16]         # (Hs, N) first column feeding each bin per row; Ws = none
+    g_hi: npt.NDArray[np.int16]         # (Hs, N) last column feeding each bin per row
+    cb_lo: npt.NDArray[np.int16]        # (Hs, Ws) first bin a column feeds
+    cb_hi: npt.NDArray[np.int16]        # (Hs, Ws) last bin a column feeds (< cb_lo: none)
     angle_min: float
     angle_increment: float
 
@@ -201,6 +210,56 @@ def _depth_bounds_mm(k: F64, lo: float, hi: float) -> tuple[F64, F64]:
     return zlo, zhi
 
 
+def _bin_map(
+    centre: F64, lo_b: F64, hi_b: F64, sane: npt.NDArray[np.bool_], angle_min: float, inc: float, n: int
+) -> tuple[npt.NDArray[np.int16], npt.NDArray[np.int16], npt.NDArray[np.int16], npt.NDArray[np.int16]]:
+    """Per row and bin, the interval of columns feeding the bin; per column, the bins it feeds.
+
+    Args:
+        centre, lo_b, hi_b: (Hs, Ws) bearing of each pixel's centre and footprint edges, radians.
+        sane: (Hs, Ws) pixels to use.
+        angle_min, inc, n: bin b is centred on angle_min + b * inc.
+
+    Returns:
+        g_lo, g_hi: (Hs, n) first and last column feeding each bin (Ws, Ws where none);
+        cb_lo, cb_hi: (Hs, Ws) first and last bin a column feeds (n, -1 where none).
+    """
+    hs, ws = centre.shape
+    bidx = np.floor((centre - angle_min) / inc + 0.5).astype(np.int64)
+    ii, jj = np.nonzero(sane)
+    bb = np.clip(bidx[ii, jj], 0, n - 1)
+    flat = ii * n + bb
+    g_lo = np.full(hs * n, ws, dtype=np.int64)
+    g_hi = np.full(hs * n, -1, dtype=np.int64)
+    np.minimum.at(g_lo, flat, jj)
+    np.maximum.at(g_hi, flat, jj)
+    cb_lo = np.full((hs, ws), n, dtype=np.int64)
+    cb_hi = np.full((hs, ws), -1, dtype=np.int64)
+    cb_lo[ii, jj] = bb
+    cb_hi[ii, jj] = bb
+    g_lo = g_lo.reshape(hs, n)
+    g_hi = g_hi.reshape(hs, n)
+    # bins without a pixel centre in a row: the pixel whose footprint covers the bin centre
+    centres = angle_min + inc * np.arange(n)
+    for i in range(hs):
+        ok = sane[i]
+        if not ok.any():
+            continue
+        cols = np.flatnonzero(ok)[::-1]          # bearings fall with the column: flip to rising
+        lo_r, hi_r = lo_b[i][cols], hi_b[i][cols]
+        empty = np.flatnonzero(g_hi[i] < 0)
+        k = np.searchsorted(lo_r, centres[empty], side="right") - 1
+        kk = np.clip(k, 0, cols.size - 1)
+        hit = (k >= 0) & (centres[empty] <= hi_r[kk])
+        b_hit, c_hit = empty[hit], cols[kk[hit]]
+        g_lo[i, b_hit] = c_hit
+        g_hi[i, b_hit] = c_hit
+        np.minimum.at(cb_lo[i], c_hit, b_hit)
+        np.maximum.at(cb_hi[i], c_hit, b_hit)
+    g_hi = np.where(g_hi < 0, ws, g_hi)
+    return g_lo.astype(np.int16), g_hi.astype(np.int16), cb_lo.astype(np.int16), cb_hi.astype(np.int16)
+
+
 @functools.lru_cache(maxsize=16)
 def _exact_table(intr: Intrinsics, mount: Mount, params: ScanParams) -> _ExactTable:
     rows = _used_rows(intr, params)
@@ -228,66 +287,56 @@ def _exact_table(intr: Intrinsics, mount: Mount, params: ScanParams) -> _ExactTa
     b_right = _bearing(intr, rot, u + half, v)
     lo_b = np.minimum(b_left, b_right)
     hi_b = np.maximum(b_left, b_right)
-    centre = _bearing(intr, rot, np.array([intr.cx - 0.5, intr.cx + 0.5]), np.array([intr.cy, intr.cy]))
+    sane = (hi_b - lo_b) < math.pi  # footprints across the +-pi seam (looking backwards) are dropped
+    principal = _bearing(intr, rot, np.array([intr.cx - half, intr.cx + half]), np.array([intr.cy, intr.cy]))
     inc = (
         math.radians(params.angle_increment_deg)
         if params.angle_increment_deg > 0
-        else float(abs(centre[1] - centre[0]))
+        else float(abs(principal[1] - principal[0]))
     )
-    sane = (hi_b - lo_b) < math.pi  # footprints across the +-pi seam (looking backwards) are dropped
-    angle_min = float(lo_b[sane].min())
-    angle_max_edge = float(hi_b[sane].max())
-    n = max(1, int(math.ceil((angle_max_edge - angle_min) / inc)))
-    # bin i covers [angle_min + (i - 1/2) inc, angle_min + (i + 1/2) inc)
-    angle_min = angle_min + inc / 2.0
-    first = np.floor((lo_b - angle_min) / inc + 0.5).astype(np.int64)
-    last = np.floor((hi_b - angle_min) / inc + 0.5).astype(np.int64)
-    first = np.clip(first, 0, n - 1)
-    last = np.clip(np.minimum(last, first + MAX_SPAN_BINS - 1), 0, n - 1)
-    span = np.where(sane, last - first + 1, 0).ravel()
-    pix = np.repeat(np.arange(span.size), span)
-    within = np.arange(pix.size) - np.repeat(np.cumsum(span) - span, span)
-    bins = first.ravel()[pix] + within
-    order = np.argsort(bins, kind="stable")
-    src = pix[order].astype(np.intp)
-    counts = np.bincount(bins, minlength=n)
-    offsets = (np.cumsum(counts) - counts).astype(np.intp)
-    covered = counts > 0
-    # reduceat needs in-bounds offsets; uncovered bins are masked to NaN afterwards
-    offsets = np.minimum(offsets, max(src.size - 1, 0))
-    for arr in (zlo_mm, zhi_mm, near_lo_mm, near_hi_mm, src, offsets, covered):
-        arr.setflags(write=False)
+    edge_min = float(lo_b[sane].min())
+    n = max(1, int(math.ceil((float(hi_b[sane].max()) - edge_min) / inc)))
+    if n > 32000:
+        raise ConfigError(
+            f"scan.angle_increment_deg={params.angle_increment_deg} gives {n} bins (accepted: up to 32000)"
+        )
+    angle_min = edge_min + inc / 2.0
+    centre = _bearing(intr, rot, u + 0.0 * v, v + 0.0 * u)
+    g_lo, g_hi, cb_lo, cb_hi = _bin_map(centre, lo_b, hi_b, sane, angle_min, inc, n)
     kr32 = (kr / 1000.0).astype(np.float32)
-    kr32.setflags(write=False)
-    return _ExactTable(rows, cols, zlo_mm, zhi_mm, near_lo_mm, near_hi_mm, kr32, src, offsets, covered, angle_min, inc)
+    row_idx = np.arange(intr.height, dtype=np.int32)[rows]
+    for arr in (zlo_mm, zhi_mm, near_lo_mm, near_hi_mm, kr32, g_lo, g_hi, cb_lo, cb_hi, row_idx):
+        arr.setflags(write=False)
+    return _ExactTable(
+        row_idx, 0, params.col_step, zlo_mm, zhi_mm, near_lo_mm, near_hi_mm, kr32, g_lo, g_hi, cb_lo, cb_hi,
+        angle_min, inc,
+    )
 
 
 def scan_layout(intr: Intrinsics, mount: Mount, params: ScanParams) -> tuple[float, float, int]:
     """(angle_min, angle_increment, number of bins) of the exact scan for this camera and mount."""
     t = _exact_table(intr, mount, params)
-    return t.angle_min, t.angle_increment, int(t.covered.size)
+    return t.angle_min, t.angle_increment, int(t.g_lo.shape[1])
 
 
 def obstacle_pixels(depth: np.ndarray, intr: Intrinsics, mount: Mount, params: ScanParams) -> npt.NDArray[np.bool_]:
     """(H, W) mask of the pixels the exact scan counts as obstacles (for display)."""
     mm = depth_to_mm(depth, intr)
     t = _exact_table(intr, mount, params)
-    d = mm[t.rows, t.cols]
+    cols = slice(t.col0, intr.width, t.col_step)
+    d = mm[t.rows][:, cols]
     out = np.zeros(mm.shape, dtype=bool)
-    out[t.rows, t.cols] = (d >= t.zlo_mm) & (d <= t.zhi_mm)
+    out[np.ix_(t.rows, np.arange(intr.width)[cols])] = (d >= t.zlo_mm) & (d <= t.zhi_mm)
     return out
 
 
 def _exact_scan(depth_mm: npt.NDArray[np.uint16], intr: Intrinsics, mount: Mount, params: ScanParams) -> LaserScan:
     t = _exact_table(intr, mount, params)
-    d = depth_mm[t.rows, t.cols]                                   # (Hs, Ws) view
-    obstacle = (d >= t.zlo_mm) & (d <= t.zhi_mm)
-    vals = np.where(d > 0, np.float32(np.inf), np.float32(np.nan))  # valid reading, no obstacle
-    vals[(d >= t.near_lo_mm) & (d <= t.near_hi_mm)] = -np.inf     # obstacle closer than range_min
-    vals[obstacle] = d[obstacle] * t.kr_m_per_mm[obstacle]
-    ranges = np.fmin.reduceat(vals.ravel()[t.src], t.offsets) if t.src.size else np.full(t.covered.size, np.nan)
-    ranges = ranges.astype(np.float32, copy=False)
-    ranges[~t.covered] = np.nan
+    ranges = np.empty(t.g_lo.shape[1], dtype=np.float32)
+    exact_scan_kernel(
+        depth_mm[:, t.col0 :: t.col_step], t.rows, t.zlo_mm, t.zhi_mm, t.near_lo_mm, t.near_hi_mm,
+        t.kr_m_per_mm, t.g_lo, t.g_hi, t.cb_lo, t.cb_hi, ranges,
+    )
     n = ranges.size
     return LaserScan(
         t.angle_min, t.angle_min + (n - 1) * t.angle_increment, t.angle_increment,
@@ -300,11 +349,13 @@ def _exact_scan(depth_mm: npt.NDArray[np.uint16], intr: Intrinsics, mount: Mount
 
 @dataclass(frozen=True, slots=True)
 class _PaperTable:
-    rows: slice
-    dist_to_ground_m: F32   # (B, 1) eq. 5 threshold minus e_g; +inf where the row misses the floor
-    tilt_factor: F32        # (B, 1) eq. 4
-    range_per_z: F32        # (W,) sqrt(1 + ((u - cx)/fx)^2): eq. 2's x folded into the range
-    index: npt.NDArray[np.intp]  # (W,) column -> bin, the original's truncating map
+    row0: int
+    row_step: int
+    lo_mm: npt.NDArray[np.uint16]  # (B,) a reading counts iff lo <= d <= hi: range_min ..
+    hi_mm: npt.NDArray[np.uint16]  # (B,) .. min(range_max, eq. 5 ground threshold minus e_g)
+    factor: F32                    # (B,) metres per mm times eq. 4's tilt factor
+    range_per_z: F32               # (W,) sqrt(1 + ((u - cx)/fx)^2): eq. 2's x folded into the range
+    index: npt.NDArray[np.int64]   # (W,) column -> bin, the original's truncating map
     angle_min: float
     angle_max: float
     angle_increment: float
@@ -323,37 +374,38 @@ def _paper_table(intr: Intrinsics, mount: Mount, params: ScanParams) -> _PaperTa
     rows = slice(offset, offset + params.scan_height, params.depth_img_row_step)
     delta = paper_row_angles_rad(intr)[rows]
     alpha = mount.tilt_rad
-    ground = paper_floor_depth_m(mount.height_m, alpha, delta) - params.ground_margin_m
-    factor = np.sin(math.pi / 2 - alpha - delta) / np.sin(math.pi / 2 - delta)
+    b = delta.size
+    # z = d / 1000 m: range_min <= z <= range_max and (eq. 5) z < ground - e_g, as whole millimetres
+    lo = max(1, math.ceil(params.range_min_m * 1000.0 - 1e-6))
+    hi = np.full(b, min(65535, math.floor(params.range_max_m * 1000.0 + 1e-6)), dtype=np.float64)
+    if params.ground_remove:
+        ground = paper_floor_depth_m(mount.height_m, alpha, delta) - params.ground_margin_m
+        with np.errstate(invalid="ignore"):
+            hi = np.minimum(hi, np.where(np.isfinite(ground), np.ceil(ground * 1000.0) - 1, 65535))
+    factor = np.full(b, 0.001)
+    if params.tilt_compensation:
+        factor = factor * np.sin(math.pi / 2 - alpha - delta) / np.sin(math.pi / 2 - delta)  # eq. 4
     u = np.arange(intr.width, dtype=np.float64)
     angle_max = math.atan(intr.cx / intr.fx)
     angle_min = -math.atan((intr.width - 1 - intr.cx) / intr.fx)
     inc = (angle_max - angle_min) / (intr.width - 1)
     theta = -np.arctan((u - intr.cx) / intr.fx)
-    index = np.clip(((theta - angle_min) / inc).astype(np.intp), 0, intr.width - 1)
+    index = np.clip(((theta - angle_min) / inc).astype(np.int64), 0, intr.width - 1)
     return _PaperTable(
-        rows,
-        ground.astype(np.float32)[:, None],
-        factor.astype(np.float32)[:, None],
+        offset, params.depth_img_row_step,
+        np.full(b, lo, dtype=np.uint16), np.clip(hi, 0, 65535).astype(np.uint16),
+        factor.astype(np.float32),
         np.sqrt(1.0 + ((u - intr.cx) / intr.fx) ** 2).astype(np.float32),
-        index,
-        angle_min,
-        angle_max,
-        inc,
+        index, angle_min, angle_max, inc,
     )
 
 
 def _paper_scan(depth: np.ndarray, intr: Intrinsics, mount: Mount, params: ScanParams) -> LaserScan:
     t = _paper_table(intr, mount, params)
-    z = depth_to_m(depth, intr)[t.rows]                           # (B, W) raw optical depth, NaN invalid
-    with np.errstate(invalid="ignore"):
-        ok = (z >= params.range_min_m) & (z <= params.range_max_m)
-        if params.ground_remove:
-            ok &= z < t.dist_to_ground_m                          # eq. 5 on raw depth
-    zc = z * t.tilt_factor if params.tilt_compensation else z
-    zmin = np.where(ok, zc, np.inf).min(axis=0)                   # eq. 1
-    any_valid = np.isfinite(z).any(axis=0)
-    col_range = np.where(np.isfinite(zmin), zmin * t.range_per_z, np.where(any_valid, np.inf, np.nan))
-    ranges = np.full(intr.width, np.nan, dtype=np.float32)
-    np.fmin.at(ranges, t.index, col_range.astype(np.float32))
+    ranges = np.empty(intr.width, dtype=np.float32)
+    scratch = np.empty((2, intr.width), dtype=np.float32)
+    paper_scan_kernel(
+        depth_to_mm(depth, intr), t.row0, t.row_step, t.lo_mm, t.hi_mm, t.factor, t.range_per_z, t.index,
+        scratch, ranges,
+    )
     return LaserScan(t.angle_min, t.angle_max, t.angle_increment, params.range_min_m, params.range_max_m, ranges)

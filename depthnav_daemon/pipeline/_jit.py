@@ -1,0 +1,24 @@
+"""numba's ``njit`` with an on-disk cache in the user's cache folder.
+
+The default cache lives in ``__pycache__`` beside the source, which an installed package may not be
+allowed to write; compiled kernels are then rebuilt in every process (about a second). Setting the
+folder before numba is imported keeps the cache per user and across runs (``scripts/install.sh``
+fills it, so the daemon's first frame compiles nothing).
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+os.environ.setdefault(
+    "NUMBA_CACHE_DIR",
+    str(Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "depthnav" / "numba"),
+)
+
+from numba import njit  # noqa: E402 - must follow the cache folder setting
+
+# Every kernel: compiled once, cached on disk, releases the GIL, no bounds checks in the hot loops.
+kernel = njit(cache=True, nogil=True, boundscheck=False, error_model="numpy")
+
+__all__ = ["kernel"]
