@@ -134,6 +134,8 @@ class _CliffTable:
     src: npt.NDArray[np.intp]  # (M,) flat sample index, grouped by scan bin
     offsets: npt.NDArray[np.intp]  # (N,) start of each bin's group in src
     covered: npt.NDArray[np.bool_]  # (N,) bins that some sample covers
+    row_sel: slice | npt.NDArray[np.intp]  # rows / cols as slices when evenly spaced
+    col_sel: slice | npt.NDArray[np.intp]
 
 
 def _floor_hits(intr: Intrinsics, rot: F64, u: F64, v: F64) -> tuple[F64, F64, F64]:
@@ -253,28 +255,34 @@ def _cliff_table(
         src,
         offsets,
         covered,
+        _selector(rows),
+        _selector(cols),
     )
 
 
 def drop_samples(
-    depth_mm: npt.NDArray[np.uint16],
-    rows: npt.NDArray[np.intp],
-    cols: npt.NDArray[np.intp],
-    lo_mm: npt.NDArray[np.uint16],
-    hi_mm: npt.NDArray[np.uint16],
-) -> tuple[npt.NDArray[np.uint16], npt.NDArray[np.bool_]]:
-    """Gather the sample grid and mark drop-off samples (the stage's core, kept compilable).
+    d: npt.NDArray[np.uint16], lo_mm: npt.NDArray[np.uint16], hi_mm: npt.NDArray[np.uint16]
+) -> npt.NDArray[np.bool_]:
+    """Mark drop-off samples (the stage's core, kept compilable).
 
     Args:
-        depth_mm: (H, W) uint16 millimetres.
-        rows, cols: (R,) and (C,) image rows and columns of the samples.
+        d: (R, C) sampled depth, uint16 millimetres.
         lo_mm, hi_mm: (R, C) a sample is a drop-off iff lo_mm < depth < hi_mm.
 
     Returns:
-        The sampled depth (R, C) and the drop-off mask (R, C).
+        The (R, C) drop-off mask.
     """
-    d = depth_mm[np.ix_(rows, cols)]
-    return d, (d > lo_mm) & (d < hi_mm)
+    return (d > lo_mm) & (d < hi_mm)
+
+
+def _selector(idx: npt.NDArray[np.intp]) -> slice | npt.NDArray[np.intp]:
+    """A slice equal to the index array when it is evenly spaced (a view beats a gather)."""
+    step = int(idx[1] - idx[0]) if idx.size > 1 else 1
+    if step == 0 or not np.array_equal(np.diff(idx), np.full(idx.size - 1, step)):
+        return idx
+    stop = int(idx[-1]) + step
+    # a descending run that ends at row 0 needs stop None: -1 would mean the last row
+    return slice(int(idx[0]), None if stop < 0 else stop, step)
 
 
 def block_counts(
@@ -314,7 +322,11 @@ def detect_cliffs(
     check_int("cliff n_bins", n_bins, 1, 1_000_000)
     mm = depth_to_mm(depth, intr)
     t = _cliff_table(intr, mount, params, float(angle_min), float(angle_increment), int(n_bins))
-    d, mask = drop_samples(mm, t.rows, t.cols, t.lo_mm, t.hi_mm)
+    if isinstance(t.row_sel, slice) and isinstance(t.col_sel, slice):
+        d = mm[t.row_sel, t.col_sel]  # (R, C) view
+    else:
+        d = mm[np.ix_(t.rows, t.cols)]  # (R, C) gather
+    mask = drop_samples(d, t.lo_mm, t.hi_mm)
     counts = block_counts(mask, t.shape4)
     found = (counts >= params.block_points_thresh) & np.isfinite(t.block_xy_m[..., 0])  # eq. 8
     bj, bi = np.nonzero(found)
@@ -323,8 +335,7 @@ def detect_cliffs(
     points = t.block_xy_m[bj, bi].reshape(-1, 2)
 
     marked = (mask.reshape(t.shape4) & found[:, None, :, None]).reshape(mask.shape)
-    vals = np.where(d > 0, np.float32(np.inf), np.float32(np.nan))
-    vals[marked] = t.range_m[marked]
+    vals = np.where(marked, t.range_m, np.where(d > 0, np.float32(np.inf), np.float32(np.nan)))
     if t.src.size:
         ranges = np.fmin.reduceat(vals.ravel()[t.src], t.offsets).astype(np.float32, copy=False)
     else:
