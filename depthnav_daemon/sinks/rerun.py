@@ -89,9 +89,15 @@ def blueprint() -> Any:
         rrb.Horizontal(
             rrb.Vertical(
                 rrb.Spatial2DView(name="Depth", origin="/world/sensor/depth"),
-                rrb.TimeSeriesView(name="Pose", origin=f"{STATS}/pose"),
+                # metres and degrees on separate plots: 0.5 m next to 12 deg would be a flat line
+                rrb.TimeSeriesView(name="Height [m]", origin=f"{STATS}/pose/height_m"),
+                rrb.TimeSeriesView(
+                    name="Tilt, roll [deg]",
+                    origin=f"{STATS}/pose",
+                    contents=["+ $origin/tilt_deg", "+ $origin/roll_deg"],
+                ),
                 rrb.TimeSeriesView(name="Timing [ms]", origin=f"{STATS}/timing"),
-                row_shares=[3, 1, 1],
+                row_shares=[3, 1, 1, 1],
             ),
             rrb.Vertical(
                 rrb.Spatial3DView(name="3D", origin="/world"),

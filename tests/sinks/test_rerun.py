@@ -281,3 +281,25 @@ def test_connect_to_a_real_grpc_server(tmp_path, pairs, context):
             os.killpg(server.pid, signal.SIGKILL)
             server.wait(timeout=10)
     assert scan_rows(out) == 3
+
+
+def test_default_blueprint_views(tmp_path, pairs, context):
+    path = tmp_path / "run.rrd"
+    record(path, pairs[:1], context)
+    reader = rrchunk.RrdReader(str(path))
+    views = {}
+    for chunk in reader.stream(store=reader.blueprints()[0]):
+        rb = chunk.to_record_batch()
+        if "ViewBlueprint:display_name" in rb.schema.names:
+            name = rb.column("ViewBlueprint:display_name").to_pylist()[0][0]
+            kind = rb.column("ViewBlueprint:class_identifier").to_pylist()[0][0]
+            origin = rb.column("ViewBlueprint:space_origin").to_pylist()[0][0]
+            views[name] = (kind, origin)
+    assert views == {
+        "Depth": ("2D", "/world/sensor/depth"),
+        "3D": ("3D", "/world"),
+        "Height [m]": ("TimeSeries", "/stats/pose/height_m"),
+        "Tilt, roll [deg]": ("TimeSeries", "/stats/pose"),
+        "Timing [ms]": ("TimeSeries", "/stats/timing"),
+        "Log": ("TextLog", "/log"),
+    }
