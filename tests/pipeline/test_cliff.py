@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import json
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -263,3 +265,46 @@ def test_sample_selector_is_the_same_rows_as_the_index(idx: list[int]) -> None:
     # evenly spaced samples are read through a slice view (faster than a gather): same pixels
     a = np.array(idx, dtype=np.intp)
     np.testing.assert_array_equal(np.arange(480)[_selector(a)], a)
+
+
+# --- real Kinect v2 floor (CMU Panoptic, non-commercial: read in place, never copied) --------------
+
+SHARED = Path(__file__).resolve().parents[2].parent / "shared"
+CMU = SHARED / "data" / "real" / "cmu_panoptic_kinoptic_10view"
+
+
+def test_real_floor_has_no_cliff_and_a_drop_cut_into_it_is_found() -> None:
+    """Ten real Kinect v2 views at their reference mount (roll sign flipped: the reference's roll
+    is atan2(n_x, -n_y), ours atan2(-n_x, -n_y)). The real floor, a cellist and chairs give no
+    cliff. Then a drop is cut into the real floor, labelled synthetic: readings whose floor point
+    lies in x 2.2..2.6 m, |y| < 0.5 m are pushed 0.2 m below it (depth scaled by (h + 0.2) / h
+    along the same ray), and it must be found there within one block's footprint."""
+    if not SHARED.is_dir():
+        pytest.skip(f"{SHARED} is absent: the real CMU Panoptic frames live there")
+    data = np.load(CMU / "views.npz")
+    ref = json.loads((CMU / "floor_reference.json").read_text())["cameras"]
+    depth, intrinsics = data["depth_mm"], data["intrinsics_per_view"]
+    for i in range(depth.shape[0]):
+        fx, fy, cx, cy = (float(v) for v in intrinsics[i])
+        intr = Intrinsics(depth.shape[2], depth.shape[1], fx, fy, cx, cy)
+        r = ref[i]["reference_leave_one_out"]
+        mount = Mount(r["height_m"], r["pitch_down_deg"], -r["roll_deg"])
+        frame = np.ascontiguousarray(depth[i])
+        flat = detect_cliffs(frame, intr, mount, PARAMS, -0.8, 0.005, 321)
+        assert len(flat.points_m) == 0, f"view {i}: false cliffs at {flat.points_m[:5]}"
+        rays = level_rays(intr, mount.tilt_rad, mount.roll_rad)
+        down = rays[..., 2] < 0
+        t = np.where(down, mount.height_m / -np.where(down, rays[..., 2], -1.0), np.inf)
+        x, y = t * rays[..., 0], t * rays[..., 1]
+        on_floor = (frame > 0) & (np.abs(frame / 1000.0 - t) < 0.05 * t)
+        patch = on_floor & (x > 2.2) & (x < 2.6) & (np.abs(y) < 0.5)
+        cut = frame.copy()
+        cut[patch] = np.rint(frame[patch] * (mount.height_m + 0.2) / mount.height_m).astype(
+            np.uint16
+        )
+        res = detect_cliffs(cut, intr, mount, PARAMS, -0.8, 0.005, 321)
+        assert len(res.points_m) >= 3, f"view {i}: {len(res.points_m)} blocks on the cut"
+        fp = block_footprints_m(intr, mount, res.blocks, res.block_size, res.points_m)
+        px, py = res.points_m[:, 0], res.points_m[:, 1]
+        inside = (px > 2.2 - fp) & (px < 2.6 + fp) & (np.abs(py) < 0.5 + fp)
+        assert inside.all(), f"view {i}: blocks off the cut at {res.points_m[~inside]}"
