@@ -25,6 +25,10 @@ class TrackerParams:
     max_jump_m: float = 0.05
     max_jump_deg: float = 3.0
     confirmations: int = 3
+    # the applied mount follows the smoothed one only beyond this, so the stages' lookup tables
+    # (built per mount, ~0.1 s) are not rebuilt for sub-millimetre wobble
+    deadband_m: float = 0.002
+    deadband_deg: float = 0.1
 
 
 def _distance(a: Mount, b: Mount) -> tuple[float, float]:
@@ -45,6 +49,7 @@ class MountTracker:
 
     def __init__(self, configured: Mount, params: TrackerParams) -> None:
         self.mount = configured
+        self._smoothed = configured
         self.source = "config"
         self._params = params
         self._floor_seen = False
@@ -60,35 +65,44 @@ class MountTracker:
             return
         if self.source != source:
             log.info("mount tilt %.1f deg, roll %.1f deg from the %s", tilt_deg, roll_deg, source)
-            self.mount = _clamped(self.mount.height_m, tilt_deg, roll_deg)
+            self._apply(_clamped(self.mount.height_m, tilt_deg, roll_deg), force=True)
         else:  # smooth sensor noise
             a = self._params.smoothing
-            m = self.mount
-            self.mount = _clamped(m.height_m, m.tilt_deg + a * (tilt_deg - m.tilt_deg), m.roll_deg + a * (roll_deg - m.roll_deg))
+            m = self._smoothed
+            self._apply(_clamped(m.height_m, m.tilt_deg + a * (tilt_deg - m.tilt_deg),
+                                 m.roll_deg + a * (roll_deg - m.roll_deg)))
         self.source = source
+
+    def _apply(self, smoothed: Mount, force: bool = False) -> None:
+        """Track ``smoothed``; move the applied mount when it drifts beyond the deadband."""
+        self._smoothed = smoothed
+        dh, da = _distance(smoothed, self.mount)
+        if force or dh > self._params.deadband_m or da > self._params.deadband_deg:
+            self.mount = smoothed
 
     def from_floor(self, height_m: float, tilt_deg: float, roll_deg: float) -> str | None:
         """Apply a confident floor estimate; returns a log-worthy note when something notable happened."""
         new = _clamped(height_m, tilt_deg, roll_deg)
         if not self._floor_seen:
             self._floor_seen = True
-            old, self.mount, self.source = self.mount, new, "floor"
+            old, self.source = self.mount, "floor"
+            self._apply(new, force=True)
             self._pending.clear()
             return (
                 f"mount from the floor: height {new.height_m:.3f} m, tilt {new.tilt_deg:.2f} deg, roll "
                 f"{new.roll_deg:.2f} deg (was {old.height_m:.3f} m, {old.tilt_deg:.2f} deg, {old.roll_deg:.2f} deg)"
             )
-        dh, da = _distance(new, self.mount)
+        dh, da = _distance(new, self._smoothed)
         p = self._params
         if dh <= p.max_jump_m and da <= p.max_jump_deg:
             self._pending.clear()
-            m = self.mount
+            m = self._smoothed
             a = p.smoothing
-            self.mount = _clamped(
+            self._apply(_clamped(
                 m.height_m + a * (new.height_m - m.height_m),
                 m.tilt_deg + a * (new.tilt_deg - m.tilt_deg),
                 m.roll_deg + a * (new.roll_deg - m.roll_deg),
-            )
+            ))
             return None
         # a jump: hold it back until enough consecutive estimates agree with each other
         if self._pending and any(
@@ -97,7 +111,7 @@ class MountTracker:
             self._pending.clear()
         self._pending.append(new)
         if len(self._pending) >= p.confirmations:
-            self.mount = self._pending[-1]
+            self._apply(self._pending[-1], force=True)
             self._pending.clear()
             return (
                 f"mount jump accepted after {p.confirmations} agreeing floor estimates: height "

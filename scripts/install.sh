@@ -26,3 +26,5 @@ if [ ! -x .venv/bin/python ]; then
 fi
 .venv/bin/python -m pip install -q --disable-pip-version-check --upgrade pip >/dev/null
 .venv/bin/python -m pip install -q --disable-pip-version-check -e ".[dev]"
+# compile and cache the numeric kernels now, not at the robot's first frame
+.venv/bin/python -m depthnav_daemon.warmup

@@ -180,3 +180,16 @@ def test_mount_tracker_uses_tilt_sensor_only_until_the_floor_speaks() -> None:
     t.from_floor(0.6, 15.0, 0.0)
     t.from_tilt_sensor(40.0, 0.0, "accel")
     assert t.source == "floor" and t.mount.tilt_deg == 15.0
+
+
+def test_mount_tracker_deadband_keeps_the_applied_mount_through_wobble() -> None:
+    """Sub-millimetre wobble of the estimates must not move the mount (each move rebuilds tables)."""
+    t = MountTracker(Mount(0.5, 10.0, 0.0), TrackerParams(smoothing=0.5, deadband_m=0.002, deadband_deg=0.1))
+    t.from_floor(0.55, 15.0, 0.0)
+    applied = t.mount
+    for k in range(20):
+        t.from_floor(0.55 + (0.0005 if k % 2 else -0.0005), 15.0 + (0.02 if k % 2 else -0.02), 0.0)
+    assert t.mount is applied
+    for _ in range(10):  # a real drift of 1 cm gets through
+        t.from_floor(0.56, 15.0, 0.0)
+    assert t.mount.height_m == pytest.approx(0.56, abs=0.002)
