@@ -7,6 +7,7 @@ within a second and every sink is closed (flushed).
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import threading
 import time
@@ -20,7 +21,7 @@ from depthnav_daemon.config import Config
 from depthnav_daemon.errors import DepthnavError, FrameError, SinkError
 from depthnav_daemon.mount_tracker import MountTracker, TrackerParams
 from depthnav_daemon.pipeline import Result, process
-from depthnav_daemon.pipeline.pose import tilt_roll_from_accel
+from depthnav_daemon.pipeline.pose import PoseParams, tilt_roll_from_accel
 from depthnav_daemon.sinks import create_sink
 from depthnav_daemon.sinks.base import Sink, SinkContext
 from drivers import create_driver
@@ -188,7 +189,7 @@ def run(
             try:
                 result = process(
                     frame, tracker.mount, cfg.scan, cfg.cliff if d.cliff else None,
-                    cfg.pose if want_pose else None, rng, tracker.source, time.perf_counter,
+                    pose_prior(cfg.pose, tracker) if want_pose else None, rng, tracker.source, time.perf_counter,
                 )
             except FrameError as exc:
                 log.warning("frame %d skipped: %s", frame.seq, exc)
@@ -215,6 +216,24 @@ def run(
         report.reconnects = source.reconnects
         report.rejected_pose_jumps = tracker.rejected
     return report
+
+
+PRIOR_HALF_WIDTH_DEG = 10.0
+
+
+def pose_prior(params: PoseParams, tracker: MountTracker) -> PoseParams:
+    """The floor search's tilt window: centred on a tilt sensor's reading while one gives the mount.
+
+    Rounded to whole degrees, so the pose stage's per-prior tables are reused frame after frame.
+    """
+    if tracker.source not in ("accel", "serial"):
+        return params
+    t = round(tracker.mount.tilt_deg)
+    lo = max(params.tilt_min_deg, t - PRIOR_HALF_WIDTH_DEG)
+    hi = min(params.tilt_max_deg, t + PRIOR_HALF_WIDTH_DEG)
+    if lo >= hi:  # the sensor disagrees with the configured window: trust the configured window
+        return params
+    return dataclasses.replace(params, tilt_min_deg=lo, tilt_max_deg=hi)
 
 
 def _update_tilt_prior(tracker: MountTracker, frame: Frame, tilt_source: str, serial_tilt: object | None) -> None:

@@ -193,3 +193,17 @@ def test_mount_tracker_deadband_keeps_the_applied_mount_through_wobble() -> None
     for _ in range(10):  # a real drift of 1 cm gets through
         t.from_floor(0.56, 15.0, 0.0)
     assert t.mount.height_m == pytest.approx(0.56, abs=0.002)
+
+
+def test_tilt_sensor_narrows_the_floor_search_window() -> None:
+    from depthnav_daemon.daemon import pose_prior
+    from depthnav_daemon.pipeline.pose import PoseParams
+
+    base = PoseParams(tilt_min_deg=-10.0, tilt_max_deg=60.0)
+    t = MountTracker(Mount(0.5, 0.0, 0.0), TrackerParams())
+    assert pose_prior(base, t) is base                      # configured mount: the configured window
+    t.from_tilt_sensor(15.3, 0.0, "accel")
+    p = pose_prior(base, t)
+    assert (p.tilt_min_deg, p.tilt_max_deg) == (5.0, 25.0)  # 15 +- 10, whole degrees
+    t.from_floor(0.5, 15.0, 0.0)
+    assert pose_prior(base, t) is base                      # the floor speaks for itself
