@@ -209,6 +209,23 @@ def test_block_points_are_the_block_centre_rays_floor_points() -> None:
     assert (res.blocks[:, 0] >= 24).all()
 
 
+def test_block_point_includes_tilt_and_roll() -> None:
+    # the block whose centre is the principal point (block top-left (24, 32), centre (35.5, 27.5))
+    # looks along the optical axis: pitched 30 deg down from 0.5 m it meets the floor at
+    # x = 0.5 / tan 30 = 0.86603 m, y = 0, whatever the roll (roll turns about that axis). The
+    # ROS 2 original dropped the tilt (x = h / tan(delta) = inf here); ROS 1 ignored roll.
+    intr = Intrinsics(64, 48, 50.0, 50.0, 35.5, 27.5)
+    depth = np.full((48, 64), 9000, np.uint16)
+    p = CliffParams(block_size=8, row_step=1, col_step=1, block_points_thresh=64, range_min_m=0.1)
+    for roll in (0.0, 10.0, -20.0):
+        res = detect_cliffs(depth, intr, Mount(0.5, 30.0, roll), p, -0.6, 0.01, 121)
+        k = np.flatnonzero((res.blocks[:, 0] == 24) & (res.blocks[:, 1] == 32))
+        assert k.size == 1
+        np.testing.assert_allclose(
+            res.points_m[k[0]], [0.5 / math.tan(math.radians(30)), 0.0], atol=1e-5
+        )
+
+
 @pytest.mark.parametrize(
     ("kwargs", "text"),
     [
