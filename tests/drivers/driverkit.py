@@ -157,3 +157,15 @@ def contract_report_isolated(spec: str, max_frames: int = 8) -> dict:
     if proc.returncode != 0:
         raise AssertionError(f"{spec}: child exited {proc.returncode}: {proc.stderr[-2000:]}")
     return json.loads(proc.stdout.strip().splitlines()[-1])
+
+
+def skip_without(missing: bool, package: str) -> None:
+    """Skip when a native package is missing, or fail if DEPTHNAV_REQUIRE_NATIVE=1 (CI sets it)."""
+    if not missing:
+        return
+    import pytest
+
+    message = f"{package} not installed (apt-get install {package})"
+    if os.environ.get("DEPTHNAV_REQUIRE_NATIVE") == "1":
+        pytest.fail(message + "; DEPTHNAV_REQUIRE_NATIVE=1 forbids skipping", pytrace=False)
+    pytest.skip(message)

@@ -6,7 +6,13 @@ from __future__ import annotations
 import itertools
 
 import pytest
-from driverkit import contract_report, contract_report_isolated, kinect_exact_frames, ramp_frames
+from driverkit import (
+    contract_report,
+    contract_report_isolated,
+    kinect_exact_frames,
+    ramp_frames,
+    skip_without,
+)
 
 from drivers.fakenect_format import write_fakenect
 from drivers.freenect_lib import find_library as find_freenect
@@ -47,15 +53,13 @@ def _fakenect_replay(tmp):
 
 
 def _oni(tmp):
-    if find_openni() is None:
-        pytest.skip("libopenni2-0 not installed")
+    skip_without(find_openni() is None, "libopenni2-0")
     write_oni(tmp / "x.oni", ramp_frames(N))
     return f"openni:{tmp / 'x.oni'}", True
 
 
 def _kinect_fakenect(tmp):
-    if find_freenect(fakenect=True) is None:
-        pytest.skip("libfreenect0.5 not installed")
+    skip_without(find_freenect(fakenect=True) is None, "libfreenect0.5")
     write_fakenect(tmp / "fk", kinect_exact_frames(N))
     return f"kinect://0?fakenect={tmp / 'fk'}", True
 

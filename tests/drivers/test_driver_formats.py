@@ -4,8 +4,7 @@ from __future__ import annotations
 
 import hashlib
 
-import pytest
-from driverkit import contract_report_isolated, kinect_exact_frames
+from driverkit import contract_report_isolated, kinect_exact_frames, skip_without
 
 import drivers
 from drivers.fakenect_format import write_fakenect
@@ -38,14 +37,13 @@ def test_every_format_replays_bit_identical_depth(tmp_path):
         with drivers.opened(drivers.create_driver(spec)) as driver:
             got = [digest(f.depth_mm) for f in drivers.iter_frames(driver)]
         assert got == want, spec
-    native = []
-    if find_openni() is not None:
-        write_oni(tmp_path / "x.oni", frames)
-        native.append(f"replay:{tmp_path / 'x.oni'}?rate=max")
-    if find_freenect(fakenect=True) is not None:
-        native.append(f"kinect://0?fakenect={tmp_path / 'fakenect'}")
-    if not native:
-        pytest.skip("neither libopenni2-0 nor libfreenect0.5 installed")
+    skip_without(find_openni() is None, "libopenni2-0")
+    skip_without(find_freenect(fakenect=True) is None, "libfreenect0.5")
+    write_oni(tmp_path / "x.oni", frames)
+    native = [
+        f"replay:{tmp_path / 'x.oni'}?rate=max",
+        f"kinect://0?fakenect={tmp_path / 'fakenect'}",
+    ]
     for spec in native:
         report = contract_report_isolated(spec, 5)
         assert [f["sha"] for f in report["frames"]] == want, spec

@@ -9,16 +9,18 @@ from __future__ import annotations
 import json
 
 import pytest
-from driverkit import kinect_exact_frames, run_isolated
+from driverkit import kinect_exact_frames, run_isolated, skip_without
 
 import drivers
 from drivers.errors import DeviceOpenError
 from drivers.fakenect_format import write_fakenect
 from drivers.freenect_lib import find_library
 
-pytestmark = pytest.mark.skipif(
-    find_library(fakenect=True) is None, reason="libfreenect0.5 not installed"
-)
+
+@pytest.fixture(autouse=True)
+def _needs_fakenect():
+    skip_without(find_library(fakenect=True) is None, "libfreenect0.5")
+
 
 CHILD = """
 import json, sys, numpy as np

@@ -12,13 +12,17 @@ import struct
 
 import numpy as np
 import pytest
-from driverkit import SMALL, ramp_frames, run_isolated
+from driverkit import SMALL, ramp_frames, run_isolated, skip_without
 
 from drivers.errors import RecordingError
 from drivers.oni_format import check_oni, write_oni
 from drivers.openni import find_library
 
-pytestmark = pytest.mark.skipif(find_library() is None, reason="libopenni2-0 not installed")
+
+@pytest.fixture(autouse=True)
+def _needs_openni():
+    skip_without(find_library() is None, "libopenni2-0")
+
 
 READ_ALL = """
 import json, sys, numpy as np, drivers

@@ -9,12 +9,12 @@ import threading
 
 import numpy as np
 import pytest
+from driverkit import ramp_frames, run_isolated
 
 import drivers
 from drivers.errors import DriverError
 from drivers.recording import read_recording, write_recording
 from drivers.replay import ReplayDriver
-from driverkit import ramp_frames, run_isolated
 
 
 def test_opened_closes_even_when_the_body_raises(tmp_path):

@@ -89,6 +89,10 @@ def test_describe_backends_names_every_backend():
 
 def test_kinect_intrinsics_options_are_checked_without_io():
     driver = drivers.create_driver("kinect://0?fx=590&cx=320.5")
-    assert (driver.intrinsics.fx, driver.intrinsics.fy, driver.intrinsics.cx) == (590.0, 580.0, 320.5)
+    assert (driver.intrinsics.fx, driver.intrinsics.fy, driver.intrinsics.cx) == (
+        590.0,
+        580.0,
+        320.5,
+    )
     with pytest.raises(DeviceSpecError, match="cx"):
         drivers.create_driver("kinect?cx=700")
