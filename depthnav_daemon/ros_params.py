@@ -84,6 +84,7 @@ _IGNORED = {
     "cliff_detector": {"output_frame_id", "rate", "publish_depth", "cam_model_update"},
     "depth_sensor_pose": {"output_frame_id", "rate", "publish_dbg_info", "cam_model_update"},
 }
+_ROS2_COMMON = {"use_sim_time"}  # every ROS 2 node has it
 
 # keys that identify a node in a file that does not name it
 _SIGNATURE = {
@@ -235,7 +236,7 @@ def load_ros_params(path: str | Path, node: str | None = None) -> RosParams:
     for raw_key, raw in params.items():
         key = str(raw_key)
         if key not in mapping:
-            (ignored if key in _IGNORED[name] else unknown).append(key)
+            (ignored if key in _IGNORED[name] | _ROS2_COMMON else unknown).append(key)
             continue
         section, fname, kind = mapping[key]
         values.setdefault(section, {})[fname] = _convert(raw, kind, where, key)
@@ -277,6 +278,11 @@ def load_ros_params(path: str | Path, node: str | None = None) -> RosParams:
                 f"ransac_dist_thresh {dist:g} m is far below Kinect-class depth noise (about 1 cm "
                 "at 2 m); few points will count as floor inliers, consider pose.inlier_dist_m = "
                 "0.02"
+            )
+        if version == 2 and "tilt_angle_max" in params:
+            warnings.append(
+                "the ROS 2 depth_sensor_pose applied tilt_angle_max to mount_height_max (a bug) and "
+                "never ran its estimator; depthnav uses it as the upper bound of the tilt prior"
             )
     if ignored:
         warnings.append(f"ignored (no depthnav equivalent): {', '.join(ignored)}")

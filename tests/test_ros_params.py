@@ -92,6 +92,9 @@ def test_each_shipped_file_loads_with_the_expected_warnings(ros: str, node: str)
         node == "cliff_detector" and ros == "ros2_master"
     )
     assert ("ransac_dist_thresh 0.001 m" in text) == (node == "depth_sensor_pose")
+    assert ("applied tilt_angle_max to mount_height_max" in text) == (
+        node == "depth_sensor_pose" and ros == "ros2_master"
+    )
     assert "ignored (no depthnav equivalent): " in text and "cam_model_update" in text
     assert "unknown keys" not in text
     # every section builds its depthnav parameters
