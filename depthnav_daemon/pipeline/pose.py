@@ -113,6 +113,11 @@ class PoseParams:
         check_int("pose.ransac_iterations", self.ransac_iterations, 1, 100_000)
         check_range("pose.inlier_dist_m", self.inlier_dist_m, 1e-4, 1.0, " m")
         check_int("pose.min_inliers", self.min_inliers, 3, 1_000_000)
+        if self.min_inliers > self.max_points:
+            raise ConfigError(
+                f"pose.min_inliers ({self.min_inliers}) must not exceed pose.max_points "
+                f"({self.max_points}): the estimate could never be confident"
+            )
         check_range("pose.min_inlier_ratio", self.min_inlier_ratio, 0.0, 1.0)
 
 
@@ -214,9 +219,8 @@ def _pose_table(intr: Intrinsics, params: PoseParams) -> _PoseTable:
     rolls = np.radians(np.linspace(-params.roll_max_deg, params.roll_max_deg, n_roll))
     for t in tilts:
         for r in rolls:
-            down = -(
-                rays @ cam_to_level(float(t), float(r))[2]
-            )  # -kz: metres down per metre of depth
+            # -kz: metres down per metre of depth, (Hs, Ws)
+            down = -(rays @ cam_to_level(float(t), float(r))[2])
             lo_kz = np.minimum(lo_kz, down)
             hi_kz = np.maximum(hi_kz, down)
     with np.errstate(divide="ignore", invalid="ignore"):

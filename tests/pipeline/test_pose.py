@@ -180,6 +180,7 @@ def test_swapped_axes_would_fail_here() -> None:
         ({"inlier_dist_m": float("nan")}, "pose.inlier_dist_m=nan"),
         ({"min_inlier_ratio": 1.5}, "pose.min_inlier_ratio=1.5"),
         ({"row_step": 2.0}, "pose.row_step=2.0"),
+        ({"max_points": 200}, "pose.min_inliers (300) must not exceed pose.max_points (200)"),
     ],
 )
 def test_bad_parameters_name_value_and_range(kwargs: dict, text: str) -> None:
