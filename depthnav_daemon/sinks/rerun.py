@@ -206,7 +206,10 @@ class RerunSink:
         )
         rec.log(
             "/world/sensor/depth/obstacles",
-            rr.AnnotationContext([(CLASS_OBSTACLE, "obstacle", (255, 40, 40, 200))]),
+            # class 0 must be transparent explicitly, or rerun tints the whole depth image
+            rr.AnnotationContext(
+                [(0, "", (0, 0, 0, 0)), (CLASS_OBSTACLE, "obstacle", (255, 40, 40, 220))]
+            ),
             static=True,
         )
         series = {"height_m": (255, 128, 0), "tilt_deg": (0, 160, 255), "roll_deg": (160, 80, 255)}
