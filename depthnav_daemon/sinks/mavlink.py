@@ -76,6 +76,8 @@ MAV_COMP_ID_OBSTACLE_AVOIDANCE = 196
 MAV_FRAME_BODY_FRD = 12
 DEFAULT_UDP = ("127.0.0.1", 14550)
 HEARTBEAT_PERIOD_S = 1.0
+WRITE_TIMEOUT_S = 0.25  # serial write; a blocked port drops a message instead of stalling
+JOIN_TIMEOUT_S = 0.8  # close(): WRITE_TIMEOUT_S plus margin, inside the daemon's 1 s stop
 MESSAGE_BYTES = 180  # a packed MAVLink 2 OBSTACLE_DISTANCE, for the baud-rate check
 
 
@@ -242,7 +244,11 @@ class _SerialLink:
             ) from exc
         self._serial_mod = serial
         try:
-            self._port = serial.Serial(port, baudrate=baud, timeout=0, write_timeout=1.0)
+            # a message takes ~30 ms at 57600 baud; waiting longer means the far end stopped reading
+            # (drop it), and close() must still stop the thread within the daemon's 1 s budget
+            self._port = serial.Serial(
+                port, baudrate=baud, timeout=0, write_timeout=WRITE_TIMEOUT_S
+            )
         except (serial.SerialException, OSError, ValueError) as exc:
             raise SinkError(
                 f"mavlink sink: cannot open serial port {port!r}: {exc}",
@@ -467,13 +473,15 @@ class MavlinkSink:
             self._error = exc
 
     def close(self) -> None:
-        """Stop the thread (joined, at most ~1 s) and close the link. Safe to call twice."""
+        """Stop the thread (joined, at most JOIN_TIMEOUT_S), close the link. Safe to call twice."""
         self._stop.set()
         thread, self._thread = self._thread, None
         if thread is not None:
-            thread.join(timeout=2.0)
+            thread.join(timeout=JOIN_TIMEOUT_S)
             if thread.is_alive():
-                log.warning("mavlink sink: sender thread did not stop within 2 s")
+                log.warning(
+                    "mavlink sink: sender thread did not stop within %.1f s", JOIN_TIMEOUT_S
+                )
         link, self._link = self._link, None
         if link is not None:
             try:

@@ -354,7 +354,9 @@ class RerunSink:
         if rec is None:
             return
         try:
-            rec.flush(timeout_sec=5.0)
+            # a file must be complete, and writing it is fast; a viewer that went away must not
+            # hold the daemon's shutdown (rerun's gRPC sink itself gives up after a few seconds)
+            rec.flush(timeout_sec=30.0 if self.mode == "save" else 1.0)
         except Exception:
             log.warning("rerun sink: flushing %s failed", self.target or "viewer", exc_info=True)
         try:
