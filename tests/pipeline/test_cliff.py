@@ -325,3 +325,49 @@ def test_real_floor_has_no_cliff_and_a_drop_cut_into_it_is_found() -> None:
         px, py = res.points_m[:, 0], res.points_m[:, 1]
         inside = (px > 2.2 - fp) & (px < 2.6 + fp) & (np.abs(py) < 0.5 + fp)
         assert inside.all(), f"view {i}: blocks off the cut at {res.points_m[~inside]}"
+
+
+def paper_blocks(
+    depth_mm: np.ndarray, intr: Intrinsics, h: float, tilt_deg: float, p: CliffParams
+) -> set:
+    """Eq. 6-8 block by block with the math module, as cliff_detector's loop (rows from the bottom)."""
+    a = math.radians(tilt_deg)
+    fov = math.atan(intr.cy / intr.fy) + math.atan((intr.height - 1 - intr.cy) / intr.fy)
+    bs = p.block_size
+    found = set()
+    for bj in range(min(p.used_depth_height, intr.height) // bs):
+        for bi in range(intr.width // bs):
+            cnt = 0
+            for j in range(0, bs, p.row_step):
+                for i in range(0, bs, p.col_step):
+                    row, col = intr.height - 1 - (bj * bs + j), bi * bs + i
+                    d = depth_mm[row, col] / 1000.0
+                    delta = fov * (row - intr.cy - 0.5) / (intr.height - 1)  # eq. 3
+                    s = math.sin(delta + a)
+                    ground = (
+                        h * math.cos(delta) / s if s > 0 else 100.0
+                    )  # eq. 6, old sign: + = down
+                    if d > ground + p.ground_margin_m and p.range_min_m < d < p.range_max_m:
+                        cnt += 1
+            if cnt >= p.block_points_thresh:  # eq. 7-8
+                found.add((intr.height - (bj + 1) * bs, bi * bs))
+    return found
+
+
+def test_paper_method_matches_an_independent_eq_6_to_8() -> None:
+    intr = Intrinsics(160, 120, 145.0, 139.0, 83.0, 57.0)
+    mount = Mount(0.5, 20.0, 0.0)
+    scene = Scene(holes=(step_down(1.3, 0.2), Hole(0.9, 1.05, 0.2, 0.5, 0.3)))
+    view = render(scene, intr, mount, KinectNoise(), np.random.default_rng(9))
+    p = CliffParams(
+        method="paper",
+        block_size=8,
+        row_step=2,
+        col_step=2,
+        block_points_thresh=5,
+        used_depth_height=100,
+    )
+    got = detect_cliffs(view.depth_mm, intr, mount, p, -0.6, 0.01, 121)
+    want = paper_blocks(view.depth_mm, intr, mount.height_m, mount.tilt_deg, p)
+    assert len(want) > 10
+    assert {tuple(b) for b in got.blocks.tolist()} == want
