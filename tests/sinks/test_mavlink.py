@@ -226,10 +226,11 @@ def test_unplugged_serial_port_is_a_sink_error(pty_pair, pairs, context):
     os.close(master)  # the far end goes away: writes on the slave fail
     frame, result = pairs[0]
     deadline = time.monotonic() + 10.0
-    with pytest.raises(SinkError, match="failed"):
+    with pytest.raises(SinkError, match="failed") as info:
         while time.monotonic() < deadline:
             sink.write(frame, result)
             time.sleep(0.05)
+    assert "\n" not in str(info.value) and info.value.hint
     sink.close()
 
 
