@@ -137,12 +137,19 @@ class FreenectDepth:
             motor device free for pyusb.
         want_mm: ask libfreenect for millimetres (its registration with the device's own
             constants); fakenect 0.5.3 aborts on that request, so pass False for it.
+        max_events: stop after this many successful event calls (fakenect: its index length).
     """
 
     def __init__(
-        self, lib_path: Path, index: int = 0, use_motor: bool = False, want_mm: bool = True
+        self,
+        lib_path: Path,
+        index: int = 0,
+        use_motor: bool = False,
+        want_mm: bool = True,
+        max_events: int | None = None,
     ) -> None:
         self.lib_path = lib_path
+        self.max_events = max_events
         self.want_mm = want_mm
         self.index = index
         self.use_motor = use_motor
@@ -222,13 +229,17 @@ class FreenectDepth:
     def _pump(self) -> None:
         assert self._lib is not None
         tv = TimeVal(0, 100_000)
+        done = 0
         while not self._stop.is_set():
+            if self.max_events is not None and done >= self.max_events:
+                break
             status = self._lib.freenect_process_events_timeout(self._ctx, ctypes.byref(tv))
             if status == LIBUSB_ERROR_INTERRUPTED:  # a signal arrived; not a device problem
                 continue
             if status < 0:
                 self.end_status = status
                 break
+            done += 1
         self.ended.set()
 
     def get(self, timeout_s: float) -> tuple[float, npt.NDArray[np.uint16]] | None:

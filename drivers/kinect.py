@@ -56,13 +56,19 @@ GRAMMAR = (
 OPTIONS = ("accel", "tilt_deg", "led", "lib", "fakenect", "const_shift", *INTRINSICS_OPTIONS)
 
 
-def check_fakenect_recording(folder: Path) -> int:
+def check_fakenect_recording(folder: Path) -> tuple[int, int]:
     """Check a fakenect folder so the C library never meets a file it would exit() or over-read on.
 
     Returns:
-        The number of depth frames.
+        (depth frames, index lines); fakenect plays one index line per event.
     """
     entries = fakenect_format.read_index(folder)
+    lines = (folder / "INDEX.txt").read_text(encoding="ascii").splitlines()
+    for number, line in enumerate(lines, 1):
+        if not line.strip():
+            raise RecordingError(
+                f"{folder / 'INDEX.txt'}:{number}: blank line; fakenect cannot play it"
+            )
     expected = len(fakenect_format.PGM_HEADER) + fakenect_format.WIDTH * fakenect_format.HEIGHT * 2
     for entry in entries:
         if entry.kind in "dr":
@@ -77,7 +83,7 @@ def check_fakenect_recording(folder: Path) -> int:
                 )
             if entry.kind == "r" and b"\n" not in head:
                 raise RecordingError(f"{entry.path}: colour file without a header line")
-    return sum(e.kind == "d" for e in entries)
+    return sum(e.kind == "d" for e in entries), len(lines)
 
 
 class KinectDriver:
@@ -202,9 +208,11 @@ class KinectDriver:
             raise DriverError(f"{self.spec_text} is already open")
         lib = self._library()
         if self.fakenect_dir is not None:
-            n = check_fakenect_recording(self.fakenect_dir)
+            n, events = check_fakenect_recording(self.fakenect_dir)
             log.info("replaying %d fakenect frames from %s", n, self.fakenect_dir)
             os.environ["FAKENECT_PATH"] = str(self.fakenect_dir.resolve())  # read by the C library
+        else:
+            events = 0
         serial = None
         try:
             if self.accel == "usb":
@@ -219,6 +227,9 @@ class KinectDriver:
                 self.index,
                 use_motor=self.accel == "freenect",
                 want_mm=self.fakenect_dir is None,
+                # Stop at the last index line: one more call makes fakenect printf() a warning
+                # to stdout, which may be the daemon's data channel.
+                max_events=events if self.fakenect_dir is not None else None,
             )
             self._depth.open()
         except BaseException:

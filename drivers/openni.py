@@ -259,11 +259,7 @@ class OpenNIDriver:
                 self._n_frames = summary.frames
                 return openni2.Device.open_file(str(self.file).encode())
             if self.uri:
-                return (
-                    openni2.Device.open_any()
-                    if self.uri == ""
-                    else openni2.Device(self.uri.encode())
-                )
+                return openni2.Device(self.uri.encode())
             return openni2.Device.open_any()
         except OpenNIError as exc:
             if self.file is not None:

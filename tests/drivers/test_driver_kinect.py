@@ -67,6 +67,8 @@ def run_kinect(
     assert proc.returncode == 0, (
         f"child exited {proc.returncode}: {proc.stdout[-500:]} {proc.stderr[-2000:]}"
     )
+    # fakenect printf()s to stdout if played past its index; the driver must stop before that.
+    assert "No more lines" not in proc.stdout
     return json.loads(proc.stdout.strip().splitlines()[-1])
 
 
