@@ -79,6 +79,23 @@ def attitude_to_tilt_roll(pitch_rad: float, roll_rad: float) -> tuple[float, flo
     return -math.degrees(pitch_rad), math.degrees(roll_rad)
 
 
+def tilt_roll_to_accel(
+    tilt_deg: float, roll_deg: float, g_mps2: float = 9.80665
+) -> tuple[float, float, float]:
+    """The camera-frame specific force (m/s^2) a sensor at rest with this attitude would read.
+
+    Lets an IMU's attitude stand in for a missing accelerometer in ``Frame.accel_mps2``:
+    pitched down by t and rolled (left side up) by r it reads
+    (-g sin r cos t, -g cos r cos t, -g sin t).
+    """
+    t, r = math.radians(tilt_deg), math.radians(roll_deg)
+    return (
+        -g_mps2 * math.sin(r) * math.cos(t),
+        -g_mps2 * math.cos(r) * math.cos(t),
+        -g_mps2 * math.sin(t),
+    )
+
+
 class SerialTiltSource:
     """Reads attitude from a serial port in a background thread.
 

@@ -12,7 +12,13 @@ import pytest
 from pymavlink.dialects.v20 import common as mavlink2
 
 from drivers.errors import DeviceLost, DeviceOpenError, DeviceSpecError
-from drivers.serial_tilt import SerialTiltSource, format_line, nmea_checksum, parse_line
+from drivers.serial_tilt import (
+    SerialTiltSource,
+    format_line,
+    nmea_checksum,
+    parse_line,
+    tilt_roll_to_accel,
+)
 
 WAIT_S = 10.0  # generous bound for a slow machine; the tests return as soon as data arrives
 
@@ -117,3 +123,15 @@ def test_spec_grammar():
         SerialTiltSource.from_spec("serialtilt:/dev/ttyUSB0?parity=E")
     with pytest.raises(DeviceSpecError):
         SerialTiltSource.from_spec("serialtilt:/dev/ttyUSB0?protocol=nmea")
+
+
+@pytest.mark.parametrize(("tilt", "roll"), [(0.0, 0.0), (15.0, 0.0), (-10.0, 5.0), (20.0, -8.0)])
+def test_attitude_as_accelerometer_follows_the_convention(tilt, roll):
+    ax, ay, az = tilt_roll_to_accel(tilt, roll)
+    g = 9.80665
+    t, r = math.radians(tilt), math.radians(roll)
+    assert ax == pytest.approx(-g * math.sin(r) * math.cos(t))  # roll: left side up -> ax < 0
+    assert math.degrees(math.atan2(-az, -ay / math.cos(r))) == pytest.approx(tilt)
+    assert math.sqrt(ax * ax + ay * ay + az * az) == pytest.approx(g)
+    if roll == 0.0:
+        assert (ax, ay, az) == pytest.approx((0.0, -g * math.cos(t), -g * math.sin(t)))
