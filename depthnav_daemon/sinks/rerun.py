@@ -112,6 +112,14 @@ def blueprint() -> Any:
     )
 
 
+def _discard(rec: Any) -> None:
+    """Disconnect a recording whose sink could not be set up."""
+    try:
+        rec.disconnect()
+    except Exception:  # best effort on an already failing path
+        log.debug("discarding the rerun recording failed", exc_info=True)
+
+
 class RerunSink:
     """Logs frames to an explicit ``rr.RecordingStream`` (no global rerun state).
 
@@ -174,6 +182,13 @@ class RerunSink:
                 parent = os.path.dirname(os.path.abspath(self.target))
                 if not os.path.isdir(parent):
                     raise SinkError(f"rerun sink: folder {parent!r} does not exist")
+                try:  # fail with a plain message before rerun does (it also warns about lost data)
+                    with open(self.target, "ab"):
+                        pass
+                except OSError as exc:
+                    raise SinkError(
+                        f"rerun sink: cannot write {self.target!r}: {exc.strerror}"
+                    ) from exc
                 rec.save(self.target, default_blueprint=blueprint())
             elif self.mode == "connect":
                 rec.connect_grpc(self.target, default_blueprint=blueprint())
@@ -186,9 +201,10 @@ class RerunSink:
                         "on a headless robot",
                     )
                 rec.spawn(default_blueprint=blueprint())
-        except SinkError:
-            raise
         except Exception as exc:  # rerun raises plain RuntimeError/OSError subclasses
+            _discard(rec)
+            if isinstance(exc, SinkError):
+                raise
             raise SinkError(
                 f"rerun sink ({self.mode} {self.target or 'viewer'}) failed: {exc}"
             ) from exc

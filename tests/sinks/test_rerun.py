@@ -205,6 +205,13 @@ def test_save_into_missing_folder(tmp_path, context):
         sink.open(context)
 
 
+def test_save_where_no_file_can_be_made(context):
+    sink = create_sink("rerun:/proc/depthnav-test.rrd")  # /proc exists, but takes no new files
+    with pytest.raises(SinkError, match="cannot write"):
+        sink.open(context)
+    sink.close()
+
+
 @pytest.mark.parametrize(
     "spec", ["rerun:run.txt", "rerun://host:9876", "rerun:x.rrd?every=0", "rerun?fps=3"]
 )
