@@ -12,11 +12,14 @@ PATH is one of (detected when opened):
 
 Options: ``rate`` realtime (default; sleep to the recorded timestamps) or max (no sleeping);
 ``loop`` 1 to start again at the end (timestamps keep increasing); ``fps`` frame rate for sources
-without timestamps (default 30); ``fx, fy, cx, cy`` override the intrinsics (pixels).
+without timestamps (default 30); ``fx, fy, cx, cy`` override the intrinsics (pixels); ``start``
+skips that many frames when opening (a seek done by reading, as OpenNI2's own seek hangs; a loop
+restarts at frame 0).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import threading
 import time
@@ -37,6 +40,7 @@ from drivers.spec import (
     check_options,
     choice_option,
     float_option,
+    int_option,
     intrinsics_options,
 )
 
@@ -45,7 +49,7 @@ log = logging.getLogger(__name__)
 GRAMMAR = (
     "replay:PATH[?rate=realtime|max&loop=0|1&fps=F&fx=..&fy=..&cx=..&cy=..&scale=S&const_shift=C]"
 )
-OPTIONS = ("rate", "loop", "fps", "fx", "fy", "cx", "cy", "scale", "const_shift")
+OPTIONS = ("rate", "loop", "fps", "fx", "fy", "cx", "cy", "scale", "const_shift", "start")
 
 Item = tuple[float, npt.NDArray[np.uint16], tuple[float, float, float] | None, TiltState | None]
 
@@ -66,6 +70,7 @@ class ReplayDriver:
         intrinsics_override: dict[str, float] | None = None,
         scale: float | None = None,
         const_shift: float = fakenect_format.CONST_SHIFT,
+        start: int = 0,
         spec_text: str = "",
     ) -> None:
         self.path = Path(path)
@@ -75,6 +80,7 @@ class ReplayDriver:
         self.overrides = dict(intrinsics_override or {})
         self.scale = scale
         self.const_shift = const_shift
+        self.start = start
         self.spec_text = spec_text or f"replay:{path}"
         self._items: Iterator[Item] | None = None
         self._inner: Driver | None = None
@@ -103,6 +109,7 @@ class ReplayDriver:
             const_shift=float_option(spec, "const_shift", fakenect_format.CONST_SHIFT, 0.0, 1000.0)
             or fakenect_format.CONST_SHIFT,
             spec_text=spec.text,
+            start=int_option(spec, "start", 0, 0, 10_000_000),
         )
 
     # --- sources -------------------------------------------------------------------------
@@ -239,14 +246,39 @@ class ReplayDriver:
         self._is_open = True
         with ReplayDriver._count_lock:
             ReplayDriver.open_count += 1
+        try:
+            self._skip(self.start)
+        except BaseException:
+            self.close()
+            raise
         return info
+
+    def _skip(self, count: int) -> None:
+        for skipped in range(count):
+            if self._inner is not None:
+                item: object = self._inner.read_frame(5.0)
+            else:
+                assert self._items is not None
+                item = next(self._items, None)
+            if item is None:
+                raise RecordingError(
+                    f"{self.path}: start={count} is beyond the end ({skipped} frames)",
+                    hint="choose a smaller start",
+                )
 
     def read_frame(self, timeout_s: float = 1.0) -> Frame | None:
         """The next recorded frame, paced when ``rate=realtime``; None at the end."""
         if not self._is_open:
             raise DriverError(f"replay {self.path} is not open", hint="call open() first")
         if self._inner is not None:
-            return self._inner.read_frame(timeout_s)
+            frame = self._inner.read_frame(timeout_s)
+            if frame is None:
+                return None
+            frame = dataclasses.replace(
+                frame, seq=self._seq
+            )  # seq counts from 0 after a start skip
+            self._seq += 1
+            return frame
         assert self._items is not None and self._intrinsics is not None
         item = next(self._items, None)
         if item is None and self.loop and self._seq > 0:

@@ -140,3 +140,13 @@ def test_open_count_returns_to_zero(tmp_path):
     driver.close()
     driver.close()
     assert ReplayDriver.open_count == before
+
+
+def test_start_skips_frames_and_seq_counts_from_zero(tmp_path):
+    frames = ramp_frames(4)
+    write_recording(tmp_path / "rec", frames)
+    out = read_all(f"replay:{tmp_path / 'rec'}?rate=max&start=2")
+    assert [f.seq for f in out] == [0, 1]
+    np.testing.assert_array_equal(out[0].depth_mm, frames[2].depth_mm)
+    with pytest.raises(RecordingError, match="start=9 is beyond the end"):
+        read_all(f"replay:{tmp_path / 'rec'}?rate=max&start=9")
