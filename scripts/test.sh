@@ -3,4 +3,6 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 bash scripts/install.sh
+# the native sensor libraries were just installed: their tests must run, not skip
+export DEPTHNAV_REQUIRE_NATIVE=1
 exec .venv/bin/python -m pytest -q "$@"
