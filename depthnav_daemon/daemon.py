@@ -21,7 +21,8 @@ from depthnav_daemon.config import Config
 from depthnav_daemon.errors import DepthnavError, FrameError, SinkError
 from depthnav_daemon.mount_tracker import MountTracker, TrackerParams
 from depthnav_daemon.pipeline import Result, process
-from depthnav_daemon.pipeline.pose import PoseParams, tilt_roll_from_accel
+from depthnav_daemon.pipeline.geometry import Mount
+from depthnav_daemon.pipeline.pose import PoseEstimate, PoseParams, tilt_roll_from_accel
 from depthnav_daemon.sinks import create_sink
 from depthnav_daemon.sinks.base import Sink, SinkContext
 from drivers import create_driver
@@ -186,17 +187,21 @@ def run(
             want_pose = d.pose_every_frames > 0 and since_pose >= d.pose_every_frames
             if d.pose_every_s > 0 and (last_pose_t is None or frame.timestamp_s - last_pose_t >= d.pose_every_s):
                 want_pose = True
+            def on_pose(est: PoseEstimate) -> tuple[Mount, str]:
+                _apply_pose(tracker, est, d.tilt_source)
+                return tracker.mount, tracker.source
+
             try:
                 result = process(
                     frame, tracker.mount, cfg.scan, cfg.cliff if d.cliff else None,
-                    pose_prior(cfg.pose, tracker) if want_pose else None, rng, tracker.source, time.perf_counter,
+                    pose_prior(cfg.pose, tracker) if want_pose else None, rng, tracker.source,
+                    time.perf_counter, on_pose,
                 )
             except FrameError as exc:
                 log.warning("frame %d skipped: %s", frame.seq, exc)
                 continue
             if want_pose:
                 since_pose, last_pose_t = 0, frame.timestamp_s
-                _apply_pose(tracker, result, d.tilt_source)
             since_pose += 1
             if result.warning:
                 log.debug("frame %d: %s", frame.seq, result.warning)
@@ -250,10 +255,7 @@ def _update_tilt_prior(tracker: MountTracker, frame: Frame, tilt_source: str, se
             tracker.from_tilt_sensor(reading.tilt_deg, reading.roll_deg, "serial")
 
 
-def _apply_pose(tracker: MountTracker, result: Result, tilt_source: str) -> None:
-    est = result.pose
-    if est is None:
-        return
+def _apply_pose(tracker: MountTracker, est: PoseEstimate, tilt_source: str) -> None:
     if not est.ok:
         log.debug("floor pose not confident: %s", est.reason)
         return

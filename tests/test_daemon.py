@@ -142,8 +142,10 @@ def test_the_floor_pose_feeds_the_scan() -> None:
                        {"device": SPEC, "mount": {"height_m": 1.0, "tilt_deg": 0.0}})
     run(cfg, threading.Event(), max_frames=6, sink_factory=lambda _s: sink)
     first, last = sink.results[0], sink.results[-1]
-    assert first.mount_source == "config" and first.mount.height_m == 1.0
-    assert first.pose is not None and first.pose.ok  # estimated on frame 0, applied from frame 1
+    # estimated on frame 0 and already used for frame 0's scan and cliffs (no false drop-offs from
+    # a wrong configured height on the first frame)
+    assert first.pose is not None and first.pose.ok
+    assert first.mount_source == "floor" and first.mount.height_m == pytest.approx(0.55, abs=0.01)
     assert last.mount_source == "floor"
     assert last.mount.height_m == pytest.approx(0.55, abs=0.01)
     assert last.mount.tilt_deg == pytest.approx(15.0, abs=0.5)

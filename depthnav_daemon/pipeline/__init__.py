@@ -63,8 +63,9 @@ def process(
     rng: np.random.Generator | None = None,
     mount_source: str = "config",
     clock: Callable[[], float] | None = None,
+    on_pose: Callable[[PoseEstimate], tuple[Mount, str]] | None = None,
 ) -> Result:
-    """Run the stages on one frame.
+    """Run the stages on one frame: the floor pose (when asked), then the scan, then the cliffs.
 
     Args:
         frame: the depth frame.
@@ -75,6 +76,8 @@ def process(
         rng: random generator for RANSAC; required with ``pose_params``.
         mount_source: where ``mount`` came from, copied into the result.
         clock: a monotonic clock (seconds) to time the stages with, or None for no timings.
+        on_pose: given this frame's pose estimate, returns the (mount, source) to use from now on,
+            so a new floor estimate already serves the frame it was made on.
 
     Returns:
         The frame's Result; a frame without any valid reading gives all-NaN scans and a warning.
@@ -82,29 +85,29 @@ def process(
     from depthnav_daemon.pipeline.cliff import detect_cliffs
     from depthnav_daemon.pipeline.pose import estimate_pose
 
-    timings: dict[str, float] = {}
     depth, intr = frame.depth_mm, frame.intrinsics
     warning = None if depth.any() else "no valid depth in this frame (all pixels 0)"
+    tick = clock or (lambda: 0.0)
+    timings: dict[str, float] = {}
 
-    t0 = clock() if clock else 0.0
-    scan = depth_to_scan(depth, intr, mount, scan_params)
-    t1 = clock() if clock else 0.0
-    cliff = None
-    if cliff_params is not None:
-        cliff = detect_cliffs(depth, intr, mount, cliff_params, scan.angle_min, scan.angle_increment, scan.ranges.size)
-    t2 = clock() if clock else 0.0
     pose = None
     if pose_params is not None:
         if rng is None:
             raise ValueError("process() with pose_params needs an rng (numpy.random.Generator)")
+        t0 = tick()
         pose = estimate_pose(depth, intr, pose_params, rng)
-    t3 = clock() if clock else 0.0
-    if clock:
-        timings = {"scan": t1 - t0}
-        if cliff_params is not None:
-            timings["cliff"] = t2 - t1
-        if pose_params is not None:
-            timings["pose"] = t3 - t2
+        timings["pose"] = tick() - t0
+        if on_pose is not None:
+            mount, mount_source = on_pose(pose)
+    t0 = tick()
+    scan = depth_to_scan(depth, intr, mount, scan_params)
+    timings["scan"] = tick() - t0
+    cliff = None
+    if cliff_params is not None:
+        t0 = tick()
+        cliff = detect_cliffs(depth, intr, mount, cliff_params, scan.angle_min, scan.angle_increment, scan.ranges.size)
+        timings["cliff"] = tick() - t0
     return Result(
-        frame.seq, frame.timestamp_s, intr, mount, mount_source, scan, cliff, pose, timings, warning
+        frame.seq, frame.timestamp_s, intr, mount, mount_source, scan, cliff, pose,
+        timings if clock else {}, warning,
     )

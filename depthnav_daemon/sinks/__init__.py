@@ -1,6 +1,7 @@
 """Output sinks: ``create_sink(spec)`` builds one from a spec string; ``SINKS`` names them all.
 
     stdout                               one JSON line per frame (docs/json_schema.md)
+    text[?every=N]                       one human-readable summary line per frame
     udp://HOST:PORT                      the same JSON, one datagram per frame
     null                                 discard (throughput measurement)
     rerun | rerun+grpc://HOST:PORT | rerun:FILE.rrd    viewer / remote viewer / file
@@ -22,6 +23,7 @@ __all__ = ["SINKS", "Sink", "SinkContext", "SinkSpec", "create_sink", "parse_sin
 
 SINKS: dict[str, tuple[str, str]] = {  # scheme -> (module, class); imported only when used
     "stdout": ("depthnav_daemon.sinks.stdout", "StdoutSink"),
+    "text": ("depthnav_daemon.sinks.text", "TextSink"),
     "udp": ("depthnav_daemon.sinks.udp", "UdpSink"),
     "null": ("depthnav_daemon.sinks.null", "NullSink"),
     "rerun": ("depthnav_daemon.sinks.rerun", "RerunSink"),

@@ -77,7 +77,9 @@ class StdoutSink:
         """
         if self._stream is None:
             raise SinkError(f"sink {self.name!r} is not open")
-        line = jsonmsg.dumps(jsonmsg.frame_message(frame, result, self._version, time.time()))
+        line = self.format(frame, result)
+        if line is None:
+            return
         try:
             print(line, file=self._stream, flush=True)
         except BrokenPipeError:
@@ -90,6 +92,10 @@ class StdoutSink:
             self._stream = None
             raise SinkError(f"writing to stdout failed: {exc}") from exc
         self.lines += 1
+
+    def format(self, frame: Frame, result: Result) -> str | None:
+        """The line to write for one frame (None: write nothing for it)."""
+        return jsonmsg.dumps(jsonmsg.frame_message(frame, result, self._version, time.time()))
 
     def close(self) -> None:
         """Flush what is buffered. Safe to call twice; a broken pipe at this point is ignored."""
