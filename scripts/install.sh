@@ -24,7 +24,14 @@ if [ ! -x .venv/bin/python ]; then
   echo "depthnav install: creating .venv with $($PY --version)" >&2
   "$PY" -m venv .venv
 fi
-.venv/bin/python -m pip install -q --disable-pip-version-check --upgrade pip >/dev/null
-.venv/bin/python -m pip install -q --disable-pip-version-check -e ".[dev]"
+# pip's own output goes to a log; it is shown only when something fails
+log=.venv/install.log
+echo "depthnav install: pip install -e .[dev] into .venv (log: $log)" >&2
+if ! { .venv/bin/python -m pip install --disable-pip-version-check --upgrade pip \
+       && .venv/bin/python -m pip install --disable-pip-version-check -e ".[dev]"; } >"$log" 2>&1; then
+  tail -n 30 "$log" >&2
+  echo "depthnav install: pip failed; the whole log is in $log" >&2
+  exit 1
+fi
 # compile and cache the numeric kernels now, not at the robot's first frame
 .venv/bin/python -m depthnav_daemon.warmup
