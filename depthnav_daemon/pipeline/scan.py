@@ -163,6 +163,9 @@ class _ExactTable:
     the pixel at the principal point). In each row a bin takes the pixels whose centres fall in it,
     or, where pixels are wider than bins (the lower rows of a tilted camera), the pixel whose
     footprint covers the bin's centre. Every pixel is used and no bin is empty because of the binning.
+
+    The kernel walks the image row by row and keeps a minimum per column while the column feeds the
+    same bins (a "run"); the flush lists say where each run's minimum goes when it ends.
     """
 
     rows: npt.NDArray[np.int32]         # (Hs,) image rows
@@ -173,10 +176,12 @@ class _ExactTable:
     near_lo_mm: npt.NDArray[np.uint16]  # (Hs, Ws) obstacle height but closer than range_min iff
     near_hi_mm: npt.NDArray[np.uint16]  # near_lo <= d <= near_hi
     kr_m_per_mm: F32                    # (Hs, Ws) horizontal range per millimetre of depth
-    g_lo: npt.NDArray[np.int16]         # (Hs, N) first column feeding each bin per row; Ws = none
-    g_hi: npt.NDArray[np.int16]         # (Hs, N) last column feeding each bin per row
-    cb_lo: npt.NDArray[np.int16]        # (Hs, Ws) first bin a column feeds
-    cb_hi: npt.NDArray[np.int16]        # (Hs, Ws) last bin a column feeds (< cb_lo: none)
+    fl_start: npt.NDArray[np.int32]     # (Hs + 1,) flushes after row i: fl_start[i]:fl_start[i + 1]
+    fl_col: npt.NDArray[np.int16]       # (F,) column whose run minimum is flushed ..
+    fl_bin: npt.NDArray[np.int16]       # (F,) .. into this bin
+    rs_start: npt.NDArray[np.int32]     # (Hs + 1,) runs ending after row i: rs_start[i]:rs_start[i + 1]
+    rs_col: npt.NDArray[np.int16]       # (R,) their columns
+    n_bins: int
     angle_min: float
     angle_increment: float
 
@@ -260,6 +265,33 @@ def _bin_map(
     return g_lo.astype(np.int16), g_hi.astype(np.int16), cb_lo.astype(np.int16), cb_hi.astype(np.int16)
 
 
+def _runs(
+    cb_lo: npt.NDArray[np.int16], cb_hi: npt.NDArray[np.int16]
+) -> tuple[npt.NDArray[np.int32], npt.NDArray[np.int16], npt.NDArray[np.int16], npt.NDArray[np.int32], npt.NDArray[np.int16]]:
+    """Flush lists of the exact kernel from the bins every pixel feeds.
+
+    Args:
+        cb_lo, cb_hi: (Hs, Ws) first and last bin each pixel feeds (cb_lo > cb_hi: none).
+
+    Returns:
+        fl_start, fl_col, fl_bin, rs_start, rs_col: a run of column c ends after row i when row
+        i + 1 feeds other bins (or i is the last row); its minimum then goes to every bin it feeds.
+    """
+    hs, ws = cb_lo.shape
+    ends = np.ones((hs, ws), dtype=bool)
+    ends[:-1] = (cb_lo[1:] != cb_lo[:-1]) | (cb_hi[1:] != cb_hi[:-1])
+    ii, jj = np.nonzero(ends)  # row-major: grouped by row
+    rs_start = np.zeros(hs + 1, dtype=np.int32)
+    np.cumsum(np.bincount(ii, minlength=hs), out=rs_start[1:])
+    lo = cb_lo[ii, jj].astype(np.int64)
+    span = np.maximum(cb_hi[ii, jj].astype(np.int64) - lo + 1, 0)
+    k = np.repeat(np.arange(ii.size), span)
+    within = np.arange(k.size) - np.repeat(np.cumsum(span) - span, span)
+    fl_start = np.zeros(hs + 1, dtype=np.int32)
+    np.cumsum(np.bincount(ii[k], minlength=hs), out=fl_start[1:])
+    return fl_start, jj[k].astype(np.int16), (lo[k] + within).astype(np.int16), rs_start, jj.astype(np.int16)
+
+
 @functools.lru_cache(maxsize=16)
 def _exact_table(intr: Intrinsics, mount: Mount, params: ScanParams) -> _ExactTable:
     rows = _used_rows(intr, params)
@@ -302,21 +334,22 @@ def _exact_table(intr: Intrinsics, mount: Mount, params: ScanParams) -> _ExactTa
         )
     angle_min = edge_min + inc / 2.0
     centre = _bearing(intr, rot, u + 0.0 * v, v + 0.0 * u)
-    g_lo, g_hi, cb_lo, cb_hi = _bin_map(centre, lo_b, hi_b, sane, angle_min, inc, n)
+    _, _, cb_lo, cb_hi = _bin_map(centre, lo_b, hi_b, sane, angle_min, inc, n)
+    fl_start, fl_col, fl_bin, rs_start, rs_col = _runs(cb_lo, cb_hi)
     kr32 = (kr / 1000.0).astype(np.float32)
     row_idx = np.arange(intr.height, dtype=np.int32)[rows]
-    for arr in (zlo_mm, zhi_mm, near_lo_mm, near_hi_mm, kr32, g_lo, g_hi, cb_lo, cb_hi, row_idx):
+    for arr in (zlo_mm, zhi_mm, near_lo_mm, near_hi_mm, kr32, fl_start, fl_col, fl_bin, rs_start, rs_col, row_idx):
         arr.setflags(write=False)
     return _ExactTable(
-        row_idx, 0, params.col_step, zlo_mm, zhi_mm, near_lo_mm, near_hi_mm, kr32, g_lo, g_hi, cb_lo, cb_hi,
-        angle_min, inc,
+        row_idx, 0, params.col_step, zlo_mm, zhi_mm, near_lo_mm, near_hi_mm, kr32,
+        fl_start, fl_col, fl_bin, rs_start, rs_col, n, angle_min, inc,
     )
 
 
 def scan_layout(intr: Intrinsics, mount: Mount, params: ScanParams) -> tuple[float, float, int]:
     """(angle_min, angle_increment, number of bins) of the exact scan for this camera and mount."""
     t = _exact_table(intr, mount, params)
-    return t.angle_min, t.angle_increment, int(t.g_lo.shape[1])
+    return t.angle_min, t.angle_increment, t.n_bins
 
 
 def obstacle_pixels(depth: np.ndarray, intr: Intrinsics, mount: Mount, params: ScanParams) -> npt.NDArray[np.bool_]:
@@ -332,10 +365,11 @@ def obstacle_pixels(depth: np.ndarray, intr: Intrinsics, mount: Mount, params: S
 
 def _exact_scan(depth_mm: npt.NDArray[np.uint16], intr: Intrinsics, mount: Mount, params: ScanParams) -> LaserScan:
     t = _exact_table(intr, mount, params)
-    ranges = np.empty(t.g_lo.shape[1], dtype=np.float32)
+    ranges = np.empty(t.n_bins, dtype=np.float32)
+    acc = np.empty(t.zlo_mm.shape[1], dtype=np.float32)
     exact_scan_kernel(
         depth_mm[:, t.col0 :: t.col_step], t.rows, t.zlo_mm, t.zhi_mm, t.near_lo_mm, t.near_hi_mm,
-        t.kr_m_per_mm, t.g_lo, t.g_hi, t.cb_lo, t.cb_hi, ranges,
+        t.kr_m_per_mm, t.fl_start, t.fl_col, t.fl_bin, t.rs_start, t.rs_col, acc, ranges,
     )
     n = ranges.size
     return LaserScan(

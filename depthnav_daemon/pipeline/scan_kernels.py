@@ -14,8 +14,14 @@ SEEN = np.float32(1e30)  # "valid readings, no obstacle": sorts between ranges a
 
 
 @kernel
-def exact_scan_kernel(depth, rows, zlo, zhi, nlo, nhi, kr, g_lo, g_hi, cb_lo, cb_hi, out):  # noqa: ANN001, ANN201, PLR0913
+def exact_scan_kernel(depth, rows, zlo, zhi, nlo, nhi, kr, fl_start, fl_col, fl_bin, rs_start, rs_col, acc, out):  # noqa: ANN001, ANN201, PLR0913
     """Exact scan of one frame into ``out`` (n,) float32, REP 117 values.
+
+    One row-major pass keeps a running minimum per column (``acc``) for as long as the column
+    feeds the same bins; where a column's bins change from one row to the next (a "run" ends),
+    the run's minimum is flushed into those bins and the column starts again. A column's bins
+    change only a few times over the image (tens of thousands of flushes per 640x480 frame,
+    against one gather per row and bin), and min is exact, so this equals the per-row binning.
 
     Args:
         depth: (H, Ws) uint16 mm, already reduced to the used columns (a strided view is fine).
@@ -23,17 +29,19 @@ def exact_scan_kernel(depth, rows, zlo, zhi, nlo, nhi, kr, g_lo, g_hi, cb_lo, cb
         zlo, zhi: (Hs, Ws) uint16: obstacle iff zlo <= d <= zhi.
         nlo, nhi: (Hs, Ws) uint16: an obstacle closer than range_min iff nlo <= d <= nhi.
         kr: (Hs, Ws) float32 horizontal range per mm of depth.
-        g_lo, g_hi: (Hs, n) int16 interval of columns feeding bin b in row i; Ws = none.
-        cb_lo, cb_hi: (Hs, Ws) int16 first and last bin fed by a column (cb_lo > cb_hi = none).
+        fl_start: (Hs + 1,) int32: flushes after row i are fl_start[i]:fl_start[i + 1].
+        fl_col, fl_bin: (F,) int16: a flush takes column fl_col's run minimum into bin fl_bin.
+        rs_start: (Hs + 1,) int32, rs_col: (R,) int16: columns whose run ends after row i.
+        acc: (Ws,) float32 work space.
         out: (n,) float32, overwritten.
     """
     n_rows, n_cols = zlo.shape
-    n = out.shape[0]
     inf = np.float32(np.inf)
-    for b in range(n):
+    seen = SEEN
+    for b in range(out.shape[0]):
         out[b] = inf
-    val = np.empty(n_cols + 1, np.float32)
-    val[n_cols] = inf
+    for j in range(n_cols):
+        acc[j] = inf
     for i in range(n_rows):
         drow = depth[rows[i]]
         zl = zlo[i]
@@ -41,47 +49,23 @@ def exact_scan_kernel(depth, rows, zlo, zhi, nlo, nhi, kr, g_lo, g_hi, cb_lo, cb
         nl = nlo[i]
         nh = nhi[i]
         k = kr[i]
-        hits = 0
-        for j in range(n_cols):  # branch-free so that LLVM vectorises it
+        for j in range(n_cols):  # branch-free and an unconditional store, so LLVM vectorises it
             d = drow[j]
             obstacle = (zl[j] <= d) & (d <= zh[j])
             close = (nl[j] <= d) & (d <= nh[j])
-            v = np.float32(d) * k[j] if obstacle else inf
+            # obstacle range < SEEN (a reading, no obstacle) < inf (no reading); -inf too close
+            v = np.float32(d) * k[j] if obstacle else (seen if d != 0 else inf)
             v = -inf if close else v
-            val[j] = v
-            hits += obstacle | close
-        if hits == 0:
-            continue  # nothing in this row's height band
-        first = 0
-        while val[first] == inf:
-            first += 1
-        last = n_cols - 1
-        while val[last] == inf:
-            last -= 1
-        # bearings fall as columns grow: the last obstacle column feeds the lowest bins
-        lo = g_lo[i]
-        hi = g_hi[i]
-        for b in range(cb_lo[i, last], cb_hi[i, first] + 1):
-            c0 = lo[b]
-            c1 = hi[b]
-            m = min(val[c0], val[c1])
-            for c in range(c0 + 1, c1):  # a bin holding three or more pixel centres: rare
-                m = min(m, val[c])
-            out[b] = min(out[b], m)
-    # bins without an obstacle: +inf if some used pixel feeding them has a reading, else NaN
-    for b in range(n):
-        if out[b] != inf:
-            continue
-        seen = False
-        for i in range(n_rows):
-            for j in range(g_lo[i, b], min(g_hi[i, b], n_cols - 1) + 1):
-                if depth[rows[i], j] != 0:
-                    seen = True
-                    break
-            if seen:
-                break
-        if not seen:
-            out[b] = np.float32(np.nan)
+            acc[j] = min(acc[j], v)
+        for e in range(fl_start[i], fl_start[i + 1]):
+            b = fl_bin[e]
+            out[b] = min(out[b], acc[fl_col[e]])
+        for e in range(rs_start[i], rs_start[i + 1]):
+            acc[rs_col[e]] = inf
+    nan = np.float32(np.nan)
+    for b in range(out.shape[0]):
+        v = out[b]
+        out[b] = inf if v == seen else (nan if v == inf else v)
 
 
 @kernel

@@ -1,0 +1,104 @@
+"""Compiled kernels against plain numpy references: bit-exact values, identical NaN/inf patterns.
+
+The stages' accuracy tests check the physics; these check that each fast kernel computes exactly
+what a slow, obvious implementation of the same definition computes. No timings here (the bench
+reports speed).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from depthnav_daemon.pipeline import cliff as cliff_mod
+from depthnav_daemon.pipeline import scan as scan_mod
+from depthnav_daemon.pipeline.cliff import CliffParams, detect_cliffs
+from depthnav_daemon.pipeline.geometry import Mount, cam_to_level
+from depthnav_daemon.pipeline.scan import ScanParams, depth_to_scan
+from depthnav_daemon.synthetic import Box, KinectNoise, Scene, render, step_down
+from drivers.base import KINECT_V1, Intrinsics
+
+MOUNTS = [Mount(0.55, 15.0, 0.0), Mount(0.5, 0.0, 0.0), Mount(0.5, 30.0, 5.0), Mount(1.0, 45.0, -8.0),
+          Mount(0.3, 60.0, 10.0)]
+SMALL = Intrinsics(200, 150, 180.0, 181.0, 97.3, 77.9)
+
+
+def noisy_frame(intr: Intrinsics, mount: Mount, seed: int) -> np.ndarray:
+    """A corridor-like frame with noise, zero pixels, a near box and a step down, uint16 mm."""
+    scene = Scene(
+        boxes=(Box(0.3, 0.05, 0.2, 0.2, 0.4), Box(1.5, 0.4, 0.3, 0.3, 0.3),
+               Box(2.2, -0.5, 0.4, 0.4, 0.6, yaw_deg=20), Box(4.0, 0.0, 0.1, 6.0, 2.5)),
+        holes=(step_down(3.0, 0.18),),
+    )
+    return render(scene, intr, mount, KinectNoise(), np.random.default_rng(seed), min_range_m=0.05).depth_mm
+
+
+def reference_exact_scan(depth: np.ndarray, intr: Intrinsics, mount: Mount, params: ScanParams) -> np.ndarray:
+    """The exact scan by its definition: per row, each bin takes the min over its columns (numpy).
+
+    Uses the stage's per-pixel thresholds and bin map (what the scan *means*), not its kernel tables.
+    """
+    t = scan_mod._exact_table(intr, mount, params)
+    rows = scan_mod._used_rows(intr, params)
+    cols = slice(0, intr.width, params.col_step)
+    v = np.arange(intr.height, dtype=np.float64)[rows][:, None]
+    u = np.arange(intr.width, dtype=np.float64)[cols][None, :]
+    rot = cam_to_level(mount.tilt_rad, mount.roll_rad)
+    half = params.col_step / 2.0
+    b_l = scan_mod._bearing(intr, rot, u - half, v)
+    b_r = scan_mod._bearing(intr, rot, u + half, v)
+    lo_b, hi_b = np.minimum(b_l, b_r), np.maximum(b_l, b_r)
+    centre = scan_mod._bearing(intr, rot, u + 0.0 * v, v + 0.0 * u)
+    g_lo, g_hi, _, _ = scan_mod._bin_map(centre, lo_b, hi_b, (hi_b - lo_b) < math.pi, t.angle_min,
+                                         t.angle_increment, t.n_bins)
+    d = depth[rows][:, cols]
+    obstacle = (d >= t.zlo_mm) & (d <= t.zhi_mm)
+    close = (d >= t.near_lo_mm) & (d <= t.near_hi_mm)
+    val = np.where(obstacle, d.astype(np.float32) * t.kr_m_per_mm, np.float32(np.inf)).astype(np.float32)
+    val[close] = -np.inf
+    ws = d.shape[1]
+    out = np.full(t.n_bins, np.inf, dtype=np.float32)
+    seen = np.zeros(t.n_bins, dtype=bool)
+    for i in range(d.shape[0]):
+        for b in np.flatnonzero(g_lo[i] < ws):
+            c0, c1 = int(g_lo[i, b]), int(min(g_hi[i, b], ws - 1))
+            out[b] = min(out[b], val[i, c0 : c1 + 1].min())
+            seen[b] |= bool((d[i, c0 : c1 + 1] != 0).any())
+    out[(out == np.inf) & ~seen] = np.nan
+    return out
+
+
+@pytest.mark.parametrize("mount", MOUNTS, ids=lambda m: f"t{m.tilt_deg:g}_r{m.roll_deg:g}")
+@pytest.mark.parametrize("params", [
+    ScanParams(),
+    ScanParams(range_min_m=0.4, row_start=20, row_stop=140, row_step=3, col_step=2),
+    ScanParams(range_min_m=0.0, min_obstacle_height_m=-0.2, angle_increment_deg=0.9),
+], ids=["defaults", "strided", "coarse_bins"])
+def test_exact_scan_kernel_equals_per_row_binning(mount: Mount, params: ScanParams) -> None:
+    depth = noisy_frame(SMALL, mount, seed=int(mount.tilt_deg))
+    got = depth_to_scan(depth, SMALL, mount, params).ranges
+    want = reference_exact_scan(depth, SMALL, mount, params)
+    assert np.array_equal(np.isnan(got), np.isnan(want))
+    assert np.array_equal(np.isposinf(got), np.isposinf(want))
+    assert np.array_equal(np.isneginf(got), np.isneginf(want))
+    assert np.array_equal(got, want, equal_nan=True)
+
+
+def test_exact_scan_kernel_full_resolution_bit_exact() -> None:
+    mount = MOUNTS[0]
+    depth = noisy_frame(KINECT_V1, mount, seed=3)
+    params = ScanParams()
+    got = depth_to_scan(depth, KINECT_V1, mount, params).ranges
+    assert np.array_equal(got, reference_exact_scan(depth, KINECT_V1, mount, params), equal_nan=True)
+
+
+def test_exact_scan_reads_a_read_only_strided_frame() -> None:
+    mount = MOUNTS[2]
+    depth = noisy_frame(SMALL, mount, seed=5)
+    ro = depth.copy()
+    ro.setflags(write=False)
+    params = ScanParams(col_step=3)
+    assert np.array_equal(depth_to_scan(ro, SMALL, mount, params).ranges,
+                          depth_to_scan(depth, SMALL, mount, params).ranges, equal_nan=True)
