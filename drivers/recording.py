@@ -8,6 +8,7 @@ table and an optional ``[truth]`` table. A bare ``.npz`` with the same arrays is
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import math
 import os
@@ -17,10 +18,11 @@ import zlib
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, BinaryIO
 
 import numpy as np
 import numpy.typing as npt
+import tomli_w
 
 from drivers.base import Frame, Intrinsics
 from drivers.errors import RecordingError
@@ -71,35 +73,30 @@ class Recording:
         ]
 
 
-def _toml_value(value: Any, where: str) -> str:
-    if isinstance(value, bool):
-        return "true" if value else "false"
-    if isinstance(value, int):
-        return str(value)
-    if isinstance(value, float):
-        if not math.isfinite(value):
-            raise RecordingError(f"{where} = {value!r} is not a finite number")
-        return repr(value)
-    if isinstance(value, str):
-        escaped = value.replace("\\", "\\\\").replace('"', '\\"').replace("\n", "\\n")
-        return f'"{escaped}"'
+def _check_value(value: Any, where: str) -> None:
+    """Recording metadata takes finite numbers, text, booleans and lists of them."""
     if isinstance(value, (list, tuple)):
-        return "[" + ", ".join(_toml_value(v, where) for v in value) + "]"
-    raise RecordingError(
-        f"{where} has a {type(value).__name__}; "
-        "recording metadata takes numbers, text, booleans or lists"
-    )
+        for v in value:
+            _check_value(v, where)
+    elif isinstance(value, float) and not math.isfinite(value):
+        raise RecordingError(f"{where} = {value!r} is not a finite number")
+    elif not isinstance(value, (bool, int, float, str)):
+        raise RecordingError(
+            f"{where} has a {type(value).__name__}; "
+            "recording metadata takes numbers, text, booleans or lists"
+        )
 
 
 def _toml_document(meta: Mapping[str, Any], tables: Mapping[str, Mapping[str, Any]]) -> str:
-    lines = [f"{key} = {_toml_value(value, key)}" for key, value in meta.items()]
+    """The recording.toml text (tomli-w does the quoting and escaping)."""
+    for key, value in meta.items():
+        _check_value(value, key)
     for name, table in tables.items():
-        lines += ["", f"[{name}]"]
         for key, value in table.items():
             if not key.replace("_", "").isalnum():
                 raise RecordingError(f"{name}.{key}: keys must be letters, digits and '_'")
-            lines.append(f"{key} = {_toml_value(value, f'{name}.{key}')}")
-    return "\n".join(lines) + "\n"
+            _check_value(value, f"{name}.{key}")
+    return tomli_w.dumps({**meta, **{name: dict(t) for name, t in tables.items()}})
 
 
 def write_recording(
@@ -185,22 +182,48 @@ def write_recording(
         tables["truth"] = dict(truth)
     document = _toml_document(meta, tables)  # before any file exists, so bad truth writes nothing
 
-    folder.mkdir(parents=True, exist_ok=True)
+    created = not folder.exists()
     npz_tmp = folder / (FRAMES_FILE + _PARTIAL)
     meta_tmp = folder / (META_FILE + _PARTIAL)
     try:
-        with open(npz_tmp, "wb") as fh:
+        folder.mkdir(parents=True, exist_ok=True)
+        with _create_new(npz_tmp) as fh:
             np.savez_compressed(fh, **arrays)
             fh.flush()
             os.fsync(fh.fileno())
         os.replace(npz_tmp, folder / FRAMES_FILE)
-        meta_tmp.write_text(document, encoding="utf-8")
+        with _create_new(meta_tmp) as fh:
+            fh.write(document.encode("utf-8"))
+            fh.flush()
+            os.fsync(fh.fileno())
         os.replace(meta_tmp, folder / META_FILE)
+    except OSError as exc:
+        # a full disk (ENOSPC), a file-size limit (EFBIG), a read-only mount: one line, and no
+        # half-written recording left behind (the .partial files go in the finally below)
+        (folder / FRAMES_FILE).unlink(missing_ok=True)
+        raise RecordingError(
+            f"{folder}: writing the recording failed: {exc.strerror or exc}",
+            hint="free some disk space or record to another folder",
+        ) from exc
     finally:
         for tmp in (npz_tmp, meta_tmp):
-            tmp.unlink(missing_ok=True)
+            with contextlib.suppress(OSError):
+                tmp.unlink(missing_ok=True)
+        if created and folder.is_dir() and not (folder / META_FILE).exists():
+            with contextlib.suppress(OSError):
+                folder.rmdir()  # only if empty: never remove anything that was there before
     log.info("wrote %d frames to %s", len(depth), folder)
     return len(depth)
+
+
+def _create_new(path: Path) -> BinaryIO:
+    """Open ``path`` for writing only if nothing (not even a symlink) is there yet.
+
+    O_EXCL keeps a write inside the folder it names: a planted ``frames.npz.partial`` symlink
+    pointing elsewhere makes the write fail instead of following the link.
+    """
+    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_NOFOLLOW", 0), 0o644)
+    return os.fdopen(fd, "wb")
 
 
 def _load_npz(path: Path) -> dict[str, npt.NDArray[Any]]:
