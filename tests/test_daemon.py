@@ -209,3 +209,40 @@ def test_tilt_sensor_narrows_the_floor_search_window() -> None:
     assert (p.tilt_min_deg, p.tilt_max_deg) == (5.0, 25.0)  # 15 +- 10, whole degrees
     t.from_floor(0.5, 15.0, 0.0)
     assert pose_prior(base, t) is base                      # the floor speaks for itself
+
+
+def test_serial_tilt_source_gives_the_mount_through_a_pty() -> None:
+    """An IMU on a serial port (a pty pair, a simulator thread writing $TILT lines) sets tilt and roll."""
+    import os
+    import time as _time
+
+    from drivers.serial_tilt import SerialTiltSource, format_line
+
+    master, slave = os.openpty()
+    stop = threading.Event()
+
+    def imu() -> None:
+        while not stop.is_set():
+            os.write(master, format_line(21.5, -3.0))
+            _time.sleep(0.02)
+
+    feeder = threading.Thread(target=imu, daemon=True)
+    feeder.start()
+    source = SerialTiltSource.from_spec(f"serialtilt:{os.ttyname(slave)}?protocol=line")
+    source.start()
+    try:
+        deadline = _time.monotonic() + 20
+        while source.latest() is None and _time.monotonic() < deadline:
+            _time.sleep(0.02)
+        sink = CollectSink()
+        cfg = build_config([], ["daemon.tilt_source=serial", "daemon.pose_every_frames=0"], {"device": SPEC})
+        run(cfg, threading.Event(), max_frames=3, sink_factory=lambda _s: sink, serial_tilt=source)
+    finally:
+        stop.set()
+        source.stop()
+        feeder.join(2)
+        os.close(master)
+        os.close(slave)
+    assert sink.results[0].mount_source == "serial"
+    assert sink.results[0].mount.tilt_deg == pytest.approx(21.5)
+    assert sink.results[0].mount.roll_deg == pytest.approx(-3.0)
