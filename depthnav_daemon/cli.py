@@ -331,6 +331,26 @@ def main(argv: Sequence[str] | None = None) -> int:
         return EXIT_FAIL
 
 
+class _EarlyStop(BaseException):
+    """SIGTERM before the command installed its graceful stop (start-up, imports, config)."""
+
+
+def _stop_early(signum: int, _frame: object) -> None:
+    raise _EarlyStop(signum)
+
+
 def entry_point() -> None:
-    """Console-script entry: exit with main()'s code."""
-    sys.exit(main())
+    """Console-script entry: exit with main()'s code.
+
+    Until a command installs its own handlers (which finish the current frame and close every
+    sink), SIGTERM ends start-up at once with exit code 0 and SIGINT with 130, never with a
+    traceback: nothing has been opened or written yet at that point.
+    """
+    signal.signal(signal.SIGTERM, _stop_early)
+    try:
+        code = main()
+    except _EarlyStop:
+        code = EXIT_OK
+    except KeyboardInterrupt:
+        code = EXIT_INTERRUPTED
+    sys.exit(code)
