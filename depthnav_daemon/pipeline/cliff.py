@@ -44,7 +44,9 @@ from depthnav_daemon.pipeline.geometry import (
     paper_floor_depth_m,
     paper_row_angles_rad,
 )
+from depthnav_daemon.pipeline.cliff_kernels import cliff_kernel
 from depthnav_daemon.pipeline.scan import LaserScan
+from depthnav_daemon.pipeline.scan_kernels import run_ends
 from drivers.base import Intrinsics
 
 METHODS = ("exact", "paper")
@@ -131,11 +133,12 @@ class _CliffTable:
     hi_mm: npt.NDArray[np.uint16]
     range_m: F32  # (nbr * nj, nbc * ni) horizontal range of the floor point, +inf none
     block_xy_m: F32  # (nbr, nbc, 2) floor point of each block's centre ray, NaN none
-    src: npt.NDArray[np.intp]  # (M,) flat sample index, grouped by scan bin
-    offsets: npt.NDArray[np.intp]  # (N,) start of each bin's group in src
-    covered: npt.NDArray[np.bool_]  # (N,) bins that some sample covers
-    row_sel: slice | npt.NDArray[np.intp]  # rows / cols as slices when evenly spaced
-    col_sel: slice | npt.NDArray[np.intp]
+    block_ok: npt.NDArray[np.bool_]  # (nbr, nbc) the centre ray meets the floor
+    col_step: int  # sample columns are col0 + k * col_step (0: unevenly spaced, gather them)
+    ev_start: npt.NDArray[np.int32]  # run ends of the cliff scan (scan_kernels.run_ends)
+    ev_col: npt.NDArray[np.int32]
+    ev_lo: npt.NDArray[np.int32]
+    ev_hi: npt.NDArray[np.int32]
 
 
 def _floor_hits(intr: Intrinsics, rot: F64, u: F64, v: F64) -> tuple[F64, F64, F64]:
@@ -149,35 +152,26 @@ def _floor_hits(intr: Intrinsics, rot: F64, u: F64, v: F64) -> tuple[F64, F64, F
     )
 
 
-def _bin_groups(
+def _sample_bins(
     lo_b: F64, hi_b: F64, angle_min: float, inc: float, n: int
-) -> tuple[npt.NDArray[np.intp], npt.NDArray[np.intp], npt.NDArray[np.bool_]]:
-    """Group items by the scan bins their bearing interval [lo_b, hi_b] (radians) overlaps.
+) -> tuple[npt.NDArray[np.int32], npt.NDArray[np.int32]]:
+    """First and last scan bin each item's bearing interval [lo_b, hi_b] (radians) overlaps.
 
-    Bin i covers [angle_min + (i - 1/2) inc, angle_min + (i + 1/2) inc). Items with a NaN
-    interval or one that crosses the +-pi seam are left out.
+    Bin i covers [angle_min + (i - 1/2) inc, angle_min + (i + 1/2) inc); an item covers at most
+    MAX_SPAN_BINS bins. Items with a NaN interval, one that crosses the +-pi seam, or one outside
+    the scan get first > last (no bin).
 
     Returns:
-        (src, offsets, covered): item indices grouped by bin, (M,); start of each bin's group, (n,);
-        bins with at least one item, (n,).
+        (first, last): int32 arrays shaped like ``lo_b``.
     """
-    lo = lo_b.ravel()
-    hi = hi_b.ravel()
     with np.errstate(invalid="ignore"):
-        sane = np.isfinite(lo) & np.isfinite(hi) & ((hi - lo) < math.pi)
-        first = np.floor((np.where(sane, lo, angle_min) - angle_min) / inc + 0.5)
-        last = np.floor((np.where(sane, hi, angle_min) - angle_min) / inc + 0.5)
+        sane = np.isfinite(lo_b) & np.isfinite(hi_b) & ((hi_b - lo_b) < math.pi)
+        first = np.floor((np.where(sane, lo_b, angle_min) - angle_min) / inc + 0.5)
+        last = np.floor((np.where(sane, hi_b, angle_min) - angle_min) / inc + 0.5)
     sane &= (last >= 0) & (first <= n - 1)
     first = np.clip(first, 0, n - 1).astype(np.int64)
     last = np.clip(np.minimum(last, first + MAX_SPAN_BINS - 1), 0, n - 1).astype(np.int64)
-    span = np.where(sane, last - first + 1, 0)
-    item = np.repeat(np.arange(span.size), span)
-    within = np.arange(item.size) - np.repeat(np.cumsum(span) - span, span)
-    bins = first[item] + within
-    order = np.argsort(bins, kind="stable")
-    counts = np.bincount(bins, minlength=n)
-    offsets = np.minimum(np.cumsum(counts) - counts, max(item.size - 1, 0)).astype(np.intp)
-    return item[order].astype(np.intp), offsets, counts > 0
+    return np.where(sane, first, 1).astype(np.int32), np.where(sane, last, 0).astype(np.int32)
 
 
 @functools.lru_cache(maxsize=16)
@@ -237,42 +231,18 @@ def _cliff_table(
     rx, ry, _ = _floor_hits(intr, rot, u + e, v)
     b_l = np.arctan2(ly, lx)
     b_r = np.arctan2(ry, rx)
-    src, offsets, covered = _bin_groups(
-        np.minimum(b_l, b_r), np.maximum(b_l, b_r), angle_min, inc, n_bins
-    )
+    first, last = _sample_bins(np.minimum(b_l, b_r), np.maximum(b_l, b_r), angle_min, inc, n_bins)
+    flushes = run_ends(first, last)
 
     range32 = range_m.astype(np.float32)
-    for arr in (rows, cols, lo_mm, hi_mm, range32, block_xy, src, offsets, covered):
+    block_ok = np.isfinite(block_xy[..., 0])
+    col_sel = _selector(cols)
+    col_step = col_sel.step if isinstance(col_sel, slice) else 0
+    for arr in (rows, cols, lo_mm, hi_mm, range32, block_xy, block_ok, *flushes):
         arr.setflags(write=False)
     return _CliffTable(
-        rows,
-        cols,
-        (nbr, j.size, nbc, i.size),
-        lo_mm,
-        hi_mm,
-        range32,
-        block_xy,
-        src,
-        offsets,
-        covered,
-        _selector(rows),
-        _selector(cols),
+        rows, cols, (nbr, j.size, nbc, i.size), lo_mm, hi_mm, range32, block_xy, block_ok, col_step, *flushes
     )
-
-
-def drop_samples(
-    d: npt.NDArray[np.uint16], lo_mm: npt.NDArray[np.uint16], hi_mm: npt.NDArray[np.uint16]
-) -> npt.NDArray[np.bool_]:
-    """Mark drop-off samples (the stage's core, kept compilable).
-
-    Args:
-        d: (R, C) sampled depth, uint16 millimetres.
-        lo_mm, hi_mm: (R, C) a sample is a drop-off iff lo_mm < depth < hi_mm.
-
-    Returns:
-        The (R, C) drop-off mask.
-    """
-    return (d > lo_mm) & (d < hi_mm)
 
 
 def _selector(idx: npt.NDArray[np.intp]) -> slice | npt.NDArray[np.intp]:
@@ -283,13 +253,6 @@ def _selector(idx: npt.NDArray[np.intp]) -> slice | npt.NDArray[np.intp]:
     stop = int(idx[-1]) + step
     # a descending run that ends at row 0 needs stop None: -1 would mean the last row
     return slice(int(idx[0]), None if stop < 0 else stop, step)
-
-
-def block_counts(
-    mask: npt.NDArray[np.bool_], shape4: tuple[int, int, int, int]
-) -> npt.NDArray[np.int32]:
-    """Eq. 7: drop-off samples per block, (nbr, nbc), from the (nbr * nj, nbc * ni) sample mask."""
-    return mask.reshape(shape4).sum(axis=(1, 3), dtype=np.int32)
 
 
 def detect_cliffs(
@@ -322,25 +285,24 @@ def detect_cliffs(
     check_int("cliff n_bins", n_bins, 1, 1_000_000)
     mm = depth_to_mm(depth, intr)
     t = _cliff_table(intr, mount, params, float(angle_min), float(angle_increment), int(n_bins))
-    if isinstance(t.row_sel, slice) and isinstance(t.col_sel, slice):
-        d = mm[t.row_sel, t.col_sel]  # (R, C) view
-    else:
-        d = mm[np.ix_(t.rows, t.cols)]  # (R, C) gather
-    mask = drop_samples(d, t.lo_mm, t.hi_mm)
-    counts = block_counts(mask, t.shape4)
-    found = (counts >= params.block_points_thresh) & np.isfinite(t.block_xy_m[..., 0])  # eq. 8
+    if t.col_step:  # a view: sample column k is image column cols[0] + k * col_step
+        src, rows = mm[:, int(t.cols[0]) : int(t.cols[-1]) + 1 : t.col_step], t.rows
+    else:  # unevenly spaced sample columns: gather the samples once
+        src, rows = mm[np.ix_(t.rows, t.cols)], np.arange(t.rows.size, dtype=np.intp)
+    nbr, nj, nbc, ni = t.shape4
+    n_cols = nbc * ni
+    found = np.empty((nbr, nbc), dtype=np.bool_)
+    ranges = np.empty(n_bins, dtype=np.float32)
+    cliff_kernel(
+        src, rows, nj, ni, t.lo_mm, t.hi_mm, t.range_m, t.block_ok, params.block_points_thresh,
+        t.ev_start, t.ev_col, t.ev_lo, t.ev_hi,
+        np.empty(n_cols, dtype=np.uint16), np.empty(n_cols, dtype=np.bool_), np.empty(n_cols, dtype=np.float32),
+        found, ranges,
+    )
     bj, bi = np.nonzero(found)
     bs = params.block_size
     blocks = np.stack([intr.height - (bj + 1) * bs, bi * bs], axis=-1).astype(np.int64)
     points = t.block_xy_m[bj, bi].reshape(-1, 2)
-
-    marked = (mask.reshape(t.shape4) & found[:, None, :, None]).reshape(mask.shape)
-    vals = np.where(marked, t.range_m, np.where(d > 0, np.float32(np.inf), np.float32(np.nan)))
-    if t.src.size:
-        ranges = np.fmin.reduceat(vals.ravel()[t.src], t.offsets).astype(np.float32, copy=False)
-    else:
-        ranges = np.full(n_bins, np.nan, dtype=np.float32)
-    ranges[~t.covered] = np.nan
     scan = LaserScan(
         float(angle_min),
         float(angle_min + (n_bins - 1) * angle_increment),

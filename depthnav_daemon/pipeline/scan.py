@@ -23,7 +23,7 @@ import numpy as np
 import numpy.typing as npt
 
 from depthnav_daemon.errors import ConfigError
-from depthnav_daemon.pipeline.scan_kernels import exact_scan_kernel, paper_scan_kernel
+from depthnav_daemon.pipeline.scan_kernels import exact_scan_kernel, paper_scan_kernel, run_flushes
 from depthnav_daemon.pipeline.geometry import (
     F32,
     F64,
@@ -177,10 +177,10 @@ class _ExactTable:
     near_hi_mm: npt.NDArray[np.uint16]  # near_lo <= d <= near_hi
     kr_m_per_mm: F32                    # (Hs, Ws) horizontal range per millimetre of depth
     fl_start: npt.NDArray[np.int32]     # (Hs + 1,) flushes after row i: fl_start[i]:fl_start[i + 1]
-    fl_col: npt.NDArray[np.int16]       # (F,) column whose run minimum is flushed ..
-    fl_bin: npt.NDArray[np.int16]       # (F,) .. into this bin
+    fl_col: npt.NDArray[np.int32]       # (F,) column whose run minimum is flushed ..
+    fl_bin: npt.NDArray[np.int32]       # (F,) .. into this bin
     rs_start: npt.NDArray[np.int32]     # (Hs + 1,) runs ending after row i: rs_start[i]:rs_start[i + 1]
-    rs_col: npt.NDArray[np.int16]       # (R,) their columns
+    rs_col: npt.NDArray[np.int32]       # (R,) their columns
     n_bins: int
     angle_min: float
     angle_increment: float
@@ -265,33 +265,6 @@ def _bin_map(
     return g_lo.astype(np.int16), g_hi.astype(np.int16), cb_lo.astype(np.int16), cb_hi.astype(np.int16)
 
 
-def _runs(
-    cb_lo: npt.NDArray[np.int16], cb_hi: npt.NDArray[np.int16]
-) -> tuple[npt.NDArray[np.int32], npt.NDArray[np.int16], npt.NDArray[np.int16], npt.NDArray[np.int32], npt.NDArray[np.int16]]:
-    """Flush lists of the exact kernel from the bins every pixel feeds.
-
-    Args:
-        cb_lo, cb_hi: (Hs, Ws) first and last bin each pixel feeds (cb_lo > cb_hi: none).
-
-    Returns:
-        fl_start, fl_col, fl_bin, rs_start, rs_col: a run of column c ends after row i when row
-        i + 1 feeds other bins (or i is the last row); its minimum then goes to every bin it feeds.
-    """
-    hs, ws = cb_lo.shape
-    ends = np.ones((hs, ws), dtype=bool)
-    ends[:-1] = (cb_lo[1:] != cb_lo[:-1]) | (cb_hi[1:] != cb_hi[:-1])
-    ii, jj = np.nonzero(ends)  # row-major: grouped by row
-    rs_start = np.zeros(hs + 1, dtype=np.int32)
-    np.cumsum(np.bincount(ii, minlength=hs), out=rs_start[1:])
-    lo = cb_lo[ii, jj].astype(np.int64)
-    span = np.maximum(cb_hi[ii, jj].astype(np.int64) - lo + 1, 0)
-    k = np.repeat(np.arange(ii.size), span)
-    within = np.arange(k.size) - np.repeat(np.cumsum(span) - span, span)
-    fl_start = np.zeros(hs + 1, dtype=np.int32)
-    np.cumsum(np.bincount(ii[k], minlength=hs), out=fl_start[1:])
-    return fl_start, jj[k].astype(np.int16), (lo[k] + within).astype(np.int16), rs_start, jj.astype(np.int16)
-
-
 @functools.lru_cache(maxsize=16)
 def _exact_table(intr: Intrinsics, mount: Mount, params: ScanParams) -> _ExactTable:
     rows = _used_rows(intr, params)
@@ -335,7 +308,7 @@ def _exact_table(intr: Intrinsics, mount: Mount, params: ScanParams) -> _ExactTa
     angle_min = edge_min + inc / 2.0
     centre = _bearing(intr, rot, u + 0.0 * v, v + 0.0 * u)
     _, _, cb_lo, cb_hi = _bin_map(centre, lo_b, hi_b, sane, angle_min, inc, n)
-    fl_start, fl_col, fl_bin, rs_start, rs_col = _runs(cb_lo, cb_hi)
+    fl_start, fl_col, fl_bin, rs_start, rs_col = run_flushes(cb_lo, cb_hi)
     kr32 = (kr / 1000.0).astype(np.float32)
     row_idx = np.arange(intr.height, dtype=np.int32)[rows]
     for arr in (zlo_mm, zhi_mm, near_lo_mm, near_hi_mm, kr32, fl_start, fl_col, fl_bin, rs_start, rs_col, row_idx):

@@ -7,10 +7,56 @@ by column, as the original does, costs ~4x in cache misses: ../shared/reference/
 from __future__ import annotations
 
 import numpy as np
+from numpy.typing import NDArray
 
 from depthnav_daemon.pipeline._jit import kernel
 
 SEEN = np.float32(1e30)  # "valid readings, no obstacle": sorts between ranges and no-data (+inf)
+
+
+def run_ends(
+    cb_lo: NDArray[np.integer], cb_hi: NDArray[np.integer]
+) -> tuple[NDArray[np.int32], NDArray[np.int32], NDArray[np.int32], NDArray[np.int32]]:
+    """Where the runs of a run-minimum kernel end, from the bins every pixel (or sample) feeds.
+
+    A run of column c is a stretch of rows over which c feeds the same bins; it ends after row i
+    when row i + 1 feeds other bins, or i is the last row.
+
+    Args:
+        cb_lo, cb_hi: (Hs, Ws) first and last bin each pixel feeds (cb_lo > cb_hi: none);
+            rows in the order the kernel walks them.
+
+    Returns:
+        ev_start, ev_col, ev_lo, ev_hi: the runs ending after row i are ev_start[i]:ev_start[i + 1]
+        ((Hs + 1,) int32); each names its column and the bins it feeds ((E,) int32 each).
+    """
+    hs, ws = cb_lo.shape
+    ends = np.ones((hs, ws), dtype=bool)
+    ends[:-1] = (cb_lo[1:] != cb_lo[:-1]) | (cb_hi[1:] != cb_hi[:-1])
+    ii, jj = np.nonzero(ends)  # row-major: grouped by row
+    ev_start = np.zeros(hs + 1, dtype=np.int32)
+    np.cumsum(np.bincount(ii, minlength=hs), out=ev_start[1:])
+    return ev_start, jj.astype(np.int32), cb_lo[ii, jj].astype(np.int32), cb_hi[ii, jj].astype(np.int32)
+
+
+def run_flushes(
+    cb_lo: NDArray[np.integer], cb_hi: NDArray[np.integer]
+) -> tuple[NDArray[np.int32], NDArray[np.int32], NDArray[np.int32], NDArray[np.int32], NDArray[np.int32]]:
+    """``run_ends`` with every run's bins listed one by one (best where a run feeds one or two bins).
+
+    Returns:
+        fl_start, fl_col, fl_bin: the flushes after row i are fl_start[i]:fl_start[i + 1], each a
+        column whose run minimum goes into one bin; rs_start, rs_col: the runs ending after row i.
+    """
+    hs = cb_lo.shape[0]
+    rs_start, rs_col, lo, hi = run_ends(cb_lo, cb_hi)
+    row = np.repeat(np.arange(hs), np.diff(rs_start))
+    span = np.maximum(hi.astype(np.int64) - lo + 1, 0)
+    k = np.repeat(np.arange(rs_col.size), span)
+    within = np.arange(k.size) - np.repeat(np.cumsum(span) - span, span)
+    fl_start = np.zeros(hs + 1, dtype=np.int32)
+    np.cumsum(np.bincount(row[k], minlength=hs), out=fl_start[1:])
+    return fl_start, rs_col[k], (lo[k] + within).astype(np.int32), rs_start, rs_col
 
 
 @kernel
@@ -30,8 +76,8 @@ def exact_scan_kernel(depth, rows, zlo, zhi, nlo, nhi, kr, fl_start, fl_col, fl_
         nlo, nhi: (Hs, Ws) uint16: an obstacle closer than range_min iff nlo <= d <= nhi.
         kr: (Hs, Ws) float32 horizontal range per mm of depth.
         fl_start: (Hs + 1,) int32: flushes after row i are fl_start[i]:fl_start[i + 1].
-        fl_col, fl_bin: (F,) int16: a flush takes column fl_col's run minimum into bin fl_bin.
-        rs_start: (Hs + 1,) int32, rs_col: (R,) int16: columns whose run ends after row i.
+        fl_col, fl_bin: (F,) int32: a flush takes column fl_col's run minimum into bin fl_bin.
+        rs_start: (Hs + 1,) int32, rs_col: (R,) int32: columns whose run ends after row i.
         acc: (Ws,) float32 work space.
         out: (n,) float32, overwritten.
     """
