@@ -102,3 +102,52 @@ def test_exact_scan_reads_a_read_only_strided_frame() -> None:
     params = ScanParams(col_step=3)
     assert np.array_equal(depth_to_scan(ro, SMALL, mount, params).ranges,
                           depth_to_scan(depth, SMALL, mount, params).ranges, equal_nan=True)
+
+
+def reference_cliffs(depth: np.ndarray, intr: Intrinsics, mount: Mount, params: CliffParams,
+                     layout: tuple[float, float, int]) -> tuple[np.ndarray, np.ndarray]:
+    """Eq. 7-8 and the cliff scan by their definition (numpy): (found blocks (nbr, nbc), scan (n,))."""
+    t = cliff_mod._cliff_table(intr, mount, params, *layout)
+    nbr, nj, nbc, ni = t.shape4
+    d = depth[np.ix_(t.rows, t.cols)]
+    mask = (d > t.lo_mm) & (d < t.hi_mm)
+    counts = mask.reshape(t.shape4).sum(axis=(1, 3))
+    found = (counts >= params.block_points_thresh) & np.isfinite(t.block_xy_m[..., 0])
+    marked = (mask.reshape(t.shape4) & found[:, None, :, None]).reshape(mask.shape)
+    vals = np.where(marked, t.range_m, np.where(d > 0, np.float32(np.inf), np.float32(np.nan)))
+    # every sample covers the bins between its col_step footprint's edges
+    rot = cam_to_level(mount.tilt_rad, mount.roll_rad)
+    u = t.cols.astype(np.float64)[None, :]
+    v = t.rows.astype(np.float64)[:, None]
+    e = params.col_step / 2.0
+    lx, ly, _ = cliff_mod._floor_hits(intr, rot, u - e, v)
+    rx, ry, _ = cliff_mod._floor_hits(intr, rot, u + e, v)
+    b_l, b_r = np.arctan2(ly, lx), np.arctan2(ry, rx)
+    first, last = cliff_mod._sample_bins(np.minimum(b_l, b_r), np.maximum(b_l, b_r), *layout[:2], layout[2])
+    out = np.full(layout[2], np.nan, dtype=np.float32)
+    for (r, c), f in np.ndenumerate(first):
+        for b in range(f, last[r, c] + 1):
+            out[b] = np.fmin(out[b], vals[r, c])
+    return found, out
+
+
+CLIFF_PARAMS = [
+    CliffParams(),
+    CliffParams(block_size=8, row_step=1, col_step=1, block_points_thresh=10),
+    CliffParams(block_size=8, row_step=2, col_step=3, block_points_thresh=4),  # uneven sample columns
+    CliffParams(method="paper"),
+    CliffParams(method="paper", block_size=8, row_step=1, col_step=1, block_points_thresh=10, used_depth_height=90),
+]
+
+
+@pytest.mark.parametrize("mount", MOUNTS, ids=lambda m: f"t{m.tilt_deg:g}_r{m.roll_deg:g}")
+@pytest.mark.parametrize("params", CLIFF_PARAMS, ids=["defaults", "dense", "uneven", "paper", "paper_dense"])
+def test_cliff_kernel_equals_numpy_definition(mount: Mount, params: CliffParams) -> None:
+    depth = noisy_frame(SMALL, mount, seed=11 + int(mount.tilt_deg))
+    layout = scan_mod.scan_layout(SMALL, mount, ScanParams())
+    res = detect_cliffs(depth, SMALL, mount, params, *layout)
+    found, want = reference_cliffs(depth, SMALL, mount, params, layout)
+    bj, bi = np.nonzero(found)
+    np.testing.assert_array_equal(res.blocks, np.stack([SMALL.height - (bj + 1) * params.block_size,
+                                                        bi * params.block_size], axis=-1))
+    assert np.array_equal(res.scan.ranges, want, equal_nan=True)
