@@ -36,12 +36,17 @@ class Calibration:
     frames_read: int
 
     def as_dict(self) -> dict[str, Any]:
-        return {k: (round(v, 6) if isinstance(v, float) else v) for k, v in
-                ((f, getattr(self, f)) for f in self.__slots__)}  # type: ignore[attr-defined]
+        return {
+            k: (round(v, 6) if isinstance(v, float) else v)
+            for k, v in ((f, getattr(self, f)) for f in self.__slots__)
+        }  # type: ignore[attr-defined]
 
 
 def calibrate(
-    cfg: Config, n_frames: int, stop: threading.Event, progress: Callable[[int, int], None] | None = None
+    cfg: Config,
+    n_frames: int,
+    stop: threading.Event,
+    progress: Callable[[int, int], None] | None = None,
 ) -> Calibration:
     """Estimate the mount from the floor on up to ``n_frames`` frames of ``cfg.device``.
 
@@ -67,7 +72,9 @@ def calibrate(
                 break
     need = max(1, math.ceil(read / 3))
     if read == 0:
-        raise DepthnavError(f"{cfg.device} gave no frames", hint="check the device with depthnav devices")
+        raise DepthnavError(
+            f"{cfg.device} gave no frames", hint="check the device with depthnav devices"
+        )
     if len(good) < need:
         why = reasons[-1] if reasons else "no confident floor estimate"
         raise DepthnavError(
@@ -77,22 +84,33 @@ def calibrate(
     a = np.array(good)
     med = np.median(a, axis=0)
     std = a.std(axis=0)
-    return Calibration(float(med[0]), float(med[1]), float(med[2]), float(std[0]), float(std[1]),
-                       float(std[2]), float(med[3]), len(good), read)
+    return Calibration(
+        float(med[0]),
+        float(med[1]),
+        float(med[2]),
+        float(std[0]),
+        float(std[1]),
+        float(std[2]),
+        float(med[3]),
+        len(good),
+        read,
+    )
 
 
 def format_text(c: Calibration) -> str:
-    return "\n".join([
-        f"height  {c.height_m:.3f} m    (spread {c.height_std_m * 1000:.1f} mm)",
-        f"tilt    {c.tilt_deg:.2f} deg   (spread {c.tilt_std_deg:.2f} deg, positive = pitched down)",
-        f"roll    {c.roll_deg:.2f} deg   (spread {c.roll_std_deg:.2f} deg, positive = left side up)",
-        f"floor   {c.inlier_ratio:.0%} inliers, {c.frames_used} of {c.frames_read} frames used",
-        "",
-        "[mount]",
-        f"height_m = {c.height_m:.3f}",
-        f"tilt_deg = {c.tilt_deg:.2f}",
-        f"roll_deg = {c.roll_deg:.2f}",
-    ])
+    return "\n".join(
+        [
+            f"height  {c.height_m:.3f} m    (spread {c.height_std_m * 1000:.1f} mm)",
+            f"tilt    {c.tilt_deg:.2f} deg   (spread {c.tilt_std_deg:.2f} deg, positive = pitched down)",
+            f"roll    {c.roll_deg:.2f} deg   (spread {c.roll_std_deg:.2f} deg, positive = left side up)",
+            f"floor   {c.inlier_ratio:.0%} inliers, {c.frames_used} of {c.frames_read} frames used",
+            "",
+            "[mount]",
+            f"height_m = {c.height_m:.3f}",
+            f"tilt_deg = {c.tilt_deg:.2f}",
+            f"roll_deg = {c.roll_deg:.2f}",
+        ]
+    )
 
 
 def write_mount(path: Path, c: Calibration) -> None:
@@ -102,10 +120,15 @@ def write_mount(path: Path, c: Calibration) -> None:
         try:
             data = tomllib.loads(path.read_text())
         except (tomllib.TOMLDecodeError, OSError, UnicodeDecodeError) as exc:
-            raise ConfigError(f"{path} is not a TOML file I can update: {exc}",
-                              hint="name a new file or fix this one") from None
-    data["mount"] = {"height_m": round(c.height_m, 4), "tilt_deg": round(c.tilt_deg, 3),
-                     "roll_deg": round(c.roll_deg, 3)}
+            raise ConfigError(
+                f"{path} is not a TOML file I can update: {exc}",
+                hint="name a new file or fix this one",
+            ) from None
+    data["mount"] = {
+        "height_m": round(c.height_m, 4),
+        "tilt_deg": round(c.tilt_deg, 3),
+        "roll_deg": round(c.roll_deg, 3),
+    }
     folder = path.resolve().parent
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=folder)
     try:

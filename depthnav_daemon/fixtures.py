@@ -24,16 +24,18 @@ CORRIDOR_MOUNT = Mount(0.55, 15.0, 0.0)
 CORRIDOR_STEP_M = 2.0
 CORRIDOR_SCENE = Scene(
     boxes=(
-        Box(1.6, 0.55, 0.3, 0.3, 0.35),                 # a box on the left
+        Box(1.6, 0.55, 0.3, 0.3, 0.35),  # a box on the left
         Box(1.3, -0.45, 0.25, 0.25, 0.15, yaw_deg=25),  # a low box on the right
-        Box(1.9, 1.3, 4.0, 0.1, 1.2),                   # the corridor's left wall
-        Box(1.9, -1.2, 4.0, 0.1, 1.2),                  # and its right wall
+        Box(1.9, 1.3, 4.0, 0.1, 1.2),  # the corridor's left wall
+        Box(1.9, -1.2, 4.0, 0.1, 1.2),  # and its right wall
     ),
     holes=(step_down(CORRIDOR_STEP_M, 0.18, half_width_m=1.15), Hole(1.0, 1.2, 0.1, 0.3, 0.25)),
 )
 
 
-def accel_for(mount: Mount, rng: np.random.Generator, sigma_mps2: float = 0.02) -> tuple[float, float, float]:
+def accel_for(
+    mount: Mount, rng: np.random.Generator, sigma_mps2: float = 0.02
+) -> tuple[float, float, float]:
     """Specific force a still sensor at ``mount`` reads in the camera frame, with a little noise."""
     t, r = mount.tilt_rad, mount.roll_rad
     a = np.array([-math.sin(r) * math.cos(t), -math.cos(r) * math.cos(t), -math.sin(t)]) * G_MPS2
@@ -54,16 +56,23 @@ def synthetic_frames(
 def write_corridor_step(out: Path, n: int = 12) -> int:
     m = CORRIDOR_MOUNT
     truth = {
-        "mount_height_m": m.height_m, "tilt_deg": m.tilt_deg, "roll_deg": m.roll_deg,
-        "cliff_distance_m": CORRIDOR_STEP_M, "step_drop_m": 0.18,
-        "hole_x_m": [1.0, 1.2], "hole_y_m": [0.1, 0.3],
-        "box_left_front_m": [1.45, 0.55], "box_right_front_m": [1.175, -0.45],
+        "mount_height_m": m.height_m,
+        "tilt_deg": m.tilt_deg,
+        "roll_deg": m.roll_deg,
+        "cliff_distance_m": CORRIDOR_STEP_M,
+        "step_drop_m": 0.18,
+        "hole_x_m": [1.0, 1.2],
+        "hole_y_m": [0.1, 0.3],
+        "box_left_front_m": [1.45, 0.55],
+        "box_right_front_m": [1.175, -0.45],
     }
     return write_recording(
-        out, synthetic_frames(CORRIDOR_SCENE, KINECT_V1, m, n, seed=2026),
+        out,
+        synthetic_frames(CORRIDOR_SCENE, KINECT_V1, m, n, seed=2026),
         description="Synthetic corridor, 18 cm step down at 2.0 m, a 20 cm hole, two boxes; "
         "Kinect v1 intrinsics, 0.55 m high, pitched 15 degrees down; Kinect-like noise",
-        truth=truth, device="synthetic (depthnav_daemon.fixtures)",
+        truth=truth,
+        device="synthetic (depthnav_daemon.fixtures)",
     )
 
 

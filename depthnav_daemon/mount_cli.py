@@ -12,28 +12,43 @@ from depthnav_daemon.pipeline.geometry import Mount, check_range
 from depthnav_daemon.pipeline.mount_planner import lower_dead_zone_m, max_visible_height_m
 
 # vertical field of view of the depth image, degrees (vendor data sheets)
-SENSOR_VFOV_DEG = {"kinect": 43.0, "xtion": 45.0, "kinect2": 60.0, "realsense-d435": 58.0, "astra": 49.5}
+SENSOR_VFOV_DEG = {
+    "kinect": 43.0,
+    "xtion": 45.0,
+    "kinect2": 60.0,
+    "realsense-d435": 58.0,
+    "astra": 49.5,
+}
 
 
 def _distances(text: str) -> list[float]:
     try:
         values = [float(t) for t in text.split(",") if t.strip()]
     except ValueError:
-        raise ConfigError(f"--distances-m={text!r} is not a comma-separated list of numbers") from None
+        raise ConfigError(
+            f"--distances-m={text!r} is not a comma-separated list of numbers"
+        ) from None
     if not values or any(not (0 < v <= 100) for v in values):
         raise ConfigError(f"--distances-m={text!r} is out of range (accepted: numbers in 0..100 m)")
     return values
 
 
 def mount_report(
-    height_m: float, tilt_deg: float, sensor: str, vfov_deg: float | None, distances: str, plot: Path | None
+    height_m: float,
+    tilt_deg: float,
+    sensor: str,
+    vfov_deg: float | None,
+    distances: str,
+    plot: Path | None,
 ) -> str:
     """The text table (and optionally a PNG side view) for one mount."""
     Mount(height_m, tilt_deg, 0.0)  # validates height and tilt with the usual messages
     if vfov_deg is None:
         if sensor not in SENSOR_VFOV_DEG:
-            raise ConfigError(f"--sensor={sensor!r} is not known (accepted: {', '.join(SENSOR_VFOV_DEG)})",
-                              hint="or give --vfov-deg")
+            raise ConfigError(
+                f"--sensor={sensor!r} is not known (accepted: {', '.join(SENSOR_VFOV_DEG)})",
+                hint="or give --vfov-deg",
+            )
         vfov_deg = SENSOR_VFOV_DEG[sensor]
     vfov_deg = check_range("--vfov-deg", vfov_deg, 1.0, 170.0, " deg")
     ds = _distances(distances)
@@ -57,7 +72,9 @@ def _fmt(value: float) -> str:
     return f"{value:.2f} m" if math.isfinite(value) else "none (the floor is never seen)"
 
 
-def draw_side_view(path: Path, height_m: float, tilt_deg: float, vfov_deg: float, max_dist_m: float) -> None:
+def draw_side_view(
+    path: Path, height_m: float, tilt_deg: float, vfov_deg: float, max_dist_m: float
+) -> None:
     """A side view: floor, sensor, the field of view wedge, the dead zone, to a PNG."""
     from PIL import Image, ImageDraw
 
@@ -71,8 +88,8 @@ def draw_side_view(path: Path, height_m: float, tilt_deg: float, vfov_deg: float
 
     img = Image.new("RGB", (w, h), "white")
     g = ImageDraw.Draw(img)
-    lo = math.radians(tilt_deg + vfov_deg / 2)   # lower edge, below the horizon
-    hi = math.radians(tilt_deg - vfov_deg / 2)   # upper edge
+    lo = math.radians(tilt_deg + vfov_deg / 2)  # lower edge, below the horizon
+    hi = math.radians(tilt_deg - vfov_deg / 2)  # upper edge
     far = max_dist_m * 2
 
     def edge(angle: float) -> tuple[float, float]:
@@ -91,8 +108,20 @@ def draw_side_view(path: Path, height_m: float, tilt_deg: float, vfov_deg: float
     if math.isfinite(dead):
         g.line([px(0, 0), px(min(dead, max_dist_m), 0)], fill="red", width=5)
         g.text(px(0, 0.05 * top_m), f"dead zone {dead:.2f} m", fill="red")
-    g.ellipse([px(0, height_m)[0] - 5, px(0, height_m)[1] - 5, px(0, height_m)[0] + 5, px(0, height_m)[1] + 5], fill="black")
-    g.text((margin, 10), f"h {height_m:.2f} m, tilt {tilt_deg:.1f} deg, vfov {vfov_deg:.1f} deg", fill="black")
+    g.ellipse(
+        [
+            px(0, height_m)[0] - 5,
+            px(0, height_m)[1] - 5,
+            px(0, height_m)[0] + 5,
+            px(0, height_m)[1] + 5,
+        ],
+        fill="black",
+    )
+    g.text(
+        (margin, 10),
+        f"h {height_m:.2f} m, tilt {tilt_deg:.1f} deg, vfov {vfov_deg:.1f} deg",
+        fill="black",
+    )
     for d in np.arange(0, max_dist_m + 1e-9, 0.5):
         g.text((px(float(d), 0)[0] - 8, h - margin + 8), f"{d:g}", fill="black")
     img.save(path)

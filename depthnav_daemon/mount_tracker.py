@@ -33,7 +33,9 @@ class TrackerParams:
 
 def _distance(a: Mount, b: Mount) -> tuple[float, float]:
     """(height difference m, largest angle difference deg) between two mounts."""
-    return abs(a.height_m - b.height_m), max(abs(a.tilt_deg - b.tilt_deg), abs(a.roll_deg - b.roll_deg))
+    return abs(a.height_m - b.height_m), max(
+        abs(a.tilt_deg - b.tilt_deg), abs(a.roll_deg - b.roll_deg)
+    )
 
 
 def _clamped(height_m: float, tilt_deg: float, roll_deg: float) -> Mount:
@@ -69,8 +71,13 @@ class MountTracker:
         else:  # smooth sensor noise
             a = self._params.smoothing
             m = self._smoothed
-            self._apply(_clamped(m.height_m, m.tilt_deg + a * (tilt_deg - m.tilt_deg),
-                                 m.roll_deg + a * (roll_deg - m.roll_deg)))
+            self._apply(
+                _clamped(
+                    m.height_m,
+                    m.tilt_deg + a * (tilt_deg - m.tilt_deg),
+                    m.roll_deg + a * (roll_deg - m.roll_deg),
+                )
+            )
         self.source = source
 
     def _apply(self, smoothed: Mount, force: bool = False) -> None:
@@ -98,15 +105,18 @@ class MountTracker:
             self._pending.clear()
             m = self._smoothed
             a = p.smoothing
-            self._apply(_clamped(
-                m.height_m + a * (new.height_m - m.height_m),
-                m.tilt_deg + a * (new.tilt_deg - m.tilt_deg),
-                m.roll_deg + a * (new.roll_deg - m.roll_deg),
-            ))
+            self._apply(
+                _clamped(
+                    m.height_m + a * (new.height_m - m.height_m),
+                    m.tilt_deg + a * (new.tilt_deg - m.tilt_deg),
+                    m.roll_deg + a * (new.roll_deg - m.roll_deg),
+                )
+            )
             return None
         # a jump: hold it back until enough consecutive estimates agree with each other
         if self._pending and any(
-            _distance(new, q)[0] > p.max_jump_m or _distance(new, q)[1] > p.max_jump_deg for q in self._pending
+            _distance(new, q)[0] > p.max_jump_m or _distance(new, q)[1] > p.max_jump_deg
+            for q in self._pending
         ):
             self._pending.clear()
         self._pending.append(new)

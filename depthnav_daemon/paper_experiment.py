@@ -24,7 +24,7 @@ from drivers.base import KINECT_V1, Intrinsics
 BOX_HEIGHTS_M = (0.40, 0.15, 0.03, 0.01)
 POSES = ((0.45, 15.0), (0.8, 40.0), (1.2, 50.0), (1.2, 60.0))
 MARGINS_M = (0.0, 0.02, 0.05, 0.10, 0.15, 0.20)
-BEARINGS_DEG = (20.0, 7.0, -7.0, -20.0)   # left to right, one box each; spans never overlap
+BEARINGS_DEG = (20.0, 7.0, -7.0, -20.0)  # left to right, one box each; spans never overlap
 BOX_SIZE_M = 0.12
 
 
@@ -37,7 +37,7 @@ class Row:
     tilt_deg: float
     margin_m: float
     detected: tuple[bool, ...]  # per box, in BOX_HEIGHTS_M order
-    false_bins: int             # bins that report an obstacle away from every box
+    false_bins: int  # bins that report an obstacle away from every box
 
 
 def scene_for(mount: Mount, intr: Intrinsics) -> Scene:
@@ -46,8 +46,16 @@ def scene_for(mount: Mount, intr: Intrinsics) -> Scene:
     boxes = []
     for h, b in zip(BOX_HEIGHTS_M, BEARINGS_DEG, strict=True):
         r = dist + BOX_SIZE_M / 2
-        boxes.append(Box(r * math.cos(math.radians(b)), r * math.sin(math.radians(b)),
-                         BOX_SIZE_M, BOX_SIZE_M, h, yaw_deg=b))
+        boxes.append(
+            Box(
+                r * math.cos(math.radians(b)),
+                r * math.sin(math.radians(b)),
+                BOX_SIZE_M,
+                BOX_SIZE_M,
+                h,
+                yaw_deg=b,
+            )
+        )
     return Scene(boxes=tuple(boxes))
 
 
@@ -70,7 +78,7 @@ def run(intr: Intrinsics = KINECT_V1, seed: int = 11, noise: bool = True) -> lis
     return rows
 
 
-def _score(scan, scene: Scene, method: str, mount: Mount, margin: float) -> Row:  # noqa: ANN001
+def _score(scan, scene: Scene, method: str, mount: Mount, margin: float) -> Row:
     angles = scan.angles
     detected = []
     near_any = np.zeros(angles.size, dtype=bool)

@@ -19,10 +19,10 @@ from drivers.base import Intrinsics
 
 F64 = npt.NDArray[np.float64]
 
-LABEL_NONE = 0    # the ray hit nothing within the sensor's range
+LABEL_NONE = 0  # the ray hit nothing within the sensor's range
 LABEL_FLOOR = 1
-LABEL_HOLE = 2    # the bottom or a wall of a hole / the lower floor beyond a step
-LABEL_BOX0 = 3    # box i has label LABEL_BOX0 + i
+LABEL_HOLE = 2  # the bottom or a wall of a hole / the lower floor beyond a step
+LABEL_BOX0 = 3  # box i has label LABEL_BOX0 + i
 
 
 @dataclass(frozen=True, slots=True)
@@ -62,17 +62,23 @@ class Hole:
     depth_m: float
 
 
-def wall(distance_m: float, height_m: float = 2.5, thickness_m: float = 0.1, half_width_m: float = 50.0) -> Box:
+def wall(
+    distance_m: float, height_m: float = 2.5, thickness_m: float = 0.1, half_width_m: float = 50.0
+) -> Box:
     """A wall across the view, its face ``distance_m`` ahead of the sensor."""
     return Box(distance_m + thickness_m / 2, 0.0, thickness_m, 2 * half_width_m, height_m)
 
 
-def table(x_m: float, y_m: float, length_m: float, width_m: float, top_m: float, thickness_m: float = 0.03) -> Box:
+def table(
+    x_m: float, y_m: float, length_m: float, width_m: float, top_m: float, thickness_m: float = 0.03
+) -> Box:
     """A table top (without legs) whose upper face is ``top_m`` above the floor."""
     return Box(x_m, y_m, length_m, width_m, top_m, base_m=top_m - thickness_m)
 
 
-def step_down(distance_m: float, drop_m: float, half_width_m: float = 50.0, far_m: float = 100.0) -> Hole:
+def step_down(
+    distance_m: float, drop_m: float, half_width_m: float = 50.0, far_m: float = 100.0
+) -> Hole:
     """A step down across the view: beyond ``distance_m`` ahead the floor is ``drop_m`` lower."""
     return Hole(distance_m, far_m, -half_width_m, half_width_m, drop_m)
 
@@ -98,9 +104,9 @@ class KinectNoise:
     baseline_m: float = 0.075
     disparity_sigma_px: float = 0.07
     subpixel: int = 8
-    edge_dropout: float = 0.5        # probability that a pixel on a depth discontinuity reads 0
-    edge_jump: float = 0.04          # relative depth jump to a neighbour that counts as an edge
-    far_dropout_start_m: float = 4.0 # dropout rises linearly from here to the sensor's max range
+    edge_dropout: float = 0.5  # probability that a pixel on a depth discontinuity reads 0
+    edge_jump: float = 0.04  # relative depth jump to a neighbour that counts as an edge
+    far_dropout_start_m: float = 4.0  # dropout rises linearly from here to the sensor's max range
     random_dropout: float = 0.002
 
 
@@ -173,8 +179,10 @@ def cast(scene: Scene, origin: F64, dirs: F64) -> tuple[F64, npt.NDArray[np.int1
         for hole in scene.holes:
             inside = (
                 down
-                & (hit[:, 0] >= hole.x_min_m) & (hit[:, 0] <= hole.x_max_m)
-                & (hit[:, 1] >= hole.y_min_m) & (hit[:, 1] <= hole.y_max_m)
+                & (hit[:, 0] >= hole.x_min_m)
+                & (hit[:, 0] <= hole.x_max_m)
+                & (hit[:, 1] >= hole.y_min_m)
+                & (hit[:, 1] <= hole.y_max_m)
             )
             lo = np.array([hole.x_min_m, hole.y_min_m, -hole.depth_m])
             hi = np.array([hole.x_max_m, hole.y_max_m, 0.0])
@@ -257,7 +265,9 @@ def _apply_noise(z: F64, noise: KinectNoise, rng: np.random.Generator, max_range
     jump[:, 1:] |= dh
     jump[:, :-1] |= dh
     drop = jump & (rng.random(z.shape) < noise.edge_dropout)
-    far = np.clip((z - noise.far_dropout_start_m) / max(max_range_m - noise.far_dropout_start_m, 1e-6), 0, 1)
+    far = np.clip(
+        (z - noise.far_dropout_start_m) / max(max_range_m - noise.far_dropout_start_m, 1e-6), 0, 1
+    )
     drop |= rng.random(z.shape) < np.nan_to_num(far, nan=1.0)
     drop |= rng.random(z.shape) < noise.random_dropout
     out[drop] = np.nan
@@ -267,7 +277,9 @@ def _apply_noise(z: F64, noise: KinectNoise, rng: np.random.Generator, max_range
 # --- ground truth in the horizontal plane ---------------------------------------------------------
 
 
-def _ray_rect_2d(bearings: F64, x0: F64, x1: F64, y0: F64, y1: F64, origin: F64, yaw_rad: float) -> F64:
+def _ray_rect_2d(
+    bearings: F64, x0: F64, x1: F64, y0: F64, y1: F64, origin: F64, yaw_rad: float
+) -> F64:
     """Horizontal distance from ``origin`` (2,) along each bearing (N,) to a rectangle; +inf = miss."""
     c, s = math.cos(yaw_rad), math.sin(yaw_rad)
     d = np.stack([np.cos(bearings), np.sin(bearings)], axis=-1)
@@ -293,8 +305,12 @@ def truth_obstacle_ranges(
         origin = -np.array([box.x_m, box.y_m])
         r = _ray_rect_2d(
             np.asarray(bearings_rad, dtype=np.float64),
-            -box.length_m / 2, box.length_m / 2, -box.width_m / 2, box.width_m / 2,
-            origin, math.radians(box.yaw_deg),
+            -box.length_m / 2,
+            box.length_m / 2,
+            -box.width_m / 2,
+            box.width_m / 2,
+            origin,
+            math.radians(box.yaw_deg),
         )
         best = np.minimum(best, r)
     return best
@@ -306,7 +322,12 @@ def truth_drop_ranges(scene: Scene, bearings_rad: F64) -> F64:
     for hole in scene.holes:
         r = _ray_rect_2d(
             np.asarray(bearings_rad, dtype=np.float64),
-            hole.x_min_m, hole.x_max_m, hole.y_min_m, hole.y_max_m, np.zeros(2), 0.0,
+            hole.x_min_m,
+            hole.x_max_m,
+            hole.y_min_m,
+            hole.y_max_m,
+            np.zeros(2),
+            0.0,
         )
         best = np.minimum(best, r)
     return best
@@ -319,8 +340,10 @@ def in_drop_off(scene: Scene, x_m: F64, y_m: F64, margin_m: float = 0.0) -> npt.
     out = np.zeros(np.broadcast(x, y).shape, dtype=bool)
     for h in scene.holes:
         out |= (
-            (x >= h.x_min_m - margin_m) & (x <= h.x_max_m + margin_m)
-            & (y >= h.y_min_m - margin_m) & (y <= h.y_max_m + margin_m)
+            (x >= h.x_min_m - margin_m)
+            & (x <= h.x_max_m + margin_m)
+            & (y >= h.y_min_m - margin_m)
+            & (y <= h.y_max_m + margin_m)
         )
     return out
 
@@ -344,6 +367,8 @@ def truth_obstacle_interval(
     """
     b = np.asarray(bearings_rad, dtype=np.float64)
     offsets = np.linspace(-half_width_rad, half_width_rad, samples)
-    r = truth_obstacle_ranges(scene, (b[:, None] + offsets[None, :]).ravel(), min_height_m, max_height_m)
+    r = truth_obstacle_ranges(
+        scene, (b[:, None] + offsets[None, :]).ravel(), min_height_m, max_height_m
+    )
     r = r.reshape(b.size, samples)
     return r.min(axis=1), r.max(axis=1)

@@ -25,21 +25,36 @@ FIXTURE = ROOT / "fixtures" / "corridor_step"
 
 def depthnav(*args: str, timeout: float = 120, **kw: object) -> subprocess.CompletedProcess[str]:
     return subprocess.run(
-        [sys.executable, "-m", "depthnav_daemon", *args], capture_output=True, text=True, timeout=timeout,
-        cwd=ROOT, **kw,  # type: ignore[arg-type]
+        [sys.executable, "-m", "depthnav_daemon", *args],
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+        cwd=ROOT,
+        **kw,  # type: ignore[arg-type]
     )
 
 
 def test_run_prints_one_valid_json_line_per_frame() -> None:
-    p = depthnav("run", "--device", f"replay:{FIXTURE}?rate=max", "--sink", "stdout", "--max-frames", "5")
+    p = depthnav(
+        "run", "--device", f"replay:{FIXTURE}?rate=max", "--sink", "stdout", "--max-frames", "5"
+    )
     assert p.returncode == 0, p.stderr
     lines = p.stdout.strip().splitlines()
     assert len(lines) == 5
     for i, line in enumerate(lines):
-        msg = json.loads(line, parse_constant=lambda c: pytest.fail(f"non-strict JSON constant {c}"))
+        msg = json.loads(
+            line, parse_constant=lambda c: pytest.fail(f"non-strict JSON constant {c}")
+        )
         assert msg["seq"] == i
         scan = msg["scan"]
-        for key in ("angle_min", "angle_max", "angle_increment", "range_min", "range_max", "ranges"):
+        for key in (
+            "angle_min",
+            "angle_max",
+            "angle_increment",
+            "range_min",
+            "range_max",
+            "ranges",
+        ):
             assert key in scan
         assert {"height_m", "tilt_deg", "roll_deg"} <= set(msg["pose"])
         assert "cliff" in msg
@@ -52,7 +67,8 @@ def test_replay_alias_equals_run_with_replay_device() -> None:
     b = depthnav("run", "--device", f"replay:{FIXTURE}?rate=max", "--max-frames", "2", "-q")
     assert a.returncode == b.returncode == 0, a.stderr + b.stderr
     strip = lambda out: [  # noqa: E731 - wall clock and stage timings differ between any two runs
-        {k: v for k, v in json.loads(x).items() if k not in ("wall_s", "timings_s")} for x in out.splitlines()
+        {k: v for k, v in json.loads(x).items() if k not in ("wall_s", "timings_s")}
+        for x in out.splitlines()
     ]
     assert strip(a.stdout) == strip(b.stdout)
 
@@ -60,7 +76,16 @@ def test_replay_alias_equals_run_with_replay_device() -> None:
 def test_calibrate_recovers_the_fixture_mount(tmp_path: Path) -> None:
     out = tmp_path / "robot.toml"
     out.write_text('device = "kinect"\n[scan]\nrange_max_m = 4.0\n')
-    p = depthnav("calibrate", "--device", f"replay:{FIXTURE}?rate=max", "--frames", "8", "--json", "--write", str(out))
+    p = depthnav(
+        "calibrate",
+        "--device",
+        f"replay:{FIXTURE}?rate=max",
+        "--frames",
+        "8",
+        "--json",
+        "--write",
+        str(out),
+    )
     assert p.returncode == 0, p.stderr
     got = json.loads(p.stdout)
     # the fixture's truth (recording.toml [truth]): 0.55 m high, pitched 15 deg down, no roll
@@ -85,9 +110,20 @@ def test_calibrate_without_floor_fails_with_a_hint(tmp_path: Path) -> None:
 
 def _start_endless_run() -> subprocess.Popen[str]:
     proc = subprocess.Popen(
-        [sys.executable, "-m", "depthnav_daemon", "run", "--device", f"replay:{FIXTURE}?rate=realtime&loop=1",
-         "--sink", "stdout"],
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT,
+        [
+            sys.executable,
+            "-m",
+            "depthnav_daemon",
+            "run",
+            "--device",
+            f"replay:{FIXTURE}?rate=realtime&loop=1",
+            "--sink",
+            "stdout",
+        ],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        cwd=ROOT,
     )
     assert proc.stdout is not None
     first = proc.stdout.readline()  # the loop is running once a line arrives
@@ -112,7 +148,11 @@ def test_signals_stop_the_run_cleanly(sig: int, code: int) -> None:
         (["run", "--device", "nosuch://x"], 2, "unknown device scheme 'nosuch'"),
         (["run", "--device", "replay:/nonexistent/rec"], 1, "/nonexistent/rec"),
         (["run", "--device", f"replay:{FIXTURE}", "--set", "mount.height_m=-3"], 2, "height_m=-3"),
-        (["run", "--device", f"replay:{FIXTURE}", "--sink", "carrier-pigeon://x"], 2, "carrier-pigeon"),
+        (
+            ["run", "--device", f"replay:{FIXTURE}", "--sink", "carrier-pigeon://x"],
+            2,
+            "carrier-pigeon",
+        ),
         (["run", "--device", f"replay:{FIXTURE}", "--max-frames", "0"], 2, "--max-frames=0"),
         (["run"], 2, "no device given"),
         (["frobnicate"], 2, "invalid choice"),
@@ -130,7 +170,9 @@ def test_bad_input_is_one_clear_line(args: list[str], code: int, needle: str) ->
 
 def test_mount_prints_eq_15_16_table_and_plot(tmp_path: Path) -> None:
     png = tmp_path / "side.png"
-    p = depthnav("mount", "--height-m", "0.5", "--tilt-deg", "15", "--vfov-deg", "43", "--plot", str(png))
+    p = depthnav(
+        "mount", "--height-m", "0.5", "--tilt-deg", "15", "--vfov-deg", "43", "--plot", str(png)
+    )
     assert p.returncode == 0, p.stderr
     # eq. 15 with h1 = 0: 0.5 * tan(90 - 21.5 - 15 deg) = 0.5 * tan(53.5 deg) = 0.6757 m
     assert f"{0.5 * math.tan(math.radians(53.5)):.2f} m" in p.stdout
@@ -146,10 +188,19 @@ def test_info_and_devices_run_without_hardware() -> None:
 
 
 def test_ros_parameter_file_is_accepted_as_a_config() -> None:
-    ros = ROOT.parent / "shared" / "reference" / "original_params" / "ros1_noetic" / "cliff_detector.yaml"
+    ros = (
+        ROOT.parent
+        / "shared"
+        / "reference"
+        / "original_params"
+        / "ros1_noetic"
+        / "cliff_detector.yaml"
+    )
     if not ros.exists():
         pytest.skip("../shared is not beside the project")
-    p = depthnav("run", "--device", f"replay:{FIXTURE}?rate=max", "--config", str(ros), "--max-frames", "1")
+    p = depthnav(
+        "run", "--device", f"replay:{FIXTURE}?rate=max", "--config", str(ros), "--max-frames", "1"
+    )
     assert p.returncode == 0, p.stderr
     assert json.loads(p.stdout)["seq"] == 0
 
@@ -157,7 +208,16 @@ def test_ros_parameter_file_is_accepted_as_a_config() -> None:
 def test_run_quick_enough_to_start() -> None:
     """Not a timing assertion: a sanity bound of a minute so a hang fails instead of stalling CI."""
     t0 = time.monotonic()
-    p = depthnav("run", "--device", f"replay:{FIXTURE}?rate=max", "--sink", "null", "--max-frames", "12", timeout=60)
+    p = depthnav(
+        "run",
+        "--device",
+        f"replay:{FIXTURE}?rate=max",
+        "--sink",
+        "null",
+        "--max-frames",
+        "12",
+        timeout=60,
+    )
     assert p.returncode == 0, p.stderr
     assert time.monotonic() - t0 < 60
     assert np.isfinite(0.0)

@@ -26,13 +26,17 @@ def test_default_toml_documents_every_key() -> None:
 def test_precedence_defaults_files_set_flags(tmp_path: Path) -> None:
     a = tmp_path / "a.toml"
     b = tmp_path / "b.toml"
-    a.write_text('device = "replay:a"\n[mount]\nheight_m = 0.7\ntilt_deg = 10.0\n[scan]\nrange_max_m = 4.0\n')
+    a.write_text(
+        'device = "replay:a"\n[mount]\nheight_m = 0.7\ntilt_deg = 10.0\n[scan]\nrange_max_m = 4.0\n'
+    )
     b.write_text("[mount]\ntilt_deg = 12.0\n")
-    cfg = build_config([a, b], ["mount.tilt_deg=14.5", "scan.method=paper"], {"mount": {"height_m": 0.9}})
+    cfg = build_config(
+        [a, b], ["mount.tilt_deg=14.5", "scan.method=paper"], {"mount": {"height_m": 0.9}}
+    )
     assert cfg.device == "replay:a"
-    assert cfg.mount.height_m == 0.9           # the flag wins over the file
-    assert cfg.mount.tilt_deg == 14.5          # --set wins over both files
-    assert cfg.scan.range_max_m == 4.0        # file value kept where nothing overrides it
+    assert cfg.mount.height_m == 0.9  # the flag wins over the file
+    assert cfg.mount.tilt_deg == 14.5  # --set wins over both files
+    assert cfg.scan.range_max_m == 4.0  # file value kept where nothing overrides it
     assert cfg.scan.method == "paper"
     assert cfg.cliff == Config().cliff
 

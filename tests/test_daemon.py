@@ -69,7 +69,7 @@ class FlakyDriver:
         self.inner.close()
 
 
-def config(*sets: str):  # noqa: ANN201
+def config(*sets: str):
     return build_config([], ["daemon.reconnect_backoff_s=0.01", *sets], {"device": SPEC})
 
 
@@ -95,8 +95,13 @@ def test_a_device_that_stops_is_reconnected(silent: bool) -> None:
     drivers = iter([FlakyDriver(3, silent), FlakyDriver(None)])
     sink = CollectSink()
     cfg = config("daemon.frame_timeout_s=0.05", "daemon.max_consecutive_timeouts=2")
-    report = run(cfg, threading.Event(), max_frames=10, driver_factory=lambda _s: next(drivers),
-                 sink_factory=lambda _s: sink)
+    report = run(
+        cfg,
+        threading.Event(),
+        max_frames=10,
+        driver_factory=lambda _s: next(drivers),
+        sink_factory=lambda _s: sink,
+    )
     assert report.reconnects == 1
     assert report.frames == 10
     assert [r.seq for r in sink.results][:3] == [0, 1, 2]
@@ -138,8 +143,11 @@ def test_stop_event_ends_the_loop_and_closes_sinks() -> None:
 def test_the_floor_pose_feeds_the_scan() -> None:
     """Configured badly (1.0 m, level), the floor estimate corrects the mount the stages use."""
     sink = CollectSink()
-    cfg = build_config([], ["daemon.tilt_source=floor", "daemon.pose_every_frames=2"],
-                       {"device": SPEC, "mount": {"height_m": 1.0, "tilt_deg": 0.0}})
+    cfg = build_config(
+        [],
+        ["daemon.tilt_source=floor", "daemon.pose_every_frames=2"],
+        {"device": SPEC, "mount": {"height_m": 1.0, "tilt_deg": 0.0}},
+    )
     run(cfg, threading.Event(), max_frames=6, sink_factory=lambda _s: sink)
     first, last = sink.results[0], sink.results[-1]
     # estimated on frame 0 and already used for frame 0's scan and cliffs (no false drop-offs from
@@ -153,25 +161,34 @@ def test_the_floor_pose_feeds_the_scan() -> None:
 
 def test_the_accelerometer_gives_the_first_tilt() -> None:
     sink = CollectSink()
-    cfg = build_config([], ["daemon.pose_every_frames=0"], {"device": SPEC, "mount": {"tilt_deg": 0.0}})
+    cfg = build_config(
+        [], ["daemon.pose_every_frames=0"], {"device": SPEC, "mount": {"tilt_deg": 0.0}}
+    )
     run(cfg, threading.Event(), max_frames=3, sink_factory=lambda _s: sink)
     assert sink.results[0].mount_source == "accel"
-    assert sink.results[0].mount.tilt_deg == pytest.approx(15.0, abs=0.5)  # the fixture's accel says 15 deg
+    assert sink.results[0].mount.tilt_deg == pytest.approx(
+        15.0, abs=0.5
+    )  # the fixture's accel says 15 deg
 
 
 def test_mount_tracker_holds_back_a_jump_until_it_is_confirmed() -> None:
-    t = MountTracker(Mount(0.5, 10.0, 0.0), TrackerParams(smoothing=0.5, max_jump_m=0.05, max_jump_deg=3.0, confirmations=3))
+    t = MountTracker(
+        Mount(0.5, 10.0, 0.0),
+        TrackerParams(smoothing=0.5, max_jump_m=0.05, max_jump_deg=3.0, confirmations=3),
+    )
     assert "from the floor" in (t.from_floor(0.55, 15.0, 0.0) or "")
     assert t.mount == Mount(0.55, 15.0, 0.0)
-    assert t.from_floor(0.56, 15.4, 0.2) is None            # small: smoothed in halfway
+    assert t.from_floor(0.56, 15.4, 0.2) is None  # small: smoothed in halfway
     assert t.mount.height_m == pytest.approx(0.555) and t.mount.tilt_deg == pytest.approx(15.2)
     before = t.mount
-    assert "not applied" in (t.from_floor(0.80, 30.0, 0.0) or "")   # a jump: held back
-    assert "not applied" in (t.from_floor(0.20, 5.0, 0.0) or "")    # disagrees with the first: restart
+    assert "not applied" in (t.from_floor(0.80, 30.0, 0.0) or "")  # a jump: held back
+    assert "not applied" in (
+        t.from_floor(0.20, 5.0, 0.0) or ""
+    )  # disagrees with the first: restart
     assert t.mount == before and t.rejected == 2
     t.from_floor(0.80, 30.0, 0.0)
     t.from_floor(0.80, 30.1, 0.0)
-    assert "accepted" in (t.from_floor(0.81, 30.0, 0.0) or "")      # three agreeing: the sensor moved
+    assert "accepted" in (t.from_floor(0.81, 30.0, 0.0) or "")  # three agreeing: the sensor moved
     assert t.mount.height_m == pytest.approx(0.81)
 
 
@@ -186,7 +203,9 @@ def test_mount_tracker_uses_tilt_sensor_only_until_the_floor_speaks() -> None:
 
 def test_mount_tracker_deadband_keeps_the_applied_mount_through_wobble() -> None:
     """Sub-millimetre wobble of the estimates must not move the mount (each move rebuilds tables)."""
-    t = MountTracker(Mount(0.5, 10.0, 0.0), TrackerParams(smoothing=0.5, deadband_m=0.002, deadband_deg=0.1))
+    t = MountTracker(
+        Mount(0.5, 10.0, 0.0), TrackerParams(smoothing=0.5, deadband_m=0.002, deadband_deg=0.1)
+    )
     t.from_floor(0.55, 15.0, 0.0)
     applied = t.mount
     for k in range(20):
@@ -203,12 +222,12 @@ def test_tilt_sensor_narrows_the_floor_search_window() -> None:
 
     base = PoseParams(tilt_min_deg=-10.0, tilt_max_deg=60.0)
     t = MountTracker(Mount(0.5, 0.0, 0.0), TrackerParams())
-    assert pose_prior(base, t) is base                      # configured mount: the configured window
+    assert pose_prior(base, t) is base  # configured mount: the configured window
     t.from_tilt_sensor(15.3, 0.0, "accel")
     p = pose_prior(base, t)
     assert (p.tilt_min_deg, p.tilt_max_deg) == (5.0, 25.0)  # 15 +- 10, whole degrees
     t.from_floor(0.5, 15.0, 0.0)
-    assert pose_prior(base, t) is base                      # the floor speaks for itself
+    assert pose_prior(base, t) is base  # the floor speaks for itself
 
 
 def test_serial_tilt_source_gives_the_mount_through_a_pty() -> None:
@@ -235,7 +254,9 @@ def test_serial_tilt_source_gives_the_mount_through_a_pty() -> None:
         while source.latest() is None and _time.monotonic() < deadline:
             _time.sleep(0.02)
         sink = CollectSink()
-        cfg = build_config([], ["daemon.tilt_source=serial", "daemon.pose_every_frames=0"], {"device": SPEC})
+        cfg = build_config(
+            [], ["daemon.tilt_source=serial", "daemon.pose_every_frames=0"], {"device": SPEC}
+        )
         run(cfg, threading.Event(), max_frames=3, sink_factory=lambda _s: sink, serial_tilt=source)
     finally:
         stop.set()

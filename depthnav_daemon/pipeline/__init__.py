@@ -105,9 +105,19 @@ def process(
     cliff = None
     if cliff_params is not None:
         t0 = tick()
-        cliff = detect_cliffs(depth, intr, mount, cliff_params, scan.angle_min, scan.angle_increment, scan.ranges.size)
+        cliff = detect_cliffs(
+            depth, intr, mount, cliff_params, scan.angle_min, scan.angle_increment, scan.ranges.size
+        )
         timings["cliff"] = tick() - t0
     return Result(
-        frame.seq, frame.timestamp_s, intr, mount, mount_source, scan, cliff, pose,
-        timings if clock else {}, warning,
+        frame.seq,
+        frame.timestamp_s,
+        intr,
+        mount,
+        mount_source,
+        scan,
+        cliff,
+        pose,
+        timings if clock else {},
+        warning,
     )

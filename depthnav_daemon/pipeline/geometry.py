@@ -36,7 +36,9 @@ def check_range(name: str, value: float, lo: float, hi: float, unit: str = "") -
     try:
         v = float(value)
     except (TypeError, ValueError):
-        raise ConfigError(f"{name}={value!r} is not a number (accepted: {lo:g}..{hi:g}{unit})") from None
+        raise ConfigError(
+            f"{name}={value!r} is not a number (accepted: {lo:g}..{hi:g}{unit})"
+        ) from None
     if not (math.isfinite(v) and lo <= v <= hi):
         raise ConfigError(f"{name}={value!r} is out of range (accepted: {lo:g}..{hi:g}{unit})")
     return v

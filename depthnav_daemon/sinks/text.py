@@ -57,7 +57,9 @@ class TextSink(StdoutSink):
         """Build from a parsed spec (no I/O)."""
         check_options(spec, ("every",), GRAMMAR)
         if spec.target:
-            raise ConfigError(f"the text sink takes no target, got {spec.text!r}", hint=f"write {GRAMMAR}")
+            raise ConfigError(
+                f"the text sink takes no target, got {spec.text!r}", hint=f"write {GRAMMAR}"
+            )
         return cls(spec.text, int(number_option(spec, "every", 1, 1, 1_000_000, integer=True)))
 
     def format(self, frame: Frame, result: Result) -> str | None:

@@ -47,8 +47,14 @@ def random_boxes_in_view(
             continue
         small = r < 0.8  # close to a low, steep camera only a small box fits in view
         size = rng.uniform(0.08, 0.15) if small else rng.uniform(0.15, 0.4)
-        box = Box(p[0] + size / 2, p[1], size, size if small else rng.uniform(0.15, 0.4),
-                  rng.uniform(*height_range_m), yaw_deg=rng.uniform(-30, 30))
+        box = Box(
+            p[0] + size / 2,
+            p[1],
+            size,
+            size if small else rng.uniform(0.15, 0.4),
+            rng.uniform(*height_range_m),
+            yaw_deg=rng.uniform(-30, 30),
+        )
         if any(math.hypot(box.x_m - b.x_m, box.y_m - b.y_m) < 2 * size + 0.1 for b in boxes):
             continue
         boxes.append(box)

@@ -38,7 +38,9 @@ def test_level_frame_is_flu_with_tilt_down_and_roll_left_up() -> None:
     np.testing.assert_allclose(r @ [0, 0, 1], [math.cos(math.radians(30)), 0, -0.5], atol=1e-12)
     # roll +10 deg = left side up: the camera's right axis dips below the horizon (z < 0)
     r = cam_to_level(0.0, math.radians(10))
-    np.testing.assert_allclose(r @ [1, 0, 0], [0, -math.cos(math.radians(10)), -math.sin(math.radians(10))], atol=1e-12)
+    np.testing.assert_allclose(
+        r @ [1, 0, 0], [0, -math.cos(math.radians(10)), -math.sin(math.radians(10))], atol=1e-12
+    )
 
 
 def test_tilted_camera_sees_the_floor_where_trigonometry_says() -> None:
@@ -57,7 +59,7 @@ def test_roll_left_up_lowers_the_horizon_on_the_left_of_the_image() -> None:
     # with the left side up, the camera's left half looks higher: more of it sees beyond the floor
     view = render(Scene(), ASYM_640, Mount(1.0, 10.0, 8.0))
     floor = view.label == 1
-    first_floor_row = floor.argmax(axis=0)   # top-most floor row per column
+    first_floor_row = floor.argmax(axis=0)  # top-most floor row per column
     assert first_floor_row[20] > first_floor_row[-20]
 
 

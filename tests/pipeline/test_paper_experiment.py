@@ -22,9 +22,11 @@ def test_paper_method_sees_the_floor_without_margin_and_tall_boxes_with_it() -> 
         if r.method != "paper":
             continue
         if r.margin_m == 0.0:
-            assert r.false_bins > 50, r  # no margin: the floor itself is the nearest "obstacle" (fig. 9)
+            assert r.false_bins > 50, (
+                r
+            )  # no margin: the floor itself is the nearest "obstacle" (fig. 9)
         elif r.margin_m >= 0.05:
-            assert r.detected[0], r      # the 40 cm box survives every margin and pose
+            assert r.detected[0], r  # the 40 cm box survives every margin and pose
 
 
 def test_table_has_a_line_per_pose_and_margin() -> None:

@@ -22,7 +22,9 @@ from depthnav_daemon.synthetic import (
 from drivers.base import Intrinsics
 from tests.pipeline.scenes import ASYM_640, random_boxes_in_view
 
-PARAMS = ScanParams(range_min_m=0.1, range_max_m=5.0, min_obstacle_height_m=0.05, max_obstacle_height_m=2.0)
+PARAMS = ScanParams(
+    range_min_m=0.1, range_max_m=5.0, min_obstacle_height_m=0.05, max_obstacle_height_m=2.0
+)
 
 
 def seen_bins(view: SyntheticView, scan: LaserScan, params: ScanParams) -> np.ndarray:
@@ -31,8 +33,13 @@ def seen_bins(view: SyntheticView, scan: LaserScan, params: ScanParams) -> np.nd
     box = view.label >= LABEL_BOX0
     h = view.height_m
     r = np.hypot(pts[..., 0], pts[..., 1])
-    ok = box & (h >= params.min_obstacle_height_m + 0.005) & (h <= params.max_obstacle_height_m) & (
-        r >= params.range_min_m) & (r <= params.range_max_m)
+    ok = (
+        box
+        & (h >= params.min_obstacle_height_m + 0.005)
+        & (h <= params.max_obstacle_height_m)
+        & (r >= params.range_min_m)
+        & (r <= params.range_max_m)
+    )
     bearing = np.arctan2(pts[..., 1][ok], pts[..., 0][ok])
     idx = np.floor((bearing - scan.angle_min) / scan.angle_increment + 0.5).astype(int)
     out = np.zeros(scan.ranges.size, dtype=bool)
@@ -40,7 +47,9 @@ def seen_bins(view: SyntheticView, scan: LaserScan, params: ScanParams) -> np.nd
     return out
 
 
-def check_against_truth(view: SyntheticView, scan: LaserScan, params: ScanParams, rel_tol: float, abs_tol: float) -> int:
+def check_against_truth(
+    view: SyntheticView, scan: LaserScan, params: ScanParams, rel_tol: float, abs_tol: float
+) -> int:
     """Assert every bin that sees a box is within tolerance, and no other bin reports an obstacle."""
     half = scan.angle_increment * 1.5  # the bin plus the half-pixel footprint on either side
     lo, hi = truth_obstacle_interval(
@@ -49,7 +58,9 @@ def check_against_truth(view: SyntheticView, scan: LaserScan, params: ScanParams
     seen = seen_bins(view, scan, params)
     covered = seen & np.isfinite(hi)  # the box fills the bin's whole footprint
     got = scan.ranges.astype(np.float64)
-    assert np.all(np.isfinite(got[covered])), f"box bins without a range: {np.flatnonzero(covered & ~np.isfinite(got))}"
+    assert np.all(np.isfinite(got[covered])), (
+        f"box bins without a range: {np.flatnonzero(covered & ~np.isfinite(got))}"
+    )
     tol = abs_tol + rel_tol * hi[covered]
     err_lo = lo[covered] - tol - got[covered]
     err_hi = got[covered] - hi[covered] - tol
@@ -59,19 +70,30 @@ def check_against_truth(view: SyntheticView, scan: LaserScan, params: ScanParams
     # no bin away from every box may report an obstacle (the floor must be removed)
     floor_only = ~np.isfinite(lo)
     false = floor_only & np.isfinite(got)
-    assert not false.any(), f"floor reported as obstacle at bins {np.flatnonzero(false)[:10]} ranges {got[false][:10]}"
+    assert not false.any(), (
+        f"floor reported as obstacle at bins {np.flatnonzero(false)[:10]} ranges {got[false][:10]}"
+    )
     return int(covered.sum())
 
 
 def mounts(n: int, seed: int) -> list[Mount]:
     rng = np.random.default_rng(seed)
-    out = [Mount(0.3, 0.0, 0.0), Mount(1.5, 60.0, 10.0), Mount(0.3, 60.0, -10.0), Mount(1.5, 0.0, -10.0)]
+    out = [
+        Mount(0.3, 0.0, 0.0),
+        Mount(1.5, 60.0, 10.0),
+        Mount(0.3, 60.0, -10.0),
+        Mount(1.5, 0.0, -10.0),
+    ]
     while len(out) < n:
         out.append(Mount(rng.uniform(0.3, 1.5), rng.uniform(0, 60), rng.uniform(-10, 10)))
     return out
 
 
-@pytest.mark.parametrize("mount", mounts(14, seed=2), ids=lambda m: f"h{m.height_m:.2f}_t{m.tilt_deg:.0f}_r{m.roll_deg:.0f}")
+@pytest.mark.parametrize(
+    "mount",
+    mounts(14, seed=2),
+    ids=lambda m: f"h{m.height_m:.2f}_t{m.tilt_deg:.0f}_r{m.roll_deg:.0f}",
+)
 def test_exact_scan_noise_free_within_1cm(mount: Mount) -> None:
     rng = np.random.default_rng(int(mount.height_m * 1000 + mount.tilt_deg * 10))
     scene = random_boxes_in_view(rng, ASYM_640, mount, count=3, min_range_m=PARAMS.range_min_m)
@@ -81,7 +103,11 @@ def test_exact_scan_noise_free_within_1cm(mount: Mount) -> None:
     assert check_against_truth(view, scan, PARAMS, rel_tol=0.0, abs_tol=0.01) > 0
 
 
-@pytest.mark.parametrize("mount", mounts(8, seed=3), ids=lambda m: f"h{m.height_m:.2f}_t{m.tilt_deg:.0f}_r{m.roll_deg:.0f}")
+@pytest.mark.parametrize(
+    "mount",
+    mounts(8, seed=3),
+    ids=lambda m: f"h{m.height_m:.2f}_t{m.tilt_deg:.0f}_r{m.roll_deg:.0f}",
+)
 def test_exact_scan_with_kinect_noise_within_3_percent(mount: Mount) -> None:
     rng = np.random.default_rng(7 + int(mount.tilt_deg))
     scene = random_boxes_in_view(rng, ASYM_640, mount, count=3, min_range_m=PARAMS.range_min_m)
@@ -91,7 +117,9 @@ def test_exact_scan_with_kinect_noise_within_3_percent(mount: Mount) -> None:
 
 
 @pytest.mark.parametrize(
-    "size", [(320, 240), (512, 424), (640, 480), (848, 480), (1280, 720)], ids=lambda s: f"{s[0]}x{s[1]}"
+    "size",
+    [(320, 240), (512, 424), (640, 480), (848, 480), (1280, 720)],
+    ids=lambda s: f"{s[0]}x{s[1]}",
 )
 def test_exact_scan_any_resolution(size: tuple[int, int]) -> None:
     intr = ASYM_640.scaled(*size)
@@ -112,7 +140,9 @@ def test_exact_scan_has_no_empty_bins_from_binning() -> None:
         # every bin between the first and last one the wall shows must hold a range: no holes
         first, last = np.flatnonzero(seen)[[0, -1]]
         inner = slice(first, last + 1)
-        assert np.isfinite(scan.ranges[inner]).all(), f"{mount}: {np.flatnonzero(~np.isfinite(scan.ranges[inner]))}"
+        assert np.isfinite(scan.ranges[inner]).all(), (
+            f"{mount}: {np.flatnonzero(~np.isfinite(scan.ranges[inner]))}"
+        )
         np.testing.assert_allclose(scan.ranges[inner], 1.4 / np.cos(scan.angles[inner]), atol=0.01)
         if mount.tilt_deg == 0 and mount.roll_deg == 0:
             assert np.isfinite(scan.ranges).all()
@@ -123,15 +153,22 @@ def test_scan_values_follow_rep117() -> None:
     mount = Mount(0.5, 20.0, 0.0)
     view = render(Scene(), ASYM_640, mount)
     depth = view.depth_mm.copy()
-    depth[:, :100] = 0                       # the left of the image sees nothing
+    depth[:, :100] = 0  # the left of the image sees nothing
     scan = depth_to_scan(depth, ASYM_640, mount, PARAMS)
     pts = view.points_m[:, 100:]
     widest_valid = np.nanmax(np.arctan2(pts[..., 1], pts[..., 0]))
     left = scan.angles > widest_valid + 2 * scan.angle_increment
     assert left.sum() > 10 and np.isnan(scan.ranges[left]).all()
     assert np.isposinf(scan.ranges[scan.angles < widest_valid - 0.3]).all()
-    near = render(Scene(boxes=(Box(0.55, 0.0, 0.2, 3.0, 1.0),)), ASYM_640, Mount(0.5, 0.0, 0.0), min_range_m=0.05)
-    close = depth_to_scan(near.depth_mm, ASYM_640, Mount(0.5, 0.0, 0.0), ScanParams(range_min_m=0.6))
+    near = render(
+        Scene(boxes=(Box(0.55, 0.0, 0.2, 3.0, 1.0),)),
+        ASYM_640,
+        Mount(0.5, 0.0, 0.0),
+        min_range_m=0.05,
+    )
+    close = depth_to_scan(
+        near.depth_mm, ASYM_640, Mount(0.5, 0.0, 0.0), ScanParams(range_min_m=0.6)
+    )
     assert np.isneginf(close.ranges).sum() > 0.8 * close.ranges.size
 
 
@@ -149,7 +186,9 @@ def test_float_metres_input_equals_uint16_millimetres() -> None:
 # --- the paper's method ---------------------------------------------------------------------------
 
 
-def paper_reference(depth_mm: np.ndarray, intr: Intrinsics, h: float, tilt_deg: float, p: ScanParams) -> list[float]:
+def paper_reference(
+    depth_mm: np.ndarray, intr: Intrinsics, h: float, tilt_deg: float, p: ScanParams
+) -> list[float]:
     """Eq. 1-5 evaluated pixel by pixel with the math module, independent of the vectorised code."""
     a = math.radians(tilt_deg)
     fov = math.atan(intr.cy / intr.fy) + math.atan((intr.height - 1 - intr.cy) / intr.fy)
@@ -165,16 +204,22 @@ def paper_reference(depth_mm: np.ndarray, intr: Intrinsics, h: float, tilt_deg: 
                 continue
             seen = True
             z = depth_mm[j, i] / 1000.0
-            delta = fov * (j - intr.cy - 0.5) / (intr.height - 1)                          # eq. 3
+            delta = fov * (j - intr.cy - 0.5) / (intr.height - 1)  # eq. 3
             if not p.range_min_m <= z <= p.range_max_m:
                 continue
             if p.ground_remove and math.sin(delta + a) > 0:
-                ground = h * math.sin(math.pi / 2 - delta) / math.cos(math.pi / 2 - delta - a)  # eq. 5
+                ground = (
+                    h * math.sin(math.pi / 2 - delta) / math.cos(math.pi / 2 - delta - a)
+                )  # eq. 5
                 if z >= ground - p.ground_margin_m:
                     continue
-            d = z * math.sin(math.pi / 2 - a - delta) / math.sin(math.pi / 2 - delta) if p.tilt_compensation else z  # eq. 4
-            best = min(best, d)                                                            # eq. 1
-        x = (i - intr.cx) / intr.fx * best                                                 # eq. 2
+            d = (
+                z * math.sin(math.pi / 2 - a - delta) / math.sin(math.pi / 2 - delta)
+                if p.tilt_compensation
+                else z
+            )  # eq. 4
+            best = min(best, d)  # eq. 1
+        x = (i - intr.cx) / intr.fx * best  # eq. 2
         r = math.hypot(x, best) if math.isfinite(best) else (math.inf if seen else math.nan)
         k = int((-math.atan((i - intr.cx) / intr.fx) - amin) / inc)
         if math.isnan(out[k]) or r < out[k]:
@@ -190,8 +235,13 @@ def test_paper_scan_matches_independent_eq_1_to_5(features: tuple[bool, bool]) -
     rng = np.random.default_rng(5)
     scene = random_boxes_in_view(rng, intr, mount, count=3)
     view = render(scene, intr, mount, KinectNoise(), rng)
-    p = ScanParams(method="paper", scan_height=100, depth_img_row_step=2,
-                   ground_remove=features[0], tilt_compensation=features[1])
+    p = ScanParams(
+        method="paper",
+        scan_height=100,
+        depth_img_row_step=2,
+        ground_remove=features[0],
+        tilt_compensation=features[1],
+    )
     got = depth_to_scan(view.depth_mm, intr, mount, p).ranges
     want = np.array(paper_reference(view.depth_mm, intr, h, tilt, p))
     np.testing.assert_allclose(got, want, rtol=2e-6, atol=2e-6, equal_nan=True)
@@ -232,7 +282,10 @@ def test_bad_frames_give_one_line_errors(depth: object, match: str) -> None:
         (lambda: Mount(roll_deg=float("nan")), "roll_deg=nan"),
         (lambda: ScanParams(method="fast"), "accepted: exact, paper"),
         (lambda: ScanParams(range_min_m=5, range_max_m=1), "must be below"),
-        (lambda: ScanParams(row_step=0), r"row_step=0 is out of range \(accepted: integers 1..64\)"),
+        (
+            lambda: ScanParams(row_step=0),
+            r"row_step=0 is out of range \(accepted: integers 1..64\)",
+        ),
         (lambda: ScanParams(min_obstacle_height_m=0.5, max_obstacle_height_m=0.1), "must be below"),
     ],
 )
@@ -250,7 +303,9 @@ def test_paper_band_too_tall_for_image_is_a_config_error() -> None:
 def test_all_zero_frame_gives_all_nan_scan() -> None:
     """No reading anywhere is a defined result, not a crash: every bin is NaN (no data)."""
     for method in ("exact", "paper"):
-        scan = depth_to_scan(np.zeros((480, 640), np.uint16), ASYM_640, Mount(), ScanParams(method=method))
+        scan = depth_to_scan(
+            np.zeros((480, 640), np.uint16), ASYM_640, Mount(), ScanParams(method=method)
+        )
         assert np.isnan(scan.ranges).all()
     nan_frame = np.full((480, 640), np.nan, np.float32)
     assert np.isnan(depth_to_scan(nan_frame, ASYM_640, Mount(), ScanParams()).ranges).all()

@@ -19,9 +19,23 @@ ROOT = Path(__file__).resolve().parents[2]
 
 def test_text_lines_name_the_fixture_obstacles_and_drop_off() -> None:
     p = subprocess.run(
-        [sys.executable, "-m", "depthnav_daemon", "run", "--device",
-         f"replay:{ROOT / 'fixtures' / 'corridor_step'}?rate=max", "--sink", "text?every=2", "--max-frames", "4", "-q"],
-        capture_output=True, text=True, timeout=120, cwd=ROOT,
+        [
+            sys.executable,
+            "-m",
+            "depthnav_daemon",
+            "run",
+            "--device",
+            f"replay:{ROOT / 'fixtures' / 'corridor_step'}?rate=max",
+            "--sink",
+            "text?every=2",
+            "--max-frames",
+            "4",
+            "-q",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        cwd=ROOT,
     )
     assert p.returncode == 0, p.stderr
     lines = p.stdout.splitlines()
@@ -33,7 +47,9 @@ def test_text_lines_name_the_fixture_obstacles_and_drop_off() -> None:
 
 
 def test_nearest_reads_rep117_values() -> None:
-    scan = LaserScan(-0.2, 0.2, 0.1, 0.4, 5.0, np.array([np.nan, np.inf, 2.0, 1.5, -np.inf], np.float32))
+    scan = LaserScan(
+        -0.2, 0.2, 0.1, 0.4, 5.0, np.array([np.nan, np.inf, 2.0, 1.5, -np.inf], np.float32)
+    )
     assert nearest(scan, -1, -0.15) == "no data"
     assert nearest(scan, -0.15, -0.05) == "clear"
     assert nearest(scan, -0.05, 0.15) == "1.50 m @ 6 deg"
