@@ -27,7 +27,7 @@ from depthnav_daemon.sinks import create_sink
 from depthnav_daemon.sinks.base import Sink, SinkContext
 from drivers import create_driver
 from drivers.base import DeviceInfo, Driver, Frame
-from drivers.errors import DriverError, FrameTimeout
+from drivers.errors import DriverError, FrameTimeout, RecordingError
 
 log = logging.getLogger(__name__)
 
@@ -174,6 +174,10 @@ def run(
                         break
                     last_frame_wall = time.monotonic()
                 continue
+            except RecordingError:
+                # a bad file does not heal by reopening it: replaying it again would repeat the
+                # frames before the bad one forever, so a damaged recording ends the run
+                raise
             except DriverError as exc:
                 if not source.reconnect(str(exc)):
                     break
@@ -183,7 +187,13 @@ def run(
                 log.info("end of %s after %d frames", cfg.device, report.frames)
                 break
             last_frame_wall = time.monotonic()
-            _update_tilt_prior(tracker, frame, d.tilt_source, serial_tilt)
+            try:
+                _update_tilt_prior(tracker, frame, d.tilt_source, serial_tilt)
+            except DriverError as exc:
+                # the IMU only refines the mount: losing it must not blind the robot, so say so
+                # once and go on with the floor estimate and the last mount
+                log.error("%s; going on without the serial tilt source", exc)
+                serial_tilt = None
             want_pose = d.pose_every_frames > 0 and since_pose >= d.pose_every_frames
             if d.pose_every_s > 0 and (last_pose_t is None or frame.timestamp_s - last_pose_t >= d.pose_every_s):
                 want_pose = True

@@ -29,6 +29,9 @@ from __future__ import annotations
 
 import logging
 import os
+import shutil
+import struct
+import time
 import uuid
 from typing import TYPE_CHECKING, Any
 
@@ -58,6 +61,11 @@ DEFAULT_GRPC = ("127.0.0.1", 9876)
 SCAN_Z_M = 0.01  # scan hits are drawn just above the floor, like a footprint map
 CLASS_OBSTACLE = 1
 STATS = "/stats"
+# A file sink's writer thread dies quietly when the disk fills: flush this often so the failure
+# becomes a SinkError (the sink is dropped, the others go on) instead of frames silently lost.
+FILE_CHECK_S = 1.0
+FILE_CHECK_TIMEOUT_S = 10.0
+LOW_SPACE_BYTES = 1 << 20
 
 
 def _xy_to_points3d(x: np.ndarray, y: np.ndarray, z: float) -> np.ndarray:
@@ -112,6 +120,44 @@ def blueprint() -> Any:
     )
 
 
+RRD_MAGIC = b"RRF2"
+RRD_FILE_HEADER = 12  # magic, version, options
+RRD_MESSAGE_HEADER = struct.Struct("<QQ")  # message kind, payload length
+
+
+def trim_partial_message(path: str) -> int | None:
+    """Cut an ``.rrd`` whose writing stopped mid-message (disk full) back to its last whole message.
+
+    rerun's reader refuses a file whose last message is cut short, which would make every frame
+    written before the disk filled unreadable. The result has no footer, which rerun reads
+    (``RrdReader.stream()``, the viewer). Nothing is changed unless the file walks cleanly.
+
+    Returns:
+        The new size in bytes, or None when the file was left as it was.
+    """
+    try:
+        with open(path, "r+b") as fh:
+            size = os.fstat(fh.fileno()).st_size
+            if fh.read(4) != RRD_MAGIC:
+                return None
+            pos = RRD_FILE_HEADER
+            while pos + RRD_MESSAGE_HEADER.size <= size:
+                fh.seek(pos)
+                kind, length = RRD_MESSAGE_HEADER.unpack(fh.read(RRD_MESSAGE_HEADER.size))
+                if kind > 255:  # not a message header: an unknown layout, leave the file alone
+                    return None
+                if pos + RRD_MESSAGE_HEADER.size + length > size:
+                    break
+                pos += RRD_MESSAGE_HEADER.size + length
+            if pos == size:
+                return None
+            fh.truncate(pos)
+            return pos
+    except OSError as exc:
+        log.warning("rerun sink: could not trim %s: %s", path, exc.strerror or exc)
+        return None
+
+
 def _discard(rec: Any) -> None:
     """Disconnect a recording whose sink could not be set up."""
     try:
@@ -140,6 +186,8 @@ class RerunSink:
         self._context: SinkContext | None = None
         self._pinhole: Intrinsics | None = None
         self._frames = 0
+        self._next_check = 0.0
+        self._file_failed = False
         self.logged = 0
 
     @classmethod
@@ -261,6 +309,31 @@ class RerunSink:
         except Exception as exc:
             raise SinkError(f"rerun sink: logging frame {result.seq} failed: {exc}") from exc
         self.logged += 1
+        if self.mode == "save" and time.monotonic() >= self._next_check:
+            self._check_file()
+            self._next_check = time.monotonic() + FILE_CHECK_S
+
+    def _file_problem(self, exc: BaseException) -> str:
+        """Why writing the .rrd failed, in words: a full disk is the usual cause."""
+        try:
+            if shutil.disk_usage(os.path.dirname(os.path.abspath(self.target))).free < LOW_SPACE_BYTES:
+                return "no space left on the disk"
+        except OSError:
+            pass
+        return str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+
+    def _check_file(self) -> None:
+        """Flush to the file; a dead writer thread (disk full, file-size limit) is a SinkError."""
+        try:
+            self._rec.flush(timeout_sec=FILE_CHECK_TIMEOUT_S)
+        except Exception as exc:  # rerun raises RuntimeError("File-writer thread shut down ...")
+            self._file_failed = True
+            raise SinkError(
+                f"rerun sink: writing {self.target} failed: {self._file_problem(exc)}; "
+                f"{self.logged} frames logged, the last ones may be lost",
+                hint="free disk space; what was written reads back with rerun (the footer is "
+                "missing)",
+            ) from exc
 
     def _log_frame(self, frame: Frame, result: Result) -> None:
         rr, rec = self._rr, self._rec
@@ -373,12 +446,19 @@ class RerunSink:
             # a file must be complete, and writing it is fast; a viewer that went away must not
             # hold the daemon's shutdown (rerun's gRPC sink itself gives up after a few seconds)
             rec.flush(timeout_sec=30.0 if self.mode == "save" else 1.0)
-        except Exception:
-            log.warning("rerun sink: flushing %s failed", self.target or "viewer", exc_info=True)
+        except Exception as exc:  # one line; the traceback only with -v
+            self._file_failed = self.mode == "save"
+            log.warning("rerun sink: flushing %s failed: %s", self.target or "viewer",
+                        self._file_problem(exc) if self.mode == "save" else exc)
+            log.debug("flush failure", exc_info=True)
         try:
             rec.disconnect()
-        except Exception:
-            log.warning(
-                "rerun sink: disconnecting %s failed", self.target or "viewer", exc_info=True
-            )
+        except Exception as exc:
+            log.warning("rerun sink: disconnecting %s failed: %s", self.target or "viewer", exc)
+            log.debug("disconnect failure", exc_info=True)
+        if self._file_failed:
+            size = trim_partial_message(self.target)
+            if size is not None:
+                log.warning("rerun sink: %s cut back to its last complete message (%d bytes), "
+                            "readable without a footer", self.target, size)
         log.info("rerun sink: %d frames logged to %s", self.logged, self.target or "viewer")
