@@ -39,6 +39,12 @@ from depthnav_daemon.pipeline.geometry import (
     depth_to_mm,
     pixel_rays,
 )
+from depthnav_daemon.pipeline.pose_kernels import (
+    candidates_kernel,
+    count_candidates_kernel,
+    plane_moments_kernel,
+    ransac_count_kernel,
+)
 from drivers.base import Intrinsics
 
 G_MPS2 = 9.80665
@@ -243,12 +249,18 @@ def floor_candidates(depth: np.ndarray, intr: Intrinsics, params: PoseParams) ->
     """Eq. 9-12: camera-frame points (K, 3) float32 metres that may be floor under the prior."""
     mm = depth_to_mm(depth, intr)
     t = _pose_table(intr, params)
-    d = mm[t.rows, t.cols]
-    ok = (d >= t.zlo_mm) & (d <= t.zhi_mm)
-    pts = t.rays[ok] * (d[ok].astype(np.float32) * np.float32(0.001))[:, None]
-    if len(pts) > params.max_points:
+    grid = (mm, t.rows.start, t.rows.step, t.cols.start, t.cols.step, t.zlo_mm, t.zhi_mm)
+    k = count_candidates_kernel(*grid)
+    keep = np.empty(min(k, params.max_points) + 1, dtype=np.intp)
+    if k > params.max_points:
         # evenly over the image, not bottom-up: the original's cap kept only the near field
-        pts = pts[np.linspace(0, len(pts) - 1, params.max_points).astype(np.intp)]
+        keep[:-1] = np.linspace(0, k - 1, params.max_points).astype(np.intp)
+    else:
+        keep[:-1] = np.arange(k)
+    keep[-1] = -1
+    out = np.empty((keep.size - 1, 3), dtype=np.float32)
+    m = candidates_kernel(*grid, t.rays, keep, np.empty(t.zlo_mm.shape[1] + 1, dtype=np.intp), out)
+    pts = out[:m]
     return pts
 
 
@@ -261,6 +273,7 @@ def ransac_plane(
     inlier_dist_m: float,
     rng: np.random.Generator,
     accept: F64 | None = None,
+    adaptive: bool = True,
 ) -> tuple[F64, int]:
     """Best plane by RANSAC over batched hypotheses (the stage's core).
 
@@ -271,6 +284,7 @@ def ransac_plane(
         rng: source of the samples.
         accept: optional (3, 2) bounds [[tilt_lo, tilt_hi], [|roll| hi, unused], [h_lo, h_hi]]
             (radians, metres); hypotheses outside are skipped.
+        adaptive: stop early as below (False scores every hypothesis: for benchmarks).
 
     Stops early (in batches of SCORE_CHUNK) once, at the best inlier share w so far, an all-inlier
     sample has been drawn with probability RANSAC_CONFIDENCE: log(1 - p) / log(1 - w^3) hypotheses.
@@ -296,54 +310,49 @@ def ransac_plane(
         good &= (d >= accept[2, 0]) & (d <= accept[2, 1])
     counts = np.zeros(iterations, dtype=np.int64)
     cand = np.flatnonzero(good)
-    px, py, pz = (
-        np.ascontiguousarray(pts[:, i : i + 1], dtype=np.float32) for i in range(3)
-    )  # (K, 1)
-    n32 = n.astype(np.float32)
-    d32 = d.astype(np.float32)
-    need = iterations
-    s = 0
-    while s < min(cand.size, need):
-        k = cand[s : s + SCORE_CHUNK]
-        # explicit broadcasting: a (K, 3) @ (3, chunk) BLAS call is several times slower here
-        dist = np.abs(px * n32[k, 0] + py * n32[k, 1] + pz * n32[k, 2] + d32[k])  # (K, chunk)
-        counts[k] = np.count_nonzero(dist <= inlier_dist_m, axis=0)
-        s += k.size
-        # adaptive stop (as PCL): enough hypotheses that an all-inlier sample was drawn with
-        # probability RANSAC_CONFIDENCE, given the best inlier share so far
-        w = counts[cand[:s]].max() / len(pts)
-        if 0 < w < 1:
-            need = min(need, math.ceil(math.log(1 - RANSAC_CONFIDENCE) / math.log(1 - w**3)))
-        elif w >= 1:
-            need = 0
+    pts32 = np.asarray(pts, dtype=np.float32)
+    px, py, pz = (np.ascontiguousarray(pts32[:, i]) for i in range(3))
+    # adaptive stop (as PCL): enough hypotheses that an all-inlier sample was drawn with
+    # probability RANSAC_CONFIDENCE, given the best inlier share so far
+    scored = ransac_count_kernel(
+        px, py, pz, n.astype(np.float32), d.astype(np.float32), cand, np.float32(inlier_dist_m),
+        RANSAC_CONFIDENCE if adaptive else 1.0, SCORE_CHUNK, counts,
+    )
+    cand = cand[:scored]
     if cand.size == 0:
         return np.array([0.0, -1.0, 0.0, 0.0]), 0
     best = int(cand[np.argmax(counts[cand])])
     return np.concatenate([n[best], [d[best]]]), int(counts[best])
 
 
-def refine_plane(
-    pts: F32, plane: F64, inlier_dist_m: float, rounds: int = 3
-) -> tuple[F64, npt.NDArray[np.bool_]]:
+def refine_plane(pts: F32, plane: F64, inlier_dist_m: float, rounds: int = 3) -> tuple[F64, int, float]:
     """Least-squares plane (smallest eigenvector of the inliers' scatter), re-selecting inliers.
 
+    Args:
+        pts: (K, 3) float32 points, metres.
+        plane: (4,) starting plane (n, d).
+        inlier_dist_m: inlier distance, metres.
+        rounds: refit rounds.
+
     Returns:
-        (plane, inliers): (4,) oriented as in ``ransac_plane`` and the (K,) inlier mask.
+        (plane, inliers, rms): (4,) oriented as in ``ransac_plane``, the number of points within
+        inlier_dist_m of it, and their RMS distance to it in metres (NaN when none).
     """
-    p = pts.astype(np.float64)
-    inl = np.abs(p @ plane[:3] + plane[3]) <= inlier_dist_m
+    pts = np.asarray(pts, dtype=np.float32)
+    mean = np.empty(3)
+    scatter = np.empty((3, 3))
+    dist = float(inlier_dist_m)
+    n_in, ssd = plane_moments_kernel(pts, np.asarray(plane[:3], dtype=np.float64), float(plane[3]), dist, mean, scatter)
     for _ in range(rounds):
-        if inl.sum() < 3:
+        if n_in < 3:
             break
-        c = p[inl].mean(axis=0)
-        q = p[inl] - c
-        n = np.linalg.eigh(q.T @ q)[1][:, 0]
-        d = -float(n @ c)
+        n = np.linalg.eigh(scatter)[1][:, 0]
+        d = -float(n @ mean)
         if d < 0:
             n, d = -n, -d
         plane = np.concatenate([n, [d]])
-        inl = np.abs(p @ n + d) <= inlier_dist_m
-    return plane, inl
+        n_in, ssd = plane_moments_kernel(pts, n, d, dist, mean, scatter)
+    return plane, int(n_in), math.sqrt(ssd / n_in) if n_in else math.nan
 
 
 def _fail(
@@ -393,14 +402,8 @@ def estimate_pose(
         return _fail(
             f"no floor plane inside the prior among {k} candidate points; check the prior", cand=k
         )
-    plane, inl = refine_plane(pts, plane, params.inlier_dist_m)
-    n_in = int(inl.sum())
+    plane, n_in, resid = refine_plane(pts, plane, params.inlier_dist_m)
     ratio = n_in / k
-    resid = (
-        float(np.sqrt(np.mean((pts[inl].astype(np.float64) @ plane[:3] + plane[3]) ** 2)))
-        if n_in
-        else math.nan
-    )
     height = float(plane[3])
     tilt, roll = tilt_roll_from_normal(plane[:3])
     if n_in < params.min_inliers or ratio < params.min_inlier_ratio:

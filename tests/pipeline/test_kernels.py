@@ -13,9 +13,12 @@ import numpy as np
 import pytest
 
 from depthnav_daemon.pipeline import cliff as cliff_mod
+from depthnav_daemon.pipeline import pose as pose_mod
+from depthnav_daemon.pipeline import pose_kernels
 from depthnav_daemon.pipeline import scan as scan_mod
 from depthnav_daemon.pipeline.cliff import CliffParams, detect_cliffs
 from depthnav_daemon.pipeline.geometry import Mount, cam_to_level
+from depthnav_daemon.pipeline.pose import PoseParams
 from depthnav_daemon.pipeline.scan import ScanParams, depth_to_scan
 from depthnav_daemon.synthetic import Box, KinectNoise, Scene, render, step_down
 from drivers.base import KINECT_V1, Intrinsics
@@ -151,3 +154,71 @@ def test_cliff_kernel_equals_numpy_definition(mount: Mount, params: CliffParams)
     np.testing.assert_array_equal(res.blocks, np.stack([SMALL.height - (bj + 1) * params.block_size,
                                                         bi * params.block_size], axis=-1))
     assert np.array_equal(res.scan.ranges, want, equal_nan=True)
+
+
+POSE_PARAMS = [PoseParams(), PoseParams(row_step=3, col_step=5, max_points=400, min_inliers=100),
+               PoseParams(max_points=100_000, row_step=1, col_step=1)]
+
+
+@pytest.mark.parametrize("mount", MOUNTS[:4], ids=lambda m: f"t{m.tilt_deg:g}_r{m.roll_deg:g}")
+@pytest.mark.parametrize("params", POSE_PARAMS, ids=["defaults", "thinned", "all"])
+def test_floor_candidates_equal_the_numpy_definition(mount: Mount, params: PoseParams) -> None:
+    depth = noisy_frame(SMALL, mount, seed=21)
+    t = pose_mod._pose_table(SMALL, params)
+    d = depth[t.rows, t.cols]
+    ok = (d >= t.zlo_mm) & (d <= t.zhi_mm)
+    want = t.rays[ok] * (d[ok].astype(np.float32) * np.float32(0.001))[:, None]
+    if len(want) > params.max_points:
+        want = want[np.linspace(0, len(want) - 1, params.max_points).astype(np.intp)]
+    got = pose_mod.floor_candidates(depth, SMALL, params)
+    assert len(want) > 0
+    assert np.array_equal(got, want)
+
+
+def test_ransac_counts_equal_numpy_and_the_adaptive_stop_is_pcls() -> None:
+    mount = MOUNTS[0]
+    pts = pose_mod.floor_candidates(noisy_frame(SMALL, mount, seed=4), SMALL, PoseParams())
+    rng = np.random.default_rng(9)
+    normals = rng.normal(size=(50, 3))
+    normals /= np.linalg.norm(normals, axis=1)[:, None]
+    normals[:25] = [0.0, -math.cos(mount.tilt_rad), -math.sin(mount.tilt_rad)]  # near the floor
+    normals[:25] += rng.normal(scale=0.01, size=(25, 3))
+    offsets = rng.uniform(0.3, 0.8, size=50)
+    n32, d32 = normals.astype(np.float32), offsets.astype(np.float32)
+    px, py, pz = (np.ascontiguousarray(pts[:, i]) for i in range(3))
+    want = np.count_nonzero(np.abs(px[:, None] * n32[:, 0] + py[:, None] * n32[:, 1] + pz[:, None] * n32[:, 2]
+                                   + d32) <= np.float32(0.02), axis=0)
+    counts = np.zeros(50, dtype=np.int64)
+    order = np.arange(50)
+    assert pose_kernels.ransac_count_kernel(px, py, pz, n32, d32, order, np.float32(0.02), 1.0, 8, counts) == 50
+    np.testing.assert_array_equal(counts, want)
+    # adaptive: stops after the first chunk whose best share w makes log(1-p)/log(1-w^3) <= scored
+    counts[:] = 0
+    scored = pose_kernels.ransac_count_kernel(px, py, pz, n32, d32, order, np.float32(0.02), 0.99, 8, counts)
+    need, s = 50, 0
+    while s < min(50, need):
+        s += 8 if s + 8 <= 50 else 50 - s
+        w = want[:s].max() / len(pts)
+        if 0 < w < 1:
+            need = min(need, math.ceil(math.log(1 - 0.99) / math.log(1 - w**3)))
+    assert scored == s
+
+
+def test_refined_plane_equals_numpy_least_squares() -> None:
+    mount = MOUNTS[2]
+    pts = pose_mod.floor_candidates(noisy_frame(SMALL, mount, seed=8), SMALL, PoseParams())
+    start = np.array([0.0, -math.cos(mount.tilt_rad), -math.sin(mount.tilt_rad), mount.height_m])
+    plane, n_in, rms = pose_mod.refine_plane(pts, start, 0.02)
+    p = pts.astype(np.float64)
+    want = start
+    inl = np.abs(p @ want[:3] + want[3]) <= 0.02
+    for _ in range(3):
+        c = p[inl].mean(axis=0)
+        n = np.linalg.eigh((p[inl] - c).T @ (p[inl] - c))[1][:, 0]
+        d = -float(n @ c)
+        n, d = (-n, -d) if d < 0 else (n, d)
+        want = np.concatenate([n, [d]])
+        inl = np.abs(p @ n + d) <= 0.02
+    np.testing.assert_allclose(plane, want, atol=1e-9)
+    assert n_in == inl.sum()
+    assert rms == pytest.approx(float(np.sqrt(np.mean((p[inl] @ want[:3] + want[3]) ** 2))), rel=1e-9)
