@@ -1,7 +1,9 @@
 """Compile and cache every numeric kernel now (``python -m depthnav_daemon.warmup``).
 
 scripts/install.sh runs it, so ``depthnav run`` compiles nothing at its first frame: numba keeps
-the machine code on disk (see pipeline/_jit.py), keyed to this CPU.
+the machine code on disk (see pipeline/_jit.py), keyed to this CPU. numba compiles one version per
+argument type, and a read-only array, a writable one and a strided view are different types, so
+every kernel is run here with each kind of array the stages can hand it.
 """
 
 from __future__ import annotations
@@ -11,29 +13,46 @@ import time
 import numpy as np
 
 from depthnav_daemon.pipeline import process
-from depthnav_daemon.pipeline.cliff import CliffParams
+from depthnav_daemon.pipeline.cliff import CliffParams, detect_cliffs
 from depthnav_daemon.pipeline.geometry import Mount
-from depthnav_daemon.pipeline.pose import PoseParams
-from depthnav_daemon.pipeline.scan import ScanParams
+from depthnav_daemon.pipeline.pose import PoseParams, estimate_pose
+from depthnav_daemon.pipeline.scan import ScanParams, depth_to_scan, scan_layout
 from depthnav_daemon.synthetic import Box, Scene, render, step_down
 from drivers.base import Frame, Intrinsics
 
+# every scan / cliff configuration that gives its kernel a differently typed array:
+# contiguous frame vs column-strided view (col_step > 1) vs gathered samples (uneven columns)
+SCAN_VARIANTS = (ScanParams(), ScanParams(col_step=2), ScanParams(method="paper", scan_height=100))
+CLIFF_VARIANTS = (
+    CliffParams(used_depth_height=100),                                              # step 8: view
+    CliffParams(used_depth_height=100, block_size=8, row_step=1, col_step=1, block_points_thresh=10),
+    CliffParams(used_depth_height=100, block_size=8, row_step=2, col_step=3, block_points_thresh=4),
+)
+
 
 def warm_up() -> float:
-    """Run the whole pipeline once per scan method on a small read-only frame, as the daemon does.
+    """Run every stage kernel on small frames, read-only (as the daemon's) and writable.
 
     Returns:
-        Seconds it took (about a second with a warm cache, several without).
+        Seconds it took (well under a second with a warm cache, tens of seconds without).
     """
     t0 = time.perf_counter()
     intr = Intrinsics(160, 120, 145.0, 145.0, 79.5, 59.5)
     mount = Mount(0.5, 15.0, 0.0)
     view = render(Scene(boxes=(Box(1.5, 0.0, 0.3, 0.3, 0.3),), holes=(step_down(2.0, 0.2),)), intr, mount)
-    frame = Frame(0, 0.0, view.depth_mm, intr)
+    frame = Frame(0, 0.0, view.depth_mm.copy(), intr)  # Frame makes its depth read-only
+    writable = view.depth_mm.copy()
     rng = np.random.default_rng(0)
-    for method in ("exact", "paper"):
-        process(frame, mount, ScanParams(method=method, scan_height=100), CliffParams(used_depth_height=100),
-                PoseParams(used_depth_height=100), rng)
+    pose = PoseParams(used_depth_height=100)
+    for depth in (frame.depth_mm, writable):
+        for scan in SCAN_VARIANTS:
+            depth_to_scan(depth, intr, mount, scan)
+        layout = scan_layout(intr, mount, ScanParams())
+        for cliff in CLIFF_VARIANTS:
+            detect_cliffs(depth, intr, mount, cliff, *layout)
+        estimate_pose(depth, intr, pose, rng)
+    # and the whole per-frame path once, as the daemon calls it
+    process(frame, mount, ScanParams(), CliffParams(used_depth_height=100), pose, rng)
     return time.perf_counter() - t0
 
 

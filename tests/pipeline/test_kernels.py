@@ -222,3 +222,22 @@ def test_refined_plane_equals_numpy_least_squares() -> None:
     np.testing.assert_allclose(plane, want, atol=1e-9)
     assert n_in == inl.sum()
     assert rms == pytest.approx(float(np.sqrt(np.mean((p[inl] @ want[:3] + want[3]) ** 2))), rel=1e-9)
+
+
+def test_warm_up_compiles_every_kernel_the_daemon_path_calls() -> None:
+    from depthnav_daemon import warmup
+    from depthnav_daemon.pipeline import cliff_kernels, process, scan_kernels
+    from drivers.base import Frame
+
+    kernels = [scan_kernels.exact_scan_kernel, scan_kernels.paper_scan_kernel, cliff_kernels.cliff_kernel,
+               pose_kernels.count_candidates_kernel, pose_kernels.candidates_kernel,
+               pose_kernels.ransac_count_kernel, pose_kernels.plane_moments_kernel]
+    warmup.warm_up()
+    before = [len(k.signatures) for k in kernels]
+    mount = MOUNTS[0]
+    depth = noisy_frame(SMALL, mount, seed=1)
+    frame = Frame(0, 0.0, depth.copy(), SMALL)  # read-only, as drivers deliver
+    for scan in (ScanParams(), ScanParams(method="paper", scan_height=100)):
+        process(frame, mount, scan, CliffParams(), PoseParams(used_depth_height=100), np.random.default_rng(0))
+    depth_to_scan(depth.astype(np.float32) / 1000, SMALL, mount, ScanParams())  # float metres input
+    assert [len(k.signatures) for k in kernels] == before
