@@ -340,9 +340,14 @@ def udp_latency(spec: str, n_frames: int = 600) -> dict[str, float]:
     from depthnav_daemon.sinks import create_sink
     from drivers import create_driver
 
+    import logging
+
     drain = _UdpDrain()
     marks: dict[int, float] = {}
     lat: list[float] = []
+    quiet = logging.getLogger("depthnav_daemon")
+    level = quiet.level
+    quiet.setLevel(logging.WARNING)  # the loop's info lines are not the bench's output
     cfg = Config(device=spec, sinks=(f"udp://127.0.0.1:{drain.port}",), daemon=DaemonParams(tilt_source="floor"))
     try:
         t0 = time.perf_counter()
@@ -352,6 +357,7 @@ def udp_latency(spec: str, n_frames: int = 600) -> dict[str, float]:
         wall = time.perf_counter() - t0
     finally:
         drain.close()
+        quiet.setLevel(level)
     ms = np.array(lat[1:]) * 1e3  # the first frame also builds the stage tables
     return {
         "p50_ms": float(np.percentile(ms, 50)),

@@ -106,8 +106,16 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(handler=cmd_info)
 
     p = sub.add_parser("bench", help="time every stage and the whole pipeline")
-    p.add_argument("--device", help="recording to time on (default: a synthetic frame)")
+    p.add_argument("--device", help="recording or device to time on (default: the bundled fixtures/corridor_step)")
     p.add_argument("--json", action="store_true", help="print JSON")
+    p.add_argument("--rounds", type=int, default=7, metavar="N", help="interleaved timing rounds (default 7)")
+    p.add_argument("--resolutions", action="store_true",
+                   help="also time synthetic frames at 640x480, 512x424, 848x480 and 1280x720")
+    p.add_argument("--cpu-30fps", type=float, default=0.0, metavar="SECONDS", nargs="?", const=20.0,
+                   help="also run depthnav run at 30 frames/s to UDP and report its CPU share (default 20 s)")
+    p.add_argument("--startup", action="store_true",
+                   help="also time depthnav run to its first output (5 runs, warm kernel cache)")
+    p.add_argument("--quick", action="store_true", help="one short round (a smoke test, not a measurement)")
     p.set_defaults(handler=cmd_bench)
     return parser
 
@@ -302,7 +310,12 @@ def cmd_info(_args: argparse.Namespace) -> int:
 def cmd_bench(args: argparse.Namespace) -> int:
     from depthnav_daemon.bench import main as bench_main
 
-    return bench_main(device=args.device, as_json=args.json)
+    if args.rounds < 1:
+        raise ConfigError(f"--rounds={args.rounds} is out of range (accepted: 1 or more)")
+    if args.cpu_30fps < 0:
+        raise ConfigError(f"--cpu-30fps={args.cpu_30fps} is out of range (accepted: seconds > 0)")
+    return bench_main(device=args.device, as_json=args.json, resolutions=args.resolutions,
+                      cpu_seconds=args.cpu_30fps, startup=args.startup, rounds=args.rounds, quick=args.quick)
 
 
 def main(argv: Sequence[str] | None = None) -> int:

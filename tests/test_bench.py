@@ -1,0 +1,55 @@
+"""``depthnav bench``: the report has every figure the issue asks for (no timing assertions)."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from depthnav_daemon import bench
+from depthnav_daemon.cli import build_parser, main
+
+STAGES = ("scan exact", "scan paper, whole band", "scan paper, params.yaml", "cliff, params.yaml",
+          "cliff, 8 px blocks", "pose, daemon defaults", "pose: candidates + RANSAC 200 x 5000", "pipeline per frame")
+
+
+def test_quick_bench_json_has_every_stage_latency_and_machine(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["bench", "--quick", "--json"]) == 0
+    report = json.loads(capsys.readouterr().out)
+    names = [t["name"] for t in report["timings"]]
+    assert names[0] == "np.copy(frame)"
+    for stage in STAGES:
+        assert any(n.startswith(stage) for n in names), stage
+    for t in report["timings"]:
+        assert 0 < t["best_s"] <= t["median_s"] <= t["p90_s"]
+        assert t["ratio_to_copy"] > 0 and t["fps"] > 0
+    assert report["resolution"] == "640x480" and report["frames"] == 12
+    lat = report["latency"]
+    assert 0 < lat["p50_ms"] <= lat["p99_ms"] <= lat["max_ms"]
+    assert lat["frames"] == 40
+    assert {"cpu", "cores", "loadavg", "numpy", "numba"} <= set(report["machine"])
+
+
+def test_text_report_names_the_copy_reference_and_latency(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["bench", "--quick"]) == 0
+    out = capsys.readouterr().out
+    assert "np.copy(frame)" in out and "x np.copy" in out
+    assert "UDP datagram sent" in out and "p99" in out
+
+
+def test_bench_options_parse() -> None:
+    args = build_parser().parse_args(["bench", "--cpu-30fps", "--resolutions", "--startup", "--rounds", "3"])
+    assert args.cpu_30fps == 20.0 and args.resolutions and args.startup and args.rounds == 3
+    assert build_parser().parse_args(["bench"]).cpu_30fps == 0.0
+
+
+def test_bad_rounds_is_a_usage_error(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["bench", "--rounds", "0"]) == 2
+    assert "--rounds" in capsys.readouterr().err
+
+
+def test_resolutions_table_times_every_size() -> None:
+    frames, mount = bench.synthetic_frames(bench.RESOLUTIONS["512x424 (Kinect v2)"], n=1)
+    timings = bench.time_work(bench.stage_work(frames, mount, pipeline=False), frames[0].depth_mm,
+                              rounds=1, samples=1, min_batch_s=0.0)
+    assert len(timings) == 8 and all(t.median_s > 0 for t in timings)
