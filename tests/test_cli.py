@@ -8,6 +8,7 @@ import os
 import signal
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -108,36 +109,41 @@ def test_calibrate_without_floor_fails_with_a_hint(tmp_path: Path) -> None:
     assert "Traceback" not in p.stderr
 
 
-def _start_endless_run() -> subprocess.Popen[str]:
+def _start_endless_run() -> tuple[subprocess.Popen[str], list[str], threading.Thread]:
+    """An endless real-time replay; a thread drains its stdout so a full pipe never blocks it."""
     proc = subprocess.Popen(
         [
-            sys.executable,
-            "-m",
-            "depthnav_daemon",
-            "run",
-            "--device",
-            f"replay:{FIXTURE}?rate=realtime&loop=1",
-            "--sink",
-            "stdout",
+            sys.executable, "-m", "depthnav_daemon", "run", "--device",
+            f"replay:{FIXTURE}?rate=realtime&loop=1", "--sink", "stdout",
         ],
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-        cwd=ROOT,
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT,
     )
-    assert proc.stdout is not None
-    first = proc.stdout.readline()  # the loop is running once a line arrives
-    assert first.startswith("{"), proc.stderr.read() if proc.stderr else ""
-    return proc
+    lines: list[str] = []
+    first = threading.Event()
+
+    def drain() -> None:
+        assert proc.stdout is not None
+        for line in proc.stdout:
+            lines.append(line)
+            first.set()
+        first.set()
+
+    reader = threading.Thread(target=drain, daemon=True)
+    reader.start()
+    assert first.wait(60), "no output within a minute"
+    assert lines and lines[0].startswith("{"), proc.stderr.read() if proc.stderr else ""
+    return proc, lines, reader
 
 
 @pytest.mark.parametrize(("sig", "code"), [(signal.SIGTERM, 0), (signal.SIGINT, 130)])
 def test_signals_stop_the_run_cleanly(sig: int, code: int) -> None:
-    proc = _start_endless_run()
+    proc, lines, reader = _start_endless_run()
     proc.send_signal(sig)
-    out, err = proc.communicate(timeout=30)
+    proc.wait(timeout=30)
+    reader.join(timeout=30)
+    err = proc.stderr.read() if proc.stderr else ""
     assert proc.returncode == code, err
-    for line in out.splitlines():
+    for line in lines:
         json.loads(line)  # nothing half-written
     assert "Traceback" not in err
 

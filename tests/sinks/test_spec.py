@@ -16,6 +16,7 @@ from depthnav_daemon.sinks.null import NullSink
 ROOT = Path(__file__).resolve().parents[2]
 EXAMPLES = {
     "stdout": "stdout",
+    "text": "text?every=2",
     "udp": "udp://127.0.0.1:5600",
     "null": "null",
     "rerun": "rerun",
