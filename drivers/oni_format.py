@@ -149,8 +149,34 @@ class OniSummary:
     has_end: bool
 
 
+PROPERTY_TYPES = {INT_PROPERTY, REAL_PROPERTY, 0x05, GENERAL_PROPERTY}
+MAX_NAME = 256
+MAX_SIDE = 8192  # pixels, as drivers.base.Intrinsics
+
+
+def _name(fields: bytes, path: Path, pos: int) -> tuple[str, int]:
+    """The record's leading string (u32 length incl. NUL, bytes) and the offset after it.
+
+    libOniFile crashes (SIGSEGV, found by tests/faults/test_native_fuzz.py) on a property whose
+    name is not plain ASCII, so anything else is rejected here, before it reaches the player.
+    """
+    if len(fields) < 4:
+        raise RecordingError(f"{path}: corrupt record at byte {pos} (no name)")
+    (length,) = struct.unpack_from("<I", fields)
+    raw = fields[4 : 4 + length]
+    if not 2 <= length <= MAX_NAME or len(raw) != length or raw[-1:] != b"\0" or not all(
+        0x20 <= c < 0x7F for c in raw[:-1]
+    ):
+        raise RecordingError(f"{path}: corrupt record at byte {pos} (bad name)")
+    return raw[:-1].decode("ascii"), 4 + length
+
+
 def check_oni(path: Path) -> OniSummary:
     """Walk the records of an ``.oni`` file without decoding frames.
+
+    Besides the structure, it checks what the native player trusts blindly: names are ASCII,
+    every depth node states a sane resolution (``xnMapOutputMode``), and an uncompressed
+    (``NONE``) frame holds exactly width x height x 2 bytes.
 
     Raises:
         RecordingError: not an .oni file, a broken or truncated record, or no depth frames.
@@ -162,6 +188,7 @@ def check_oni(path: Path) -> OniSummary:
         raise RecordingError(f"{path}: no such file", hint="check the path") from None
     except OSError as exc:
         raise RecordingError(f"{path}: cannot read it ({exc.strerror})") from None
+    depth: dict[int, dict[str, object]] = {}  # node id -> codec, mode
     with fh:
         head = fh.read(FILE_HEADER.size)
         if len(head) < FILE_HEADER.size or not head.startswith(MAGIC_FILE):
@@ -172,10 +199,12 @@ def check_oni(path: Path) -> OniSummary:
                 f"{path}: .oni version {'.'.join(map(str, version))} is too old; "
                 "OpenNI2 reads 1.0.1.0 and later"
             )
-        pos, depth_nodes, frames, has_end = FILE_HEADER.size, 0, 0, False
+        pos, frames, has_end = FILE_HEADER.size, 0, False
         while pos + RECORD_HEADER.size <= size:
             fh.seek(pos)
-            magic, rtype, _, fields, payload, _ = RECORD_HEADER.unpack(fh.read(RECORD_HEADER.size))
+            magic, rtype, node, fields, payload, _ = RECORD_HEADER.unpack(
+                fh.read(RECORD_HEADER.size)
+            )
             if magic != MAGIC_RECORD:
                 if magic == 0 and has_end:
                     break  # the OpenNI recorder leaves zero padding after END
@@ -188,20 +217,46 @@ def check_oni(path: Path) -> OniSummary:
                     f"the file ends at {size}",
                     hint="the recording was cut short; re-record it",
                 )
-            if rtype == NODE_ADDED:
-                fh.seek(pos + RECORD_HEADER.size)
-                (name_len,) = struct.unpack("<I", fh.read(4))
-                fh.seek(pos + RECORD_HEADER.size + 4 + name_len)
-                if struct.unpack("<I", fh.read(4))[0] == NODE_TYPE_DEPTH:
-                    depth_nodes += 1
+            if rtype == NODE_ADDED or rtype in PROPERTY_TYPES:
+                body = fh.read(fields - RECORD_HEADER.size)
+                name, at = _name(body, path, pos)
+                if rtype == NODE_ADDED:
+                    if len(body) < at + 8:
+                        raise RecordingError(f"{path}: corrupt NODE_ADDED record at byte {pos}")
+                    node_type, codec = struct.unpack_from("<I4s", body, at)
+                    if node_type == NODE_TYPE_DEPTH:
+                        depth[node] = {"codec": codec, "mode": None}
+                elif name == "xnMapOutputMode" and node in depth:
+                    if len(body) < at + 16:
+                        raise RecordingError(f"{path}: corrupt xnMapOutputMode at byte {pos}")
+                    width, height = struct.unpack_from("<II", body, at + 4)
+                    if not (1 <= width <= MAX_SIDE and 1 <= height <= MAX_SIDE):
+                        raise RecordingError(
+                            f"{path}: depth resolution {width}x{height} is out of range "
+                            f"(1..{MAX_SIDE} pixels each way)"
+                        )
+                    depth[node]["mode"] = (width, height)
             elif rtype == NEW_DATA:
                 frames += 1
+                info = depth.get(node)
+                if info is not None:
+                    if info["mode"] is None:
+                        raise RecordingError(
+                            f"{path}: depth frame at byte {pos} before the stream's resolution "
+                            "(no xnMapOutputMode record)"
+                        )
+                    width, height = info["mode"]  # type: ignore[misc]
+                    if info["codec"] == b"NONE" and payload != width * height * 2:
+                        raise RecordingError(
+                            f"{path}: depth frame at byte {pos} holds {payload} bytes, "
+                            f"a {width}x{height} frame needs {width * height * 2}"
+                        )
             elif rtype == END:
                 has_end = True
                 break
             pos += fields + payload
         if not has_end and pos != size:
             raise RecordingError(f"{path}: truncated inside a record header at byte {pos}")
-    if depth_nodes == 0:
+    if not depth:
         raise RecordingError(f"{path}: has no depth stream")
-    return OniSummary(depth_nodes, frames, has_end)
+    return OniSummary(len(depth), frames, has_end)

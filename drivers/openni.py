@@ -143,6 +143,18 @@ def _message(exc: Exception) -> str:
     text = args[1] if len(args) > 1 else exc
     return text.decode(errors="replace") if isinstance(text, bytes) else str(text)
 
+def _format_value(fmt: Any) -> int:
+    """A pixel format as an int: the ``openni`` package's enum repr fails on unknown values."""
+    for attr in ("value", "val"):
+        value = getattr(fmt, attr, None)
+        if isinstance(value, int):
+            return value
+    try:
+        return int(fmt)
+    except (TypeError, ValueError):
+        return -1
+
+
 def _parse_mode(spec: Spec) -> tuple[int, int, int] | None:
     text = spec.options.get("mode")
     if text is None:
@@ -354,7 +366,17 @@ class OpenNIDriver:
                 DEFAULT_VFOV_DEG,
             )
             return Intrinsics.from_fov(width, height, DEFAULT_HFOV_DEG, DEFAULT_VFOV_DEG)
-        return Intrinsics.from_fov(width, height, math.degrees(hfov), math.degrees(vfov))
+        try:
+            return Intrinsics.from_fov(width, height, math.degrees(hfov), math.degrees(vfov))
+        except (ValueError, ZeroDivisionError) as exc:  # a corrupt file or a confused device
+            raise self._bad(f"{self.spec_text}: the depth stream reports {exc}") from None
+
+    def _bad(self, message: str) -> DriverError:
+        """The error for a stream that delivers nonsense: a file is damaged (RecordingError, the run
+        ends), a live device may recover on reopening (DeviceLost, the daemon reconnects)."""
+        if self.file is not None:
+            return RecordingError(message, hint="the .oni file is damaged; re-record it")
+        return DeviceLost(message, hint="check the cable; run `depthnav devices`")
 
     def read_frame(self, timeout_s: float = 1.0) -> Frame | None:
         """The next depth frame; None at the end of a non-looping file."""
@@ -379,10 +401,7 @@ class OpenNIDriver:
             finally:
                 raw.close()
         except OpenNIError as exc:
-            raise DeviceLost(
-                f"{self.spec_text}: depth stream failed: {_message(exc)}",
-                hint="check the cable; run `depthnav devices`",
-            ) from exc
+            raise self._bad(f"{self.spec_text}: depth stream failed: {_message(exc)}") from exc
         self._read += 1
         if t_s < self._last_raw_t_s:  # the file looped: keep time increasing
             self._t_offset_s += self._last_raw_t_s - t_s + 1.0 / 30.0
@@ -400,20 +419,34 @@ class OpenNIDriver:
         intr = self._intrinsics
         assert intr is not None
         if (raw.width, raw.height) != (intr.width, intr.height):
-            raise DeviceLost(
+            raise self._bad(
                 f"{self.spec_text}: frame is {raw.width}x{raw.height}, "
                 f"stream was {intr.width}x{intr.height} (cropping or mode change)"
             )
+        fmt = _format_value(raw.videoMode.pixelFormat)
+        if fmt not in (self._depth_1_mm, self._depth_100_um):
+            raise self._bad(f"{self.spec_text}: pixel format {fmt} is not depth")
         buf = np.frombuffer(raw.get_buffer_as_uint16(), dtype=np.uint16)
-        rows = buf[: raw.height * (raw.stride // 2)].reshape(raw.height, raw.stride // 2)
-        depth = np.array(rows[:, : raw.width], dtype=np.uint16)  # copy: the buffer is reused
-        if raw.videoMode.pixelFormat == self._openni2.PIXEL_FORMAT_DEPTH_100_UM:
-            depth = ((depth.astype(np.uint32) + 5) // 10).astype(np.uint16)
-        elif raw.videoMode.pixelFormat != self._openni2.PIXEL_FORMAT_DEPTH_1_MM:
-            raise DeviceLost(
-                f"{self.spec_text}: pixel format {raw.videoMode.pixelFormat} is not depth"
+        row = raw.stride // 2
+        if row < raw.width or buf.size < raw.height * row:  # never reshape past the buffer
+            raise self._bad(
+                f"{self.spec_text}: frame holds {buf.size * 2} bytes, "
+                f"a {raw.width}x{raw.height} frame with stride {raw.stride} needs "
+                f"{raw.height * row * 2}"
             )
+        rows = buf[: raw.height * row].reshape(raw.height, row)
+        depth = np.array(rows[:, : raw.width], dtype=np.uint16)  # copy: the buffer is reused
+        if fmt == self._depth_100_um:
+            depth = ((depth.astype(np.uint32) + 5) // 10).astype(np.uint16)
         return depth, raw.timestamp / 1e6
+
+    @property
+    def _depth_1_mm(self) -> int:
+        return _format_value(self._openni2.PIXEL_FORMAT_DEPTH_1_MM)
+
+    @property
+    def _depth_100_um(self) -> int:
+        return _format_value(self._openni2.PIXEL_FORMAT_DEPTH_100_UM)
 
     def close(self) -> None:
         """Stop and release the stream and device. Safe to call twice."""

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import itertools
 import logging
+import math
 import os
 import tomllib
 from collections.abc import Iterable, Iterator
@@ -87,6 +88,23 @@ def read_sidecar(folder: Path) -> dict[str, Any]:
         return tomllib.loads(path.read_text(encoding="utf-8"))
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
         raise RecordingError(f"{path}: not valid TOML ({exc})") from None
+
+
+def sidecar_scale(folder: Path, side: dict[str, Any]) -> float:
+    """The sidecar's ``depth_scale`` (units per metre), 5000 when absent.
+
+    Raises:
+        RecordingError: not a number in 1..1e6 (0 would divide by zero, text would not parse).
+    """
+    value = side.get("depth_scale", 5000.0)
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not (
+        math.isfinite(value) and 1.0 <= value <= 1e6
+    ):
+        raise RecordingError(
+            f"{folder / SIDECAR}: depth_scale = {value!r} is not a number in 1..1000000",
+            hint="units per metre: 5000 for TUM, 1000 for millimetres",
+        )
+    return float(value)
 
 
 def read_depth_png(path: Path, scale: float) -> npt.NDArray[np.uint16]:

@@ -147,7 +147,7 @@ class ReplayDriver:
 
     def _png_items(self) -> tuple[Iterator[Item], Intrinsics, str]:
         side = png_folder.read_sidecar(self.path)
-        scale = self.scale or float(side.get("depth_scale", 5000.0))
+        scale = self.scale or png_folder.sidecar_scale(self.path, side)
         frames = png_folder.list_frames(self.path, self.fps)
         first = png_folder.read_depth_png(frames[0][1], scale)
         base = None

@@ -212,8 +212,13 @@ class SerialTiltSource:
                 return
             for msg in messages:
                 if msg.get_msgId() == MAVLINK_ATTITUDE:
-                    if math.isfinite(msg.pitch) and math.isfinite(msg.roll):
+                    # the same bounds as the line protocol: a pitch beyond +-90 deg or a roll
+                    # beyond +-180 deg is a corrupt or misconfigured message, not an attitude
+                    if (math.isfinite(msg.pitch) and math.isfinite(msg.roll)
+                            and abs(msg.pitch) <= math.pi / 2 and abs(msg.roll) <= math.pi):
                         self._publish(*attitude_to_tilt_roll(msg.pitch, msg.roll))
+                    else:
+                        self.bad_messages += 1
                 elif msg.get_type() == "BAD_DATA":
                     self.bad_messages += 1
 

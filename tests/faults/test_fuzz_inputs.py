@@ -1,0 +1,379 @@
+"""Bad input at every entry point, fuzzed with hypothesis: one clean error, never anything else.
+
+Every reader and loader gets mutated and random input. It must either accept it (with a defined
+result) or raise its own error type whose message is one line naming the input; any other
+exception (a traceback for the user), a hang (pytest-timeout) or a native crash fails the test.
+Case counts are ``max_examples`` per test; docs/hardening.md lists them.
+"""
+
+from __future__ import annotations
+
+import io
+import math
+import string
+import struct
+import tempfile
+import zipfile
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+import pytest
+import tomli_w
+import yaml
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+from PIL import Image
+
+from depthnav_daemon.config import build_config, parse_set
+from depthnav_daemon.errors import ConfigError
+from depthnav_daemon.ros_params import load_ros_params
+from depthnav_daemon.sinks import create_sink
+from drivers import create_driver
+from drivers.base import Frame, Intrinsics
+from drivers.errors import DriverError, RecordingError
+from drivers.fakenect_format import ACCEL_DUMP, write_fakenect
+from drivers.kinect import check_fakenect_recording
+from drivers.oni_format import check_oni, write_oni
+from drivers.recording import read_recording, write_recording
+from drivers.replay import ReplayDriver
+from drivers.serial_tilt import SerialTiltSource, parse_line
+
+BASE = settings(deadline=None, suppress_health_check=list(HealthCheck), derandomize=True, database=None)
+
+
+def fuzz(cases: int) -> settings:
+    """Deterministic (derandomized) hypothesis settings running ``cases`` examples."""
+    return settings(BASE, max_examples=cases)
+SMALL = Intrinsics(64, 48, 61.5, 57.25, 30.25, 22.75)  # asymmetric on purpose
+MAX_FRAMES = 50  # a fuzzed recording is read to its end, or this many frames
+
+
+def one_line(exc: BaseException, *names: str) -> str:
+    """The error's message: one non-empty line that names one of ``names`` (the input)."""
+    msg = str(exc)
+    assert msg and "\n" not in msg and "\r" not in msg, repr(msg)
+    if names:
+        assert any(n in msg for n in names), f"{msg!r} names none of {names}"
+    return msg
+
+
+def clean(call: Callable[[], object], errors: tuple[type[BaseException], ...], *names: str) -> object:
+    """Run ``call``; it returns, or raises one of ``errors`` with a one-line message naming the input."""
+    try:
+        return call()
+    except errors as exc:
+        one_line(exc, *names)
+        return None
+
+
+def frames(n: int = 3, intr: Intrinsics = SMALL) -> list[Frame]:
+    rng = np.random.default_rng(3)
+    return [Frame(i, i / 30, rng.integers(300, 6000, (intr.height, intr.width), dtype=np.uint16), intr,
+                  (0.0, -9.5, -2.5)) for i in range(n)]
+
+
+def mutate(data: bytes, edits: list[tuple[int, int]], cut: int | None) -> bytes:
+    """``data`` with bytes replaced at (position, value) pairs, then cut to ``cut`` bytes."""
+    buf = bytearray(data)
+    for pos, value in edits:
+        if buf:
+            buf[pos % len(buf)] = value
+    return bytes(buf[:cut] if cut is not None else buf)
+
+
+EDITS = st.lists(st.tuples(st.integers(0, 1 << 24), st.integers(0, 255)), max_size=12)
+CUTS = st.one_of(st.none(), st.integers(0, 4000))
+
+
+def replay_all(spec: str, *names: str) -> None:
+    """Open a replay spec and read it to the end: clean or one DriverError line."""
+    def go() -> None:
+        driver = create_driver(spec)
+        try:
+            driver.open()
+            for _ in range(MAX_FRAMES):
+                if driver.read_frame(0.5) is None:
+                    break
+        finally:
+            driver.close()
+    clean(go, (DriverError,), *names)
+    assert ReplayDriver.open_count == 0
+
+
+# --- recordings -------------------------------------------------------------------------------
+def _npz_bytes() -> bytes:
+    with tempfile.TemporaryDirectory() as d:
+        write_recording(Path(d) / "r", frames())
+        return (Path(d) / "r" / "frames.npz").read_bytes()
+
+
+NPZ = _npz_bytes()
+
+
+@fuzz(300)
+@given(edits=EDITS, cut=CUTS)
+def test_fuzz_npz_bytes(tmp_path_factory: pytest.TempPathFactory, edits, cut) -> None:
+    path = tmp_path_factory.mktemp("npz") / "x.npz"
+    path.write_bytes(mutate(NPZ, edits, cut))
+    replay_all(f"replay:{path}?rate=max", str(path))
+
+
+ARRAYS = st.dictionaries(
+    st.sampled_from(["depth_mm", "intrinsics", "timestamp_s", "accel_mps2", "other"]),
+    st.tuples(st.sampled_from(["u2", "i2", "f4", "f8", "u1", "i8", "b1", "U3"]),
+              st.lists(st.integers(0, 5), min_size=0, max_size=4),
+              st.sampled_from([0.0, -1.0, 65535.0, math.nan, math.inf, -math.inf, 1e30, 7.0])),
+    max_size=5,
+)
+
+
+@fuzz(300)
+@given(arrays=ARRAYS)
+def test_fuzz_npz_arrays(tmp_path_factory: pytest.TempPathFactory, arrays) -> None:
+    """Wrong dtypes, shapes and values (NaN, inf, negative, saturated) in every array."""
+    path = tmp_path_factory.mktemp("npz") / "x.npz"
+    made = {}
+    for name, (dtype, shape, fill) in arrays.items():
+        with np.errstate(invalid="ignore", over="ignore"):
+            made[name] = np.full(shape, fill).astype(dtype) if dtype != "U3" else np.full(shape, "ab")
+    np.savez(path, **made)
+    replay_all(f"replay:{path}?rate=max", str(path))
+
+
+META_VALUES = st.one_of(st.integers(-5, 5000), st.floats(allow_nan=True, allow_infinity=True),
+                        st.text(max_size=5), st.booleans(), st.lists(st.integers(), max_size=3))
+
+
+@fuzz(300)
+@given(text=st.one_of(st.text(max_size=200), st.dictionaries(
+    st.sampled_from(["format_version", "description", "device", "intrinsics", "truth"]),
+    st.one_of(META_VALUES, st.dictionaries(
+        st.sampled_from(["width", "height", "fx", "fy", "cx", "cy"]), META_VALUES, max_size=6)),
+    max_size=5)))
+def test_fuzz_recording_toml(tmp_path_factory: pytest.TempPathFactory, text) -> None:
+    folder = tmp_path_factory.mktemp("rec")
+    (folder / "frames.npz").write_bytes(NPZ)
+    if isinstance(text, dict):
+        try:
+            text = tomli_w.dumps(text)
+        except (TypeError, ValueError):  # NaN, inf or mixed lists: a TOML writer refuses them
+            text = "format_version = nan\n"
+    (folder / "recording.toml").write_text(text, encoding="utf-8", errors="surrogatepass")
+    replay_all(f"replay:{folder}?rate=max", str(folder))
+
+
+def _png(depth: np.ndarray) -> bytes:
+    out = io.BytesIO()
+    Image.fromarray(depth).save(out, format="PNG")
+    return out.getvalue()
+
+
+PNG = _png(frames(1)[0].depth_mm)
+
+
+@fuzz(300)
+@given(edits=EDITS, cut=CUTS, index=st.one_of(st.none(), st.text(max_size=80)),
+       sidecar=st.one_of(st.none(), st.text(max_size=80), st.dictionaries(
+           st.sampled_from(["depth_scale", "intrinsics"]),
+           st.one_of(META_VALUES, st.dictionaries(st.sampled_from(["fx", "fy", "cx", "cy"]),
+                                                  META_VALUES, max_size=4)), max_size=2)))
+def test_fuzz_png_folder(tmp_path_factory: pytest.TempPathFactory, edits, cut, index, sidecar) -> None:
+    """Corrupt PNGs, a random depth.txt and a random camera.toml sidecar."""
+    folder = tmp_path_factory.mktemp("png")
+    (folder / "000.png").write_bytes(PNG)
+    (folder / "001.png").write_bytes(mutate(PNG, edits, cut))
+    if index is not None:
+        (folder / "depth.txt").write_text(index, encoding="utf-8", errors="surrogatepass")
+    if isinstance(sidecar, dict):
+        try:
+            sidecar = tomli_w.dumps(sidecar)
+        except (TypeError, ValueError):
+            sidecar = "depth_scale = inf\n"
+    if sidecar is not None:
+        (folder / "camera.toml").write_text(sidecar, encoding="utf-8", errors="surrogatepass")
+    replay_all(f"replay:{folder}?rate=max&fx=60&fy=58&cx=31&cy=23", str(folder))
+
+
+FAKENECT_DIR = Path(tempfile.mkdtemp(prefix="fuzz-fakenect-"))
+write_fakenect(FAKENECT_DIR / "base", [
+    Frame(i, i / 30, np.full((480, 640), 1500 + 100 * i, np.uint16), Intrinsics(640, 480, 580, 580, 319.5, 239.5),
+          (0.0, -9.7, -1.4)) for i in range(2)])
+BASE_NAMES = (FAKENECT_DIR / "base" / "INDEX.txt").read_text().split()
+
+
+@fuzz(200)
+@given(lines=st.lists(st.one_of(st.sampled_from(BASE_NAMES), st.text(string.printable, max_size=30)),
+                      max_size=6),
+       pgm_edits=EDITS, pgm_cut=st.one_of(st.none(), st.integers(0, 614417)),
+       dump=st.binary(max_size=20))
+def test_fuzz_fakenect(tmp_path_factory: pytest.TempPathFactory, lines, pgm_edits, pgm_cut, dump) -> None:
+    """INDEX.txt lines, depth .pgm bytes and accelerometer dumps; the pure-Python reader and the
+    guard that keeps bad files away from the native fakenect library."""
+    folder = tmp_path_factory.mktemp("fk")
+    for name in BASE_NAMES:
+        data = (FAKENECT_DIR / "base" / name).read_bytes()
+        if name.startswith("d-") and name == BASE_NAMES[0]:
+            data = mutate(data, pgm_edits, pgm_cut)
+        if name.startswith("a-"):
+            data = dump if len(dump) != ACCEL_DUMP.size or dump else data
+        (folder / name).write_bytes(data)
+    (folder / "INDEX.txt").write_text("\n".join(lines) + "\n", encoding="ascii", errors="replace")
+    replay_all(f"replay:{folder}?rate=max", str(folder))
+    clean(lambda: check_fakenect_recording(folder), (RecordingError,), str(folder))
+
+
+def _oni_bytes() -> bytes:
+    with tempfile.TemporaryDirectory() as d:
+        write_oni(Path(d) / "x.oni", frames(2))
+        return (Path(d) / "x.oni").read_bytes()
+
+
+ONI = _oni_bytes()
+
+
+@fuzz(500)
+@given(edits=EDITS, cut=st.one_of(st.none(), st.integers(0, len(ONI))))
+def test_fuzz_oni_structure(tmp_path_factory: pytest.TempPathFactory, edits, cut) -> None:
+    """The .oni checker that runs before libOniFile: headers, record headers, truncation.
+
+    (Mutated files that pass it are played by the real libOniFile in test_native_fuzz.py.)
+    """
+    path = tmp_path_factory.mktemp("oni") / "x.oni"
+    path.write_bytes(mutate(ONI, edits, cut))
+    clean(lambda: check_oni(path), (RecordingError,), str(path))
+
+
+# --- configuration ----------------------------------------------------------------------------
+CONFIG_KEYS = ["device", "sinks", "mount", "scan", "cliff", "pose", "daemon", "bogus"]
+SECTION_KEYS = ["height_m", "tilt_deg", "roll_deg", "range_min_m", "range_max_m", "row_start",
+                "row_stop", "block_size", "method", "pose_every_frames", "reconnect_backoff_s",
+                "tilt_source", "serial_tilt", "seed", "used_depth_height", "nonsense"]
+CONFIG_VALUES = st.one_of(st.integers(-(2**70), 2**70), st.floats(), st.text(max_size=8), st.booleans(),
+                          st.lists(st.text(max_size=5), max_size=3))
+
+
+@fuzz(400)
+@given(doc=st.one_of(st.text(max_size=300), st.dictionaries(
+    st.sampled_from(CONFIG_KEYS),
+    st.one_of(CONFIG_VALUES, st.dictionaries(st.sampled_from(SECTION_KEYS), CONFIG_VALUES, max_size=4)),
+    max_size=5)), sets=st.lists(st.text(max_size=30), max_size=3))
+def test_fuzz_config_files_and_set(tmp_path_factory: pytest.TempPathFactory, doc, sets) -> None:
+    path = tmp_path_factory.mktemp("cfg") / "robot.toml"
+    if isinstance(doc, dict):
+        try:
+            doc = tomli_w.dumps(doc)
+        except (TypeError, ValueError):
+            doc = "[mount]\nheight_m = nan\n"
+    path.write_text(doc, encoding="utf-8", errors="surrogatepass")
+    clean(lambda: build_config([path], sets), (ConfigError,))
+    for item in sets:
+        clean(lambda item=item: parse_set(item), (ConfigError,))
+
+
+ROS_KEYS = ["range_min", "range_max", "sensor_mount_height", "sensor_tilt_angle", "scan_height",
+            "block_size", "used_depth_height", "depth_img_step_row", "ransac_max_iter",
+            "ground_remove_en", "tilt_angle_max", "mount_height_min", "output_frame_id", "weird"]
+ROS_VALUES = st.one_of(st.integers(-(2**40), 2**40), st.floats(), st.text(max_size=6), st.booleans(),
+                       st.none(), st.lists(st.integers(), max_size=2))
+
+
+@fuzz(400)
+@given(doc=st.one_of(
+    st.text(max_size=200),
+    st.dictionaries(st.sampled_from(ROS_KEYS), ROS_VALUES, max_size=6),
+    st.dictionaries(st.sampled_from(["laserscan_kinect", "/cliff_detector", "depth_sensor_pose", "/**", "x"]),
+                    st.one_of(ROS_VALUES, st.fixed_dictionaries({"ros__parameters": st.one_of(
+                        ROS_VALUES, st.dictionaries(st.sampled_from(ROS_KEYS), ROS_VALUES, max_size=5))})),
+                    max_size=3)))
+def test_fuzz_ros_parameter_files(tmp_path_factory: pytest.TempPathFactory, doc) -> None:
+    path = tmp_path_factory.mktemp("ros") / "params.yaml"
+    text = doc if isinstance(doc, str) else yaml.safe_dump(doc)
+    path.write_text(text, encoding="utf-8", errors="surrogatepass")
+    clean(lambda: load_ros_params(path), (ConfigError,), str(path))
+    clean(lambda: build_config([path]), (ConfigError,))
+
+
+# --- specs ------------------------------------------------------------------------------------
+SPEC_TEXT = st.text(st.sampled_from(list(string.ascii_letters + string.digits + ":/?&=%.-+_[] \n\t\x00é")),
+                    max_size=40)
+DEVICE_PREFIX = st.sampled_from(["", "kinect", "kinect://", "openni://", "openni:", "replay:", "xtion",
+                                 "replay:fixtures/corridor_step?", "kinect?", "openni://Dummy?"])
+SINK_PREFIX = st.sampled_from(["", "stdout", "text?", "udp://", "udp:", "null", "rerun", "rerun:",
+                               "rerun+grpc://", "mavlink:", "mavlink+udp://", "udp://127.0.0.1:"])
+
+
+@fuzz(600)
+@given(prefix=DEVICE_PREFIX, rest=SPEC_TEXT)
+def test_fuzz_device_specs(prefix: str, rest: str) -> None:
+    """Building a driver from a spec does no I/O and fails with one DriverError line."""
+    clean(lambda: create_driver(prefix + rest), (DriverError,))
+
+
+@fuzz(600)
+@given(prefix=SINK_PREFIX, rest=SPEC_TEXT)
+def test_fuzz_sink_specs(prefix: str, rest: str) -> None:
+    clean(lambda: create_sink(prefix + rest), (ConfigError,))
+
+
+@fuzz(300)
+@given(rest=SPEC_TEXT)
+def test_fuzz_serial_tilt_specs(rest: str) -> None:
+    clean(lambda: SerialTiltSource.from_spec("serialtilt:" + rest), (DriverError,))
+
+
+# --- the serial line protocol and MAVLink input -----------------------------------------------
+LINE_BYTES = st.one_of(
+    st.binary(max_size=80),
+    st.builds(lambda t, r, ck: f"$TILT,{t},{r}*{ck}".encode(),
+              st.one_of(st.floats(), st.text("0123456789.-+e", max_size=8)),
+              st.one_of(st.floats(), st.text("0123456789.-+e", max_size=8)),
+              st.text("0123456789ABCDEFabcdefXYZ", min_size=0, max_size=3)),
+)
+
+
+@fuzz(1000)
+@given(chunks=st.lists(LINE_BYTES, max_size=8), newline=st.sampled_from([b"\n", b"\r\n", b"", b"\r"]))
+def test_fuzz_serial_line_protocol(chunks: list[bytes], newline: bytes) -> None:
+    """Noise, split and malformed ``$TILT`` lines: never raises, only plausible readings published."""
+    src = SerialTiltSource("loop://")
+    feed = src._line_feeder()
+    for chunk in chunks:
+        feed(chunk + newline)
+        parsed = parse_line(chunk)
+        if parsed is not None:
+            assert abs(parsed[0]) <= 90 and abs(parsed[1]) <= 180
+    reading = src.latest()
+    if reading is not None:
+        assert math.isfinite(reading.tilt_deg) and abs(reading.tilt_deg) <= 90
+        assert math.isfinite(reading.roll_deg) and abs(reading.roll_deg) <= 180
+
+
+@fuzz(600)
+@given(pitch=st.floats(width=32), roll=st.floats(width=32), noise=st.binary(max_size=60),
+       edits=EDITS, split=st.integers(0, 80))
+def test_fuzz_mavlink_input(pitch: float, roll: float, noise: bytes, edits, split: int) -> None:
+    """ATTITUDE with any float (NaN, inf, huge), corrupted bytes and noise: never raises, and only
+    an attitude within +-90 deg pitch, +-180 deg roll is published."""
+    from pymavlink.dialects.v20 import common as mavlink2
+
+    mav = mavlink2.MAVLink(None)
+    msg = mav.attitude_encode(1000, roll, pitch, 0.0, 0.0, 0.0, 0.0).pack(mav)
+    data = noise + mutate(msg, edits if edits and len(edits) % 2 else [], None) + msg
+    src = SerialTiltSource("loop://", protocol="mavlink")
+    feed = src._mavlink_feeder()
+    feed(data[:split])
+    feed(data[split:])
+    reading = src.latest()
+    if reading is not None:
+        assert abs(reading.tilt_deg) <= 90.0 + 1e-3 and abs(reading.roll_deg) <= 180.0 + 1e-3
+
+
+def test_mavlink_attitude_out_of_range_is_not_published() -> None:
+    """Before the fix, pitch = 10 rad was published as a tilt of -573 degrees."""
+    from pymavlink.dialects.v20 import common as mavlink2
+
+    mav = mavlink2.MAVLink(None)
+    src = SerialTiltSource("loop://", protocol="mavlink")
+    src._mavlink_feeder()(mav.attitude_encode(0, 0.0, 10.0, 0.0, 0.0, 0.0, 0.0).pack(mav))
+    assert src.latest() is None and src.bad_messages == 1

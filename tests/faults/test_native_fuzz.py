@@ -1,0 +1,125 @@
+""".oni files mutated until they pass depthnav's checker, then played by the real libOniFile.
+
+The checker (drivers/oni_format.check_oni) is what stands between a damaged file and native code:
+every file it accepts must play, or end in one DriverError line, without crashing the process.
+The player runs in a child process, so a native crash fails this test, not the run.
+"""
+
+from __future__ import annotations
+
+import json
+import random
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from drivers.base import Frame, Intrinsics
+from drivers.errors import RecordingError
+from drivers.openni import find_library
+from drivers.oni_format import check_oni, write_oni
+
+from .kit import ROOT, depthnav, one_error_line
+
+SMALL = Intrinsics(64, 48, 61.5, 57.25, 30.25, 22.75)
+CASES = 60  # accepted mutants played natively (docs/hardening.md)
+
+PLAYER = """
+import json, sys
+import drivers
+from drivers.errors import DriverError
+for path in sys.argv[1:]:
+    print(json.dumps({"start": path}), flush=True)   # the last line names the file if we crash
+    driver = drivers.create_driver(f"replay:{path}?rate=max")
+    try:
+        driver.open()
+        n = 0
+        while n < 10 and driver.read_frame(2.0) is not None:
+            n += 1
+        result = {"frames": n}
+    except DriverError as exc:
+        result = {"error": str(exc), "type": type(exc).__name__}
+    finally:
+        driver.close()
+    print(json.dumps({"end": path, **result}), flush=True)
+"""
+
+
+@pytest.fixture(scope="module")
+def base_oni(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    if find_library() is None:
+        pytest.skip("libopenni2-0 not installed")
+    rng = np.random.default_rng(3)
+    frames = [Frame(i, i / 30, rng.integers(300, 6000, (48, 64), dtype=np.uint16), SMALL) for i in range(3)]
+    path = tmp_path_factory.mktemp("oni") / "base.oni"
+    write_oni(path, frames)
+    return path
+
+
+def accepted_mutants(base: Path, out: Path, count: int, seed: int) -> list[Path]:
+    """``count`` mutants of ``base`` (1-4 bytes changed, mostly in the headers) that check_oni accepts."""
+    data = base.read_bytes()
+    r = random.Random(seed)
+    found: list[Path] = []
+    for attempt in range(count * 50):
+        buf = bytearray(data)
+        for _ in range(r.randint(1, 4)):
+            pos = r.randrange(24, 800) if r.random() < 0.8 else r.randrange(len(buf))
+            buf[pos] = r.randrange(256)
+        path = out / f"m{attempt:05d}.oni"
+        path.write_bytes(bytes(buf))
+        try:
+            check_oni(path)
+        except RecordingError:
+            path.unlink()
+            continue
+        found.append(path)
+        if len(found) == count:
+            break
+    return found
+
+
+def test_mutated_oni_files_never_crash_the_native_player(base_oni: Path, tmp_path: Path) -> None:
+    files = accepted_mutants(base_oni, tmp_path, CASES, seed=20261122)
+    assert len(files) == CASES
+    proc = subprocess.run([sys.executable, "-c", PLAYER, *map(str, files)], capture_output=True,
+                          text=True, timeout=600, cwd=ROOT)
+    events = [json.loads(line) for line in proc.stdout.splitlines() if line.startswith("{")]
+    crashed = events[-1].get("start") if events and "start" in events[-1] else None
+    assert proc.returncode == 0, f"native crash ({proc.returncode}) on {crashed}: {proc.stderr[-1500:]}"
+    ends = [e for e in events if "end" in e]
+    assert len(ends) == CASES
+    for e in ends:
+        if "error" in e:
+            assert "\n" not in e["error"] and e["end"] in e["error"], e
+
+
+def test_non_ascii_property_name_is_rejected_before_libonifile(base_oni: Path, tmp_path: Path) -> None:
+    """Found by the mutation test: one byte of a property name set to 0x8b made libOniFile SIGSEGV."""
+    data = bytearray(base_oni.read_bytes())
+    data[data.index(b"xnIsGenerating") + 4] = 0x8B
+    bad = tmp_path / "bad_name.oni"
+    bad.write_bytes(bytes(data))
+    p = depthnav("run", "--device", f"replay:{bad}?rate=max", "--sink", "null", timeout=120)
+    assert p.returncode == 1, p.stderr
+    line = one_error_line(p.stderr)
+    assert str(bad) in line and "bad name" in line
+
+
+@pytest.mark.parametrize(("mode", "needle"), [((128, 96), "needs 24576"), ((0, 0), "out of range"),
+                                              ((65535, 48), "out of range")])
+def test_resolution_that_does_not_match_the_frames(base_oni: Path, tmp_path: Path,
+                                                   mode: tuple[int, int], needle: str) -> None:
+    """Intrinsics (the stream's resolution) that do not match the image: one line, exit 1."""
+    import struct
+
+    data = bytearray(base_oni.read_bytes())
+    at = data.index(b"xnMapOutputMode") + len(b"xnMapOutputMode\0") + 4
+    struct.pack_into("<II", data, at, *mode)
+    bad = tmp_path / "mode.oni"
+    bad.write_bytes(bytes(data))
+    p = depthnav("run", "--device", f"replay:{bad}?rate=max", "--sink", "null", timeout=120)
+    assert p.returncode == 1, p.stderr
+    assert needle in one_error_line(p.stderr)
