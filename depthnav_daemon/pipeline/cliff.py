@@ -46,7 +46,6 @@ from depthnav_daemon.pipeline.geometry import (
 )
 from depthnav_daemon.pipeline.cliff_kernels import cliff_kernel
 from depthnav_daemon.pipeline.scan import LaserScan
-from depthnav_daemon.pipeline.scan_kernels import run_ends
 from drivers.base import Intrinsics
 
 METHODS = ("exact", "paper")
@@ -135,10 +134,11 @@ class _CliffTable:
     block_xy_m: F32  # (nbr, nbc, 2) floor point of each block's centre ray, NaN none
     block_ok: npt.NDArray[np.bool_]  # (nbr, nbc) the centre ray meets the floor
     col_step: int  # sample columns are col0 + k * col_step (0: unevenly spaced, gather them)
-    ev_start: npt.NDArray[np.int32]  # run ends of the cliff scan (scan_kernels.run_ends)
-    ev_col: npt.NDArray[np.int32]
-    ev_lo: npt.NDArray[np.int32]
-    ev_hi: npt.NDArray[np.int32]
+    first: npt.NDArray[np.int32]  # (nbr * nj, nbc * ni) first and last scan bin a sample covers
+    last: npt.NDArray[np.int32]
+    cov_start: npt.NDArray[np.int64]  # (N + 1,) samples covering bin b: cov_start[b]:cov_start[b + 1]
+    cov_row: npt.NDArray[np.int32]  # (M,) their sample rows (bottom first) ..
+    cov_col: npt.NDArray[np.int32]  # .. and sample columns
 
 
 def _floor_hits(intr: Intrinsics, rot: F64, u: F64, v: F64) -> tuple[F64, F64, F64]:
@@ -172,6 +172,28 @@ def _sample_bins(
     first = np.clip(first, 0, n - 1).astype(np.int64)
     last = np.clip(np.minimum(last, first + MAX_SPAN_BINS - 1), 0, n - 1).astype(np.int64)
     return np.where(sane, first, 1).astype(np.int32), np.where(sane, last, 0).astype(np.int32)
+
+
+def _covering_samples(
+    first: npt.NDArray[np.int32], last: npt.NDArray[np.int32], n: int
+) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.int32], npt.NDArray[np.int32]]:
+    """For every bin, the samples covering it, in sample order (bottom rows first).
+
+    Args:
+        first, last: (R, C) first and last bin of every sample (first > last: none).
+        n: bins.
+
+    Returns:
+        cov_start (n + 1,), cov_row and cov_col (M,): bin b's samples are cov_start[b]:cov_start[b + 1].
+    """
+    span = np.maximum(last.astype(np.int64) - first + 1, 0).ravel()
+    item = np.repeat(np.arange(span.size), span)
+    bins = first.ravel()[item] + (np.arange(item.size) - np.repeat(np.cumsum(span) - span, span))
+    order = np.argsort(bins, kind="stable")
+    start = np.zeros(n + 1, dtype=np.int64)
+    np.cumsum(np.bincount(bins, minlength=n), out=start[1:])
+    r, c = np.divmod(item[order], first.shape[1])
+    return start, r.astype(np.int32), c.astype(np.int32)
 
 
 @functools.lru_cache(maxsize=16)
@@ -232,16 +254,17 @@ def _cliff_table(
     b_l = np.arctan2(ly, lx)
     b_r = np.arctan2(ry, rx)
     first, last = _sample_bins(np.minimum(b_l, b_r), np.maximum(b_l, b_r), angle_min, inc, n_bins)
-    flushes = run_ends(first, last)
+    cover = _covering_samples(first, last, n_bins)
 
     range32 = range_m.astype(np.float32)
     block_ok = np.isfinite(block_xy[..., 0])
     col_sel = _selector(cols)
     col_step = col_sel.step if isinstance(col_sel, slice) else 0
-    for arr in (rows, cols, lo_mm, hi_mm, range32, block_xy, block_ok, *flushes):
+    for arr in (rows, cols, lo_mm, hi_mm, range32, block_xy, block_ok, first, last, *cover):
         arr.setflags(write=False)
     return _CliffTable(
-        rows, cols, (nbr, j.size, nbc, i.size), lo_mm, hi_mm, range32, block_xy, block_ok, col_step, *flushes
+        rows, cols, (nbr, j.size, nbc, i.size), lo_mm, hi_mm, range32, block_xy, block_ok, col_step, first, last,
+        *cover,
     )
 
 
@@ -294,10 +317,8 @@ def detect_cliffs(
     found = np.empty((nbr, nbc), dtype=np.bool_)
     ranges = np.empty(n_bins, dtype=np.float32)
     cliff_kernel(
-        src, rows, nj, ni, t.lo_mm, t.hi_mm, t.range_m, t.block_ok, params.block_points_thresh,
-        t.ev_start, t.ev_col, t.ev_lo, t.ev_hi,
-        np.empty(n_cols, dtype=np.uint16), np.empty(n_cols, dtype=np.bool_), np.empty(n_cols, dtype=np.float32),
-        found, ranges,
+        src, rows, nj, ni, t.lo_mm, t.hi_mm, t.range_m, t.first, t.last, t.block_ok, params.block_points_thresh,
+        t.cov_start, t.cov_row, t.cov_col, np.empty(n_cols, dtype=np.uint16), found, ranges,
     )
     bj, bi = np.nonzero(found)
     bs = params.block_size

@@ -15,33 +15,37 @@ from depthnav_daemon.pipeline.scan_kernels import SEEN
 
 
 @kernel
-def cliff_kernel(depth, rows, nj, ni, lo, hi, range_m, block_ok, thresh,  # noqa: ANN001, ANN201, PLR0913
-                 ev_start, ev_col, ev_lo, ev_hi, colcnt, fcol, acc, found, out):
+def cliff_kernel(depth, rows, nj, ni, lo, hi, range_m, first, last, block_ok, thresh,  # noqa: ANN001, ANN201, PLR0913
+                 cov_start, cov_row, cov_col, colcnt, found, out):
     """Blocks with drop-offs and the cliff scan of one frame.
+
+    A bin of the cliff scan holds the nearest floor range of the drop-off samples of detected
+    blocks that cover it; else +inf if some sample covering it has a reading; else NaN. The sweep
+    only counts drop-offs per block (uint16 lanes, no branches); the ranges come from the detected
+    blocks alone; and a bin without a drop-off looks through its covering samples (bottom rows
+    first, where the floor nearly always gives a reading) only until it meets a reading.
 
     Args:
         depth: (H, C) uint16 mm, the sample columns only (a column-strided view is fine; with
-            stride 1 it is contiguous and the sweeps vectorise); sample (i, k) is depth[rows[i], k].
+            stride 1 it is contiguous and the sweep vectorises); sample (i, k) is depth[rows[i], k].
         rows: (R,) intp image row of every sample row, block row by block row (nj rows each).
         nj, ni: sample rows and columns per block.
         lo, hi: (R, C) uint16: a sample is a drop-off iff lo < d < hi.
         range_m: (R, C) float32 horizontal range of the sample's floor point, metres.
+        first, last: (R, C) int32 first and last bin a sample covers (first > last: none).
         block_ok: (nbr, nbc) bool: the block's centre ray meets the floor (it can be reported).
         thresh: drop-off samples a block needs (eq. 8).
-        ev_start, ev_col, ev_lo, ev_hi: run ends over the sample grid (``scan_kernels.run_ends``;
-            a sample spans col_step pixels, often several bins, so a run flushes a bin range).
-        colcnt: (C,) uint16, fcol: (C,) bool, acc: (C,) float32: work space.
+        cov_start: (n + 1,) int64, cov_row, cov_col: (M,) int32: the samples covering bin b are
+            (cov_row[m], cov_col[m]) for m in cov_start[b]:cov_start[b + 1].
+        colcnt: (C,) uint16 work space.
         found: (nbr, nbc) bool, overwritten: blocks that are negative obstacles.
         out: (n,) float32 cliff scan, overwritten (REP 117: range, +inf, NaN).
     """
     n_cols = lo.shape[1]
     nbr, nbc = found.shape
     inf = np.float32(np.inf)
-    seen = SEEN
     for b in range(out.shape[0]):
         out[b] = inf
-    for k in range(n_cols):
-        acc[k] = inf
     for bj in range(nbr):
         for k in range(n_cols):
             colcnt[k] = 0
@@ -53,40 +57,47 @@ def cliff_kernel(depth, rows, nj, ni, lo, hi, range_m, block_ok, thresh,  # noqa
             for k in range(n_cols):
                 d = drow[k]
                 colcnt[k] += (lo_i[k] < d) & (d < hi_i[k])
-        any_found = False
         for bi in range(nbc):
             s = 0
             for ii in range(ni):
                 s += colcnt[bi * ni + ii]
             f = (s >= thresh) & block_ok[bj, bi]
             found[bj, bi] = f
-            any_found |= f
-            for ii in range(ni):
-                fcol[bi * ni + ii] = f
-        for jj in range(nj):
-            i = bj * nj + jj
-            drow = depth[rows[i]]
-            if any_found:
-                lo_i = lo[i]
-                hi_i = hi[i]
-                r_i = range_m[i]
-                for k in range(n_cols):
-                    d = drow[k]
-                    marked = (lo_i[k] < d) & (d < hi_i[k]) & fcol[k]
-                    # a marked sample has a reading: never report it as "no reading"
-                    v = min(r_i[k], seen) if marked else (seen if d != 0 else inf)
-                    acc[k] = min(acc[k], v)
-            else:
-                for k in range(n_cols):
-                    d = drow[k]
-                    acc[k] = min(acc[k], seen if d != 0 else inf)
-            for e in range(ev_start[i], ev_start[i + 1]):
-                c = ev_col[e]
-                a = acc[c]
-                for b in range(ev_lo[e], ev_hi[e] + 1):
-                    out[b] = min(out[b], a)
-                acc[c] = inf
+            if not f:
+                continue
+            # a detected block: its drop-off samples give the cliff ranges of the bins they cover.
+            # Column by column, so that the rows of a column that cover the same bins are reduced
+            # in a register and written once (one sample after another into the same bins would
+            # wait on each other's stores).
+            i0 = bj * nj
+            for k in range(bi * ni, (bi + 1) * ni):
+                f0 = first[i0, k]
+                l0 = last[i0, k]
+                m = inf
+                for i in range(i0, i0 + nj):
+                    d = depth[rows[i], k]
+                    r = range_m[i, k] if (lo[i, k] < d) & (d < hi[i, k]) else inf  # a select
+                    f = first[i, k]
+                    l_ = last[i, k]
+                    if f != f0 or l_ != l0:
+                        if m < inf:
+                            for b in range(f0, l0 + 1):
+                                out[b] = min(out[b], m)
+                        f0 = f
+                        l0 = l_
+                        m = inf
+                    m = min(m, r)
+                if m < inf:
+                    for b in range(f0, l0 + 1):
+                        out[b] = min(out[b], m)
     nan = np.float32(np.nan)
     for b in range(out.shape[0]):
-        v = out[b]
-        out[b] = inf if v == seen else (nan if v == inf else v)
+        if out[b] != inf:
+            continue
+        seen = False
+        for m in range(cov_start[b], cov_start[b + 1]):
+            if depth[rows[cov_row[m]], cov_col[m]] != 0:
+                seen = True
+                break
+        if not seen:
+            out[b] = nan
