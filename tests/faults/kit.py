@@ -8,6 +8,8 @@ import signal
 import socket
 import subprocess
 import sys
+import tempfile
+import threading
 import time
 from collections.abc import Sequence
 from pathlib import Path
@@ -28,14 +30,21 @@ def depthnav(*args: str, timeout: float = 120, **kw: object) -> subprocess.Compl
 
 
 def start(*args: str, stderr_path: Path | None = None) -> subprocess.Popen[str]:
-    """Start the CLI with stdout piped; stderr to a file (so a full pipe never blocks it)."""
-    err = open(stderr_path, "w") if stderr_path else subprocess.PIPE  # noqa: SIM115
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "depthnav_daemon", *args], stdout=subprocess.PIPE, stderr=err,
-        text=True, cwd=ROOT,
-    )
-    if stderr_path:
-        err.close()
+    """Start the CLI with stdout piped and stderr to a file.
+
+    stderr never shares a pipe with stdout: communicate() on two pipes reads the raw fds and
+    would lose what readline() already buffered; a file also never fills and blocks the daemon.
+    """
+    if stderr_path is None:
+        fd, name = tempfile.mkstemp(prefix="depthnav-stderr-", suffix=".txt")
+        os.close(fd)
+        stderr_path = Path(name)
+    with open(stderr_path, "w") as err:
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "depthnav_daemon", *args], stdout=subprocess.PIPE, stderr=err,
+            text=True, cwd=ROOT,
+        )
+    proc.stderr_path = stderr_path  # type: ignore[attr-defined]
     return proc
 
 
@@ -73,16 +82,27 @@ def read_lines(proc: subprocess.Popen[str], n: int) -> list[str]:
 
 def finish(proc: subprocess.Popen[str], sig: int | None = signal.SIGTERM,
            timeout: float = WAIT_S) -> tuple[int, str, str]:
-    """Signal the process, and return (exit code, rest of stdout, stderr) once it has exited."""
+    """Signal the process, and return (exit code, rest of stdout, stderr) once it has exited.
+
+    The rest of stdout is read through the same text buffer readline() used (communicate() with a
+    timeout reads the raw fd and would lose the bytes already buffered).
+    """
+    assert proc.stdout is not None
+    rest: list[str] = []
+    reader = threading.Thread(target=lambda: rest.append(proc.stdout.read()), daemon=True)
+    reader.start()
     if sig is not None:
         proc.send_signal(sig)
     try:
-        out, err = proc.communicate(timeout=timeout)
+        proc.wait(timeout=timeout)
     except subprocess.TimeoutExpired:
         proc.kill()
-        out, err = proc.communicate()
-        raise AssertionError(f"did not exit within {timeout} s after the signal: {err}") from None
-    return proc.returncode, out, err or ""
+        proc.wait()
+        raise AssertionError(f"did not exit within {timeout} s after the signal") from None
+    reader.join(timeout=timeout)
+    assert not reader.is_alive(), "stdout stayed open after the process exited"
+    err = Path(proc.stderr_path).read_text()  # type: ignore[attr-defined]
+    return proc.returncode, "".join(rest), err
 
 
 def json_lines(text: str) -> list[dict]:
