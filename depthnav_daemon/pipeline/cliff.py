@@ -132,13 +132,15 @@ class _CliffTable:
     hi_mm: npt.NDArray[np.uint16]
     range_m: F32  # (nbr * nj, nbc * ni) horizontal range of the floor point, +inf none
     block_xy_m: F32  # (nbr, nbc, 2) floor point of each block's centre ray, NaN none
-    block_ok: npt.NDArray[np.bool_]  # (nbr, nbc) the centre ray meets the floor
     col_step: int  # sample columns are col0 + k * col_step (0: unevenly spaced, gather them)
     first: npt.NDArray[np.int32]  # (nbr * nj, nbc * ni) first and last scan bin a sample covers
     last: npt.NDArray[np.int32]
     cov_start: npt.NDArray[np.int64]  # (N + 1,) samples covering bin b: cov_start[b]:cov_start[b + 1]
     cov_row: npt.NDArray[np.int32]  # (M,) their sample rows (bottom first) ..
     cov_col: npt.NDArray[np.int32]  # .. and sample columns
+    probe_start: npt.NDArray[np.int64]  # (R + 1,) probes (a bin's first covering sample) by sample row
+    probe_bin: npt.NDArray[np.int32]
+    probe_col: npt.NDArray[np.int32]
 
 
 def _floor_hits(intr: Intrinsics, rot: F64, u: F64, v: F64) -> tuple[F64, F64, F64]:
@@ -194,6 +196,18 @@ def _covering_samples(
     np.cumsum(np.bincount(bins, minlength=n), out=start[1:])
     r, c = np.divmod(item[order], first.shape[1])
     return start, r.astype(np.int32), c.astype(np.int32)
+
+
+def _probes(
+    cov_start: npt.NDArray[np.int64], cov_row: npt.NDArray[np.int32], cov_col: npt.NDArray[np.int32], n_rows: int
+) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.int32], npt.NDArray[np.int32]]:
+    """Every covered bin's first covering sample, grouped by sample row: (start (R + 1,), bin, col)."""
+    bins = np.flatnonzero(np.diff(cov_start) > 0)
+    row = cov_row[cov_start[bins]]
+    order = np.argsort(row, kind="stable")
+    start = np.zeros(n_rows + 1, dtype=np.int64)
+    np.cumsum(np.bincount(row, minlength=n_rows), out=start[1:])
+    return start, bins[order].astype(np.int32), cov_col[cov_start[bins]][order]
 
 
 @functools.lru_cache(maxsize=16)
@@ -255,15 +269,15 @@ def _cliff_table(
     b_r = np.arctan2(ry, rx)
     first, last = _sample_bins(np.minimum(b_l, b_r), np.maximum(b_l, b_r), angle_min, inc, n_bins)
     cover = _covering_samples(first, last, n_bins)
+    cover += _probes(*cover, first.shape[0])
 
     range32 = range_m.astype(np.float32)
-    block_ok = np.isfinite(block_xy[..., 0])
     col_sel = _selector(cols)
     col_step = col_sel.step if isinstance(col_sel, slice) else 0
-    for arr in (rows, cols, lo_mm, hi_mm, range32, block_xy, block_ok, first, last, *cover):
+    for arr in (rows, cols, lo_mm, hi_mm, range32, block_xy, first, last, *cover):
         arr.setflags(write=False)
     return _CliffTable(
-        rows, cols, (nbr, j.size, nbc, i.size), lo_mm, hi_mm, range32, block_xy, block_ok, col_step, first, last,
+        rows, cols, (nbr, j.size, nbc, i.size), lo_mm, hi_mm, range32, block_xy, col_step, first, last,
         *cover,
     )
 
@@ -313,17 +327,19 @@ def detect_cliffs(
     else:  # unevenly spaced sample columns: gather the samples once
         src, rows = mm[np.ix_(t.rows, t.cols)], np.arange(t.rows.size, dtype=np.intp)
     nbr, nj, nbc, ni = t.shape4
-    n_cols = nbc * ni
-    found = np.empty((nbr, nbc), dtype=np.bool_)
+    blocks = np.empty((nbr * nbc, 2), dtype=np.int64)
+    points = np.empty((nbr * nbc, 2), dtype=np.float32)
     ranges = np.empty(n_bins, dtype=np.float32)
-    cliff_kernel(
-        src, rows, nj, ni, t.lo_mm, t.hi_mm, t.range_m, t.first, t.last, t.block_ok, params.block_points_thresh,
-        t.cov_start, t.cov_row, t.cov_col, np.empty(n_cols, dtype=np.uint16), found, ranges,
+    k = cliff_kernel(
+        src, rows, nj, ni, t.lo_mm, t.hi_mm, t.range_m, t.first, t.last, t.block_xy_m, params.block_points_thresh,
+        t.cov_start, t.cov_row, t.cov_col, t.probe_start, t.probe_bin, t.probe_col,
+        np.empty(nbc * ni, dtype=np.uint16), np.empty(n_bins, dtype=np.bool_), blocks, points, ranges,
     )
-    bj, bi = np.nonzero(found)
     bs = params.block_size
-    blocks = np.stack([intr.height - (bj + 1) * bs, bi * bs], axis=-1).astype(np.int64)
-    points = t.block_xy_m[bj, bi].reshape(-1, 2)
+    blocks = blocks[:k].copy()  # (row, col) of the top-left pixel
+    blocks[:, 0] = intr.height - (blocks[:, 0] + 1) * bs
+    blocks[:, 1] *= bs
+    points = points[:k].copy()
     scan = LaserScan(
         float(angle_min),
         float(angle_min + (n_bins - 1) * angle_increment),
@@ -332,4 +348,4 @@ def detect_cliffs(
         params.range_max_m,
         ranges,
     )
-    return CliffResult(points.astype(np.float32), blocks, bs, scan)
+    return CliffResult(points, blocks, bs, scan)

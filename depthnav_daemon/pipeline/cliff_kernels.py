@@ -15,15 +15,17 @@ from depthnav_daemon.pipeline.scan_kernels import SEEN
 
 
 @kernel
-def cliff_kernel(depth, rows, nj, ni, lo, hi, range_m, first, last, block_ok, thresh,  # noqa: ANN001, ANN201, PLR0913
-                 cov_start, cov_row, cov_col, colcnt, found, out):
+def cliff_kernel(depth, rows, nj, ni, lo, hi, range_m, first, last, block_xy, thresh,  # noqa: ANN001, ANN201, PLR0913
+                 cov_start, cov_row, cov_col, probe_start, probe_bin, probe_col, colcnt, seen, blocks, points,
+                 out):
     """Blocks with drop-offs and the cliff scan of one frame.
 
     A bin of the cliff scan holds the nearest floor range of the drop-off samples of detected
     blocks that cover it; else +inf if some sample covering it has a reading; else NaN. The sweep
     only counts drop-offs per block (uint16 lanes, no branches); the ranges come from the detected
-    blocks alone; and a bin without a drop-off looks through its covering samples (bottom rows
-    first, where the floor nearly always gives a reading) only until it meets a reading.
+    blocks alone; and whether a bin has a reading is asked of one covering sample (its "probe",
+    the lowest: the floor near the robot nearly always gives a reading) while its row is in cache,
+    the other covering samples only when the probe has none.
 
     Args:
         depth: (H, C) uint16 mm, the sample columns only (a column-strided view is fine; with
@@ -33,19 +35,33 @@ def cliff_kernel(depth, rows, nj, ni, lo, hi, range_m, first, last, block_ok, th
         lo, hi: (R, C) uint16: a sample is a drop-off iff lo < d < hi.
         range_m: (R, C) float32 horizontal range of the sample's floor point, metres.
         first, last: (R, C) int32 first and last bin a sample covers (first > last: none).
-        block_ok: (nbr, nbc) bool: the block's centre ray meets the floor (it can be reported).
+        block_xy: (nbr, nbc, 2) float32 floor point of each block's centre ray (not finite: the
+            ray misses the floor, the block is never reported).
         thresh: drop-off samples a block needs (eq. 8).
         cov_start: (n + 1,) int64, cov_row, cov_col: (M,) int32: the samples covering bin b are
             (cov_row[m], cov_col[m]) for m in cov_start[b]:cov_start[b + 1].
-        colcnt: (C,) uint16 work space.
-        found: (nbr, nbc) bool, overwritten: blocks that are negative obstacles.
+        probe_start: (R + 1,) int64, probe_bin, probe_col: (P,) int32: the probes in sample row i
+            are (probe_bin[p], probe_col[p]) for p in probe_start[i]:probe_start[i + 1]; a bin's
+            probe is its first covering sample.
+        colcnt: (C,) uint16, seen: (n,) bool: work space.
+        blocks: (nbr * nbc, 2) int64: (block row, block column) of the negative obstacles, from
+            the top, in row-major block order (block row 0 = the bottom of the image).
+        points: (nbr * nbc, 2) float32: their floor points, same order.
         out: (n,) float32 cliff scan, overwritten (REP 117: range, +inf, NaN).
+
+    Returns:
+        The number of negative obstacles (rows of ``blocks`` and ``points`` written).
     """
     n_cols = lo.shape[1]
-    nbr, nbc = found.shape
+    nbr, nbc = block_xy.shape[0], block_xy.shape[1]
+    racc = np.empty(n_cols, np.float32)  # per column: minimum over the current run of bins ..
+    pf = np.empty(n_cols, np.int32)  # .. and that run's first and last bin
+    pl = np.empty(n_cols, np.int32)
     inf = np.float32(np.inf)
+    n_found = 0
     for b in range(out.shape[0]):
         out[b] = inf
+        seen[b] = False
     for bj in range(nbr):
         for k in range(n_cols):
             colcnt[k] = 0
@@ -57,47 +73,59 @@ def cliff_kernel(depth, rows, nj, ni, lo, hi, range_m, first, last, block_ok, th
             for k in range(n_cols):
                 d = drow[k]
                 colcnt[k] += (lo_i[k] < d) & (d < hi_i[k])
+            for p in range(probe_start[i], probe_start[i + 1]):
+                seen[probe_bin[p]] = drow[probe_col[p]] != 0
         for bi in range(nbc):
             s = 0
             for ii in range(ni):
                 s += colcnt[bi * ni + ii]
-            f = (s >= thresh) & block_ok[bj, bi]
-            found[bj, bi] = f
-            if not f:
+            if s < thresh or not np.isfinite(block_xy[bj, bi, 0]):
                 continue
+            blocks[n_found, 0] = bj
+            blocks[n_found, 1] = bi
+            points[n_found, 0] = block_xy[bj, bi, 0]
+            points[n_found, 1] = block_xy[bj, bi, 1]
+            n_found += 1
             # a detected block: its drop-off samples give the cliff ranges of the bins they cover.
-            # Column by column, so that the rows of a column that cover the same bins are reduced
-            # in a register and written once (one sample after another into the same bins would
-            # wait on each other's stores).
+            # Row by row (contiguous loads), each column keeps its minimum while its bins stay the
+            # same and writes it when they change: one sample after another into the same bins
+            # would wait on each other's stores.
             i0 = bj * nj
             for k in range(bi * ni, (bi + 1) * ni):
-                f0 = first[i0, k]
-                l0 = last[i0, k]
-                m = inf
-                for i in range(i0, i0 + nj):
-                    d = depth[rows[i], k]
-                    r = range_m[i, k] if (lo[i, k] < d) & (d < hi[i, k]) else inf  # a select
-                    f = first[i, k]
-                    l_ = last[i, k]
-                    if f != f0 or l_ != l0:
+                racc[k] = inf
+                pf[k] = first[i0, k]
+                pl[k] = last[i0, k]
+            for i in range(i0, i0 + nj):
+                drow = depth[rows[i]]
+                lo_i = lo[i]
+                hi_i = hi[i]
+                r_i = range_m[i]
+                f_i = first[i]
+                l_i = last[i]
+                for k in range(bi * ni, (bi + 1) * ni):
+                    d = drow[k]
+                    r = r_i[k] if (lo_i[k] < d) & (d < hi_i[k]) else inf  # a select, not a branch
+                    if f_i[k] != pf[k] or l_i[k] != pl[k]:
+                        m = racc[k]
                         if m < inf:
-                            for b in range(f0, l0 + 1):
+                            for b in range(pf[k], pl[k] + 1):
                                 out[b] = min(out[b], m)
-                        f0 = f
-                        l0 = l_
-                        m = inf
-                    m = min(m, r)
+                        racc[k] = inf
+                        pf[k] = f_i[k]
+                        pl[k] = l_i[k]
+                    racc[k] = min(racc[k], r)
+            for k in range(bi * ni, (bi + 1) * ni):
+                m = racc[k]
                 if m < inf:
-                    for b in range(f0, l0 + 1):
+                    for b in range(pf[k], pl[k] + 1):
                         out[b] = min(out[b], m)
     nan = np.float32(np.nan)
     for b in range(out.shape[0]):
-        if out[b] != inf:
+        if out[b] != inf or seen[b]:
             continue
-        seen = False
-        for m in range(cov_start[b], cov_start[b + 1]):
+        for m in range(cov_start[b] + 1, cov_start[b + 1]):  # the probe had no reading
             if depth[rows[cov_row[m]], cov_col[m]] != 0:
-                seen = True
                 break
-        if not seen:
+        else:
             out[b] = nan
+    return n_found
