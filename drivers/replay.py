@@ -31,7 +31,7 @@ import numpy.typing as npt
 
 from drivers import fakenect_format, png_folder
 from drivers.base import KINECT_V1, DeviceInfo, Driver, Frame, Intrinsics, TiltState
-from drivers.errors import DriverError, RecordingError
+from drivers.errors import DeviceSpecError, DriverError, RecordingError
 from drivers.kinect_axes import accel_counts_to_camera, tilt_status_name
 from drivers.recording import read_recording
 from drivers.spec import (
@@ -131,6 +131,12 @@ class ReplayDriver:
         try:
             return Intrinsics(width, height, values["fx"], values["fy"], values["cx"], values["cy"])
         except ValueError as exc:
+            if any(key in self.overrides for key in ("fx", "fy", "cx", "cy")):
+                # the user's ?fx=..&cx=.. options do not fit this recording: a usage error (exit 2)
+                raise DeviceSpecError(
+                    f"{self.spec_text}: intrinsics options do not fit the {width}x{height} "
+                    f"image: {exc}"
+                ) from None
             raise RecordingError(f"{self.path}: bad intrinsics: {exc}") from None
 
     def _depthnav_items(self) -> tuple[Iterator[Item], Intrinsics, str]:
