@@ -65,6 +65,12 @@ def list_frames(folder: Path, fps: float) -> list[tuple[float, Path]]:
                 raise RecordingError(
                     f"{index}:{number}: expected '<timestamp_s> <file.png>', got {text!r}"
                 ) from None
+            root = folder.resolve()
+            if not path.resolve().is_relative_to(root):  # ../, an absolute path or a symlink out
+                raise RecordingError(
+                    f"{index}:{number}: {parts[1]} is outside the recording folder",
+                    hint="depth.txt names images inside its own folder",
+                )
             if not path.is_file():
                 raise RecordingError(f"{index}:{number}: names {parts[1]}, which is missing")
             items.append((stamp, path))
