@@ -123,16 +123,19 @@ class Work:
 
 
 def time_work(
-    work: Sequence[Work], frame: np.ndarray, rounds: int = 7, samples: int = 5, min_batch_s: float = 0.002
+    work: Sequence[Work], frames: Sequence[np.ndarray], rounds: int = 7, samples: int = 5,
+    min_batch_s: float = 0.002,
 ) -> list[Timing]:
-    """Interleaved rounds: np.copy(frame), then every piece of work; per-frame statistics.
+    """Interleaved rounds: np.copy of a frame, then every piece of work; per-frame statistics.
 
     Args:
         work: what to time (each already warmed up by one call here).
-        frame: the frame whose np.copy is the reference.
+        frames: the frames the work goes through in turn; np.copy goes through them the same way,
+            so that the reference reads its frame from the same level of the memory hierarchy.
         rounds, samples: rounds, and samples per piece of work in each round.
         min_batch_s: shortest sample, seconds.
     """
+    nxt = itertools.cycle(frames).__next__
     for w in work:
         w.fn()  # warm-up: tables, caches, compiled kernels
     copies: list[list[float]] = []
@@ -141,7 +144,7 @@ def time_work(
     gc.disable()
     try:
         for _ in range(rounds):
-            copies.append([_sample(lambda: np.copy(frame), min_batch_s) for _ in range(samples)])
+            copies.append([_sample(lambda: np.copy(nxt()), min_batch_s) for _ in range(samples)])
             for w in work:
                 got[w.name].append([_sample(w.fn, min_batch_s) / w.frames_per_call for _ in range(samples)])
             gc.collect()  # between rounds, never inside a sample
@@ -248,7 +251,7 @@ def _pipeline_fn(frames: Sequence[Frame], mount: Mount, scan: ScanParams, cliff:
     return run
 
 
-def synthetic_frames(intr: Intrinsics, n: int = 4) -> tuple[list[Frame], Mount]:
+def synthetic_frames(intr: Intrinsics, n: int = 12) -> tuple[list[Frame], Mount]:
     """``n`` noisy corridor frames (bench_scene) at the resolution of ``intr``."""
     frames = []
     mount = Mount(0.55, 15.0, 0.0)
@@ -448,7 +451,7 @@ def run_bench(device: str | None = None, rounds: int = 7, samples: int = 5, late
         raise RuntimeError(f"{spec} delivered no frames")
     intr = frames[0].intrinsics
     mount = floor_mount(frames, Mount())
-    timings = time_work(stage_work(frames, mount), frames[0].depth_mm, rounds, samples, min_batch_s)
+    timings = time_work(stage_work(frames, mount), [f.depth_mm for f in frames], rounds, samples, min_batch_s)
     report = BenchReport(machine(), spec, len(frames), f"{intr.width}x{intr.height}", asdict(mount), timings)
     loop_spec = spec if device else f"replay:{FIXTURE}?rate=max&loop=1"
     if latency_frames:
@@ -457,7 +460,7 @@ def run_bench(device: str | None = None, rounds: int = 7, samples: int = 5, late
         for name, res_intr in RESOLUTIONS.items():
             res_frames, res_mount = synthetic_frames(res_intr)
             report.resolutions[name] = time_work(
-                stage_work(res_frames, res_mount), res_frames[0].depth_mm, rounds, samples, min_batch_s
+                stage_work(res_frames, res_mount), [f.depth_mm for f in res_frames], rounds, samples, min_batch_s
             )
     if cpu_seconds:
         report.cpu_30fps = cpu_at_30fps(cpu_seconds)

@@ -50,6 +50,6 @@ def test_bad_rounds_is_a_usage_error(capsys: pytest.CaptureFixture[str]) -> None
 
 def test_resolutions_table_times_every_size() -> None:
     frames, mount = bench.synthetic_frames(bench.RESOLUTIONS["512x424 (Kinect v2)"], n=1)
-    timings = bench.time_work(bench.stage_work(frames, mount, pipeline=False), frames[0].depth_mm,
+    timings = bench.time_work(bench.stage_work(frames, mount, pipeline=False), [frames[0].depth_mm],
                               rounds=1, samples=1, min_batch_s=0.0)
     assert len(timings) == 8 and all(t.median_s > 0 for t in timings)
