@@ -46,6 +46,7 @@ from depthnav_daemon.pipeline.geometry import (
 )
 from depthnav_daemon.pipeline.cliff_kernels import cliff_kernel
 from depthnav_daemon.pipeline.scan import LaserScan
+from depthnav_daemon.pipeline.scan_kernels import run_ends
 from drivers.base import Intrinsics
 
 METHODS = ("exact", "paper")
@@ -133,8 +134,10 @@ class _CliffTable:
     range_m: F32  # (nbr * nj, nbc * ni) horizontal range of the floor point, +inf none
     block_xy_m: F32  # (nbr, nbc, 2) floor point of each block's centre ray, NaN none
     col_step: int  # sample columns are col0 + k * col_step (0: unevenly spaced, gather them)
-    first: npt.NDArray[np.int32]  # (nbr * nj, nbc * ni) first and last scan bin a sample covers
-    last: npt.NDArray[np.int32]
+    ev_start: npt.NDArray[np.int32]  # run ends of the cliff scan, also at block rows (scan_kernels.run_ends)
+    ev_col: npt.NDArray[np.int32]
+    ev_lo: npt.NDArray[np.int32]
+    ev_hi: npt.NDArray[np.int32]
     cov_start: npt.NDArray[np.int64]  # (N + 1,) samples covering bin b: cov_start[b]:cov_start[b + 1]
     cov_row: npt.NDArray[np.int32]  # (M,) their sample rows (bottom first) ..
     cov_col: npt.NDArray[np.int32]  # .. and sample columns
@@ -268,17 +271,17 @@ def _cliff_table(
     b_l = np.arctan2(ly, lx)
     b_r = np.arctan2(ry, rx)
     first, last = _sample_bins(np.minimum(b_l, b_r), np.maximum(b_l, b_r), angle_min, inc, n_bins)
+    events = run_ends(first, last, row_block=j.size)
     cover = _covering_samples(first, last, n_bins)
     cover += _probes(*cover, first.shape[0])
 
     range32 = range_m.astype(np.float32)
     col_sel = _selector(cols)
     col_step = col_sel.step if isinstance(col_sel, slice) else 0
-    for arr in (rows, cols, lo_mm, hi_mm, range32, block_xy, first, last, *cover):
+    for arr in (rows, cols, lo_mm, hi_mm, range32, block_xy, *events, *cover):
         arr.setflags(write=False)
     return _CliffTable(
-        rows, cols, (nbr, j.size, nbc, i.size), lo_mm, hi_mm, range32, block_xy, col_step, first, last,
-        *cover,
+        rows, cols, (nbr, j.size, nbc, i.size), lo_mm, hi_mm, range32, block_xy, col_step, *events, *cover,
     )
 
 
@@ -330,10 +333,12 @@ def detect_cliffs(
     blocks = np.empty((nbr * nbc, 2), dtype=np.int64)
     points = np.empty((nbr * nbc, 2), dtype=np.float32)
     ranges = np.empty(n_bins, dtype=np.float32)
+    n_cols = nbc * ni
     k = cliff_kernel(
-        src, rows, nj, ni, t.lo_mm, t.hi_mm, t.range_m, t.first, t.last, t.block_xy_m, params.block_points_thresh,
-        t.cov_start, t.cov_row, t.cov_col, t.probe_start, t.probe_bin, t.probe_col,
-        np.empty(nbc * ni, dtype=np.uint16), np.empty(n_bins, dtype=np.bool_), blocks, points, ranges,
+        src, rows, nj, ni, t.lo_mm, t.hi_mm, t.range_m, t.block_xy_m, params.block_points_thresh,
+        t.ev_start, t.ev_col, t.ev_lo, t.ev_hi, t.cov_start, t.cov_row, t.cov_col, t.probe_start, t.probe_bin,
+        t.probe_col, np.empty(n_cols, dtype=np.uint16), np.empty(n_cols, dtype=np.bool_),
+        np.empty(n_cols, dtype=np.float32), np.empty(n_bins, dtype=np.bool_), blocks, points, ranges,
     )
     bs = params.block_size
     blocks = blocks[:k].copy()  # (row, col) of the top-left pixel

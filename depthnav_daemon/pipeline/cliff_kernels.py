@@ -15,35 +15,40 @@ from depthnav_daemon.pipeline.scan_kernels import SEEN
 
 
 @kernel
-def cliff_kernel(depth, rows, nj, ni, lo, hi, range_m, first, last, block_xy, thresh,  # noqa: ANN001, ANN201, PLR0913
-                 cov_start, cov_row, cov_col, probe_start, probe_bin, probe_col, colcnt, seen, blocks, points,
-                 out):
+def cliff_kernel(depth, rows, nj, ni, lo, hi, range_m, block_xy, thresh,  # noqa: ANN001, ANN201, PLR0913
+                 ev_start, ev_col, ev_lo, ev_hi, cov_start, cov_row, cov_col, probe_start, probe_bin, probe_col,
+                 colcnt, fcol, racc, seen, blocks, points, out):
     """Blocks with drop-offs and the cliff scan of one frame.
 
     A bin of the cliff scan holds the nearest floor range of the drop-off samples of detected
-    blocks that cover it; else +inf if some sample covering it has a reading; else NaN. The sweep
-    only counts drop-offs per block (uint16 lanes, no branches); the ranges come from the detected
-    blocks alone; and whether a bin has a reading is asked of one covering sample (its "probe",
-    the lowest: the floor near the robot nearly always gives a reading) while its row is in cache,
-    the other covering samples only when the probe has none.
+    blocks that cover it; else +inf if some sample covering it has a reading; else NaN.
+
+    Per block row: a sweep counts drop-offs per sample column (uint16 lanes, no branches) and the
+    blocks are decided (eq. 7-8). Only a block row with a detected block is swept again (its rows
+    still in cache) for the ranges, with the run-minimum scheme of the exact scan: a minimum per
+    column while the column covers the same bins, written to them when a run ends (runs end at
+    block-row boundaries too). Whether a bin has a reading is asked of one covering sample (its
+    "probe", the lowest: the floor near the robot nearly always gives one) while its row is in
+    cache, the other covering samples only when the probe has none.
 
     Args:
         depth: (H, C) uint16 mm, the sample columns only (a column-strided view is fine; with
-            stride 1 it is contiguous and the sweep vectorises); sample (i, k) is depth[rows[i], k].
+            stride 1 it is contiguous and the sweeps vectorise); sample (i, k) is depth[rows[i], k].
         rows: (R,) intp image row of every sample row, block row by block row (nj rows each).
         nj, ni: sample rows and columns per block.
         lo, hi: (R, C) uint16: a sample is a drop-off iff lo < d < hi.
         range_m: (R, C) float32 horizontal range of the sample's floor point, metres.
-        first, last: (R, C) int32 first and last bin a sample covers (first > last: none).
         block_xy: (nbr, nbc, 2) float32 floor point of each block's centre ray (not finite: the
             ray misses the floor, the block is never reported).
         thresh: drop-off samples a block needs (eq. 8).
+        ev_start, ev_col, ev_lo, ev_hi: run ends over the sample grid, with runs ending at every
+            block row too (``scan_kernels.run_ends(..., row_block=nj)``).
         cov_start: (n + 1,) int64, cov_row, cov_col: (M,) int32: the samples covering bin b are
             (cov_row[m], cov_col[m]) for m in cov_start[b]:cov_start[b + 1].
         probe_start: (R + 1,) int64, probe_bin, probe_col: (P,) int32: the probes in sample row i
             are (probe_bin[p], probe_col[p]) for p in probe_start[i]:probe_start[i + 1]; a bin's
             probe is its first covering sample.
-        colcnt: (C,) uint16, seen: (n,) bool: work space.
+        colcnt: (C,) uint16, fcol: (C,) bool, racc: (C,) float32, seen: (n,) bool: work space.
         blocks: (nbr * nbc, 2) int64: (block row, block column) of the negative obstacles, from
             the top, in row-major block order (block row 0 = the bottom of the image).
         points: (nbr * nbc, 2) float32: their floor points, same order.
@@ -54,14 +59,13 @@ def cliff_kernel(depth, rows, nj, ni, lo, hi, range_m, first, last, block_xy, th
     """
     n_cols = lo.shape[1]
     nbr, nbc = block_xy.shape[0], block_xy.shape[1]
-    racc = np.empty(n_cols, np.float32)  # per column: minimum over the current run of bins ..
-    pf = np.empty(n_cols, np.int32)  # .. and that run's first and last bin
-    pl = np.empty(n_cols, np.int32)
     inf = np.float32(np.inf)
     n_found = 0
     for b in range(out.shape[0]):
         out[b] = inf
         seen[b] = False
+    for k in range(n_cols):
+        racc[k] = inf
     for bj in range(nbr):
         for k in range(n_cols):
             colcnt[k] = 0
@@ -75,50 +79,40 @@ def cliff_kernel(depth, rows, nj, ni, lo, hi, range_m, first, last, block_xy, th
                 colcnt[k] += (lo_i[k] < d) & (d < hi_i[k])
             for p in range(probe_start[i], probe_start[i + 1]):
                 seen[probe_bin[p]] = drow[probe_col[p]] != 0
+        any_found = False
         for bi in range(nbc):
             s = 0
             for ii in range(ni):
                 s += colcnt[bi * ni + ii]
-            if s < thresh or not np.isfinite(block_xy[bj, bi, 0]):
-                continue
-            blocks[n_found, 0] = bj
-            blocks[n_found, 1] = bi
-            points[n_found, 0] = block_xy[bj, bi, 0]
-            points[n_found, 1] = block_xy[bj, bi, 1]
-            n_found += 1
-            # a detected block: its drop-off samples give the cliff ranges of the bins they cover.
-            # Row by row (contiguous loads), each column keeps its minimum while its bins stay the
-            # same and writes it when they change: one sample after another into the same bins
-            # would wait on each other's stores.
-            i0 = bj * nj
-            for k in range(bi * ni, (bi + 1) * ni):
-                racc[k] = inf
-                pf[k] = first[i0, k]
-                pl[k] = last[i0, k]
-            for i in range(i0, i0 + nj):
-                drow = depth[rows[i]]
-                lo_i = lo[i]
-                hi_i = hi[i]
-                r_i = range_m[i]
-                f_i = first[i]
-                l_i = last[i]
-                for k in range(bi * ni, (bi + 1) * ni):
-                    d = drow[k]
-                    r = r_i[k] if (lo_i[k] < d) & (d < hi_i[k]) else inf  # a select, not a branch
-                    if f_i[k] != pf[k] or l_i[k] != pl[k]:
-                        m = racc[k]
-                        if m < inf:
-                            for b in range(pf[k], pl[k] + 1):
-                                out[b] = min(out[b], m)
-                        racc[k] = inf
-                        pf[k] = f_i[k]
-                        pl[k] = l_i[k]
-                    racc[k] = min(racc[k], r)
-            for k in range(bi * ni, (bi + 1) * ni):
-                m = racc[k]
-                if m < inf:
-                    for b in range(pf[k], pl[k] + 1):
+            f = (s >= thresh) & np.isfinite(block_xy[bj, bi, 0])
+            for ii in range(ni):
+                fcol[bi * ni + ii] = f
+            if f:
+                any_found = True
+                blocks[n_found, 0] = bj
+                blocks[n_found, 1] = bi
+                points[n_found, 0] = block_xy[bj, bi, 0]
+                points[n_found, 1] = block_xy[bj, bi, 1]
+                n_found += 1
+        if not any_found:
+            continue
+        for jj in range(nj):
+            i = bj * nj + jj
+            drow = depth[rows[i]]
+            lo_i = lo[i]
+            hi_i = hi[i]
+            r_i = range_m[i]
+            for k in range(n_cols):  # branch-free, unconditional store: vectorised
+                d = drow[k]
+                v = r_i[k] if (lo_i[k] < d) & (d < hi_i[k]) & fcol[k] else inf
+                racc[k] = min(racc[k], v)
+            for e in range(ev_start[i], ev_start[i + 1]):
+                c = ev_col[e]
+                m = racc[c]
+                if m < inf:  # only the columns of detected blocks
+                    for b in range(ev_lo[e], ev_hi[e] + 1):
                         out[b] = min(out[b], m)
+                    racc[c] = inf
     nan = np.float32(np.nan)
     for b in range(out.shape[0]):
         if out[b] != inf or seen[b]:

@@ -15,7 +15,7 @@ SEEN = np.float32(1e30)  # "valid readings, no obstacle": sorts between ranges a
 
 
 def run_ends(
-    cb_lo: NDArray[np.integer], cb_hi: NDArray[np.integer]
+    cb_lo: NDArray[np.integer], cb_hi: NDArray[np.integer], row_block: int = 0
 ) -> tuple[NDArray[np.int32], NDArray[np.int32], NDArray[np.int32], NDArray[np.int32]]:
     """Where the runs of a run-minimum kernel end, from the bins every pixel (or sample) feeds.
 
@@ -25,6 +25,8 @@ def run_ends(
     Args:
         cb_lo, cb_hi: (Hs, Ws) first and last bin each pixel feeds (cb_lo > cb_hi: none);
             rows in the order the kernel walks them.
+        row_block: if > 0, every run also ends after each row_block-th row (a kernel that may
+            skip whole blocks of rows needs no run to cross into them).
 
     Returns:
         ev_start, ev_col, ev_lo, ev_hi: the runs ending after row i are ev_start[i]:ev_start[i + 1]
@@ -33,6 +35,8 @@ def run_ends(
     hs, ws = cb_lo.shape
     ends = np.ones((hs, ws), dtype=bool)
     ends[:-1] = (cb_lo[1:] != cb_lo[:-1]) | (cb_hi[1:] != cb_hi[:-1])
+    if row_block > 0:
+        ends[row_block - 1 :: row_block] = True
     ii, jj = np.nonzero(ends)  # row-major: grouped by row
     ev_start = np.zeros(hs + 1, dtype=np.int32)
     np.cumsum(np.bincount(ii, minlength=hs), out=ev_start[1:])
