@@ -126,7 +126,7 @@ class CliffResult:
 class _CliffTable:
     """Sample grid and thresholds for one (intrinsics, mount, params, layout); read-only arrays."""
 
-    rows: npt.NDArray[np.intp]  # (nbr * nj,) image row of every sample row, bottom block first
+    rows: npt.NDArray[np.intp]  # (nbr * nj,) image row of every sample row, ascending (top block first)
     cols: npt.NDArray[np.intp]  # (nbc * ni,) image column of every sample column
     shape4: tuple[int, int, int, int]  # (nbr, nj, nbc, ni)
     lo_mm: npt.NDArray[np.uint16]  # (nbr * nj, nbc * ni) sample counts iff lo < d < hi
@@ -139,9 +139,9 @@ class _CliffTable:
     ev_lo: npt.NDArray[np.int32]
     ev_hi: npt.NDArray[np.int32]
     cov_start: npt.NDArray[np.int64]  # (N + 1,) samples covering bin b: cov_start[b]:cov_start[b + 1]
-    cov_row: npt.NDArray[np.int32]  # (M,) their sample rows (bottom first) ..
+    cov_row: npt.NDArray[np.int32]  # (M,) their sample rows (top first) ..
     cov_col: npt.NDArray[np.int32]  # .. and sample columns
-    probe_start: npt.NDArray[np.int64]  # (R + 1,) probes (a bin's first covering sample) by sample row
+    probe_start: npt.NDArray[np.int64]  # (R + 1,) probes (a bin's lowest covering sample) by sample row
     probe_bin: npt.NDArray[np.int32]
     probe_col: npt.NDArray[np.int32]
 
@@ -182,7 +182,7 @@ def _sample_bins(
 def _covering_samples(
     first: npt.NDArray[np.int32], last: npt.NDArray[np.int32], n: int
 ) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.int32], npt.NDArray[np.int32]]:
-    """For every bin, the samples covering it, in sample order (bottom rows first).
+    """For every bin, the samples covering it, in sample order (top rows first).
 
     Args:
         first, last: (R, C) first and last bin of every sample (first > last: none).
@@ -204,13 +204,18 @@ def _covering_samples(
 def _probes(
     cov_start: npt.NDArray[np.int64], cov_row: npt.NDArray[np.int32], cov_col: npt.NDArray[np.int32], n_rows: int
 ) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.int32], npt.NDArray[np.int32]]:
-    """Every covered bin's first covering sample, grouped by sample row: (start (R + 1,), bin, col)."""
+    """Every covered bin's last covering sample (the lowest in the image), grouped by sample row.
+
+    Returns:
+        (start (R + 1,), bin, col): the probes of sample row i are start[i]:start[i + 1].
+    """
     bins = np.flatnonzero(np.diff(cov_start) > 0)
-    row = cov_row[cov_start[bins]]
+    probe = cov_start[bins + 1] - 1
+    row = cov_row[probe]
     order = np.argsort(row, kind="stable")
     start = np.zeros(n_rows + 1, dtype=np.int64)
     np.cumsum(np.bincount(row, minlength=n_rows), out=start[1:])
-    return start, bins[order].astype(np.int32), cov_col[cov_start[bins]][order]
+    return start, bins[order].astype(np.int32), cov_col[probe][order]
 
 
 @functools.lru_cache(maxsize=16)
@@ -227,8 +232,10 @@ def _cliff_table(
         )
     j = np.arange(0, bs, params.row_step)
     i = np.arange(0, bs, params.col_step)
-    # rows counted from the image bottom, as the original: block row 0 is the lowest
-    rows = (intr.height - 1 - (np.arange(nbr)[:, None] * bs + j[None, :])).ravel()
+    # blocks counted from the image bottom, as the original (block row 0 is the lowest), but the
+    # sample rows stored top to bottom: the kernel then walks memory upwards, which the hardware
+    # prefetcher follows better (~1.5-2x on a frame that is not in cache)
+    rows = (intr.height - 1 - (np.arange(nbr)[:, None] * bs + j[None, :]))[::-1, ::-1].ravel()
     cols = (np.arange(nbc)[:, None] * bs + i[None, :]).ravel()
     h = mount.height_m
     rot = cam_to_level(mount.tilt_rad, mount.roll_rad)
@@ -338,7 +345,8 @@ def detect_cliffs(
         src, rows, nj, ni, t.lo_mm, t.hi_mm, t.range_m, t.block_xy_m, params.block_points_thresh,
         t.ev_start, t.ev_col, t.ev_lo, t.ev_hi, t.cov_start, t.cov_row, t.cov_col, t.probe_start, t.probe_bin,
         t.probe_col, np.empty(n_cols, dtype=np.uint16), np.empty(n_cols, dtype=np.bool_),
-        np.empty(n_cols, dtype=np.float32), np.empty(n_bins, dtype=np.bool_), blocks, points, ranges,
+        np.empty(n_cols, dtype=np.float32), np.empty(n_bins, dtype=np.bool_), np.empty((nbr, nbc), dtype=np.bool_),
+        blocks, points, ranges,
     )
     bs = params.block_size
     blocks = blocks[:k].copy()  # (row, col) of the top-left pixel

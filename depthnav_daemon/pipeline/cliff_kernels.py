@@ -17,7 +17,7 @@ from depthnav_daemon.pipeline.scan_kernels import SEEN
 @kernel
 def cliff_kernel(depth, rows, nj, ni, lo, hi, range_m, block_xy, thresh,  # noqa: ANN001, ANN201, PLR0913
                  ev_start, ev_col, ev_lo, ev_hi, cov_start, cov_row, cov_col, probe_start, probe_bin, probe_col,
-                 colcnt, fcol, racc, seen, blocks, points, out):
+                 colcnt, fcol, racc, seen, found, blocks, points, out):
     """Blocks with drop-offs and the cliff scan of one frame.
 
     A bin of the cliff scan holds the nearest floor range of the drop-off samples of detected
@@ -34,7 +34,8 @@ def cliff_kernel(depth, rows, nj, ni, lo, hi, range_m, block_xy, thresh,  # noqa
     Args:
         depth: (H, C) uint16 mm, the sample columns only (a column-strided view is fine; with
             stride 1 it is contiguous and the sweeps vectorise); sample (i, k) is depth[rows[i], k].
-        rows: (R,) intp image row of every sample row, block row by block row (nj rows each).
+        rows: (R,) intp image row of every sample row, ascending: block row by block row (nj rows
+            each) from the top, so sample rows tb * nj ... hold block row nbr - 1 - tb.
         nj, ni: sample rows and columns per block.
         lo, hi: (R, C) uint16: a sample is a drop-off iff lo < d < hi.
         range_m: (R, C) float32 horizontal range of the sample's floor point, metres.
@@ -47,8 +48,9 @@ def cliff_kernel(depth, rows, nj, ni, lo, hi, range_m, block_xy, thresh,  # noqa
             (cov_row[m], cov_col[m]) for m in cov_start[b]:cov_start[b + 1].
         probe_start: (R + 1,) int64, probe_bin, probe_col: (P,) int32: the probes in sample row i
             are (probe_bin[p], probe_col[p]) for p in probe_start[i]:probe_start[i + 1]; a bin's
-            probe is its first covering sample.
-        colcnt: (C,) uint16, fcol: (C,) bool, racc: (C,) float32, seen: (n,) bool: work space.
+            probe is its last covering sample.
+        colcnt: (C,) uint16, fcol: (C,) bool, racc: (C,) float32, seen: (n,) bool,
+            found: (nbr, nbc) bool: work space.
         blocks: (nbr * nbc, 2) int64: (block row, block column) of the negative obstacles, from
             the top, in row-major block order (block row 0 = the bottom of the image).
         points: (nbr * nbc, 2) float32: their floor points, same order.
@@ -66,11 +68,12 @@ def cliff_kernel(depth, rows, nj, ni, lo, hi, range_m, block_xy, thresh,  # noqa
         seen[b] = False
     for k in range(n_cols):
         racc[k] = inf
-    for bj in range(nbr):
+    for tb in range(nbr):  # from the top of the image down: memory upwards
+        bj = nbr - 1 - tb
         for k in range(n_cols):
             colcnt[k] = 0
         for jj in range(nj):
-            i = bj * nj + jj
+            i = tb * nj + jj
             drow = depth[rows[i]]
             lo_i = lo[i]
             hi_i = hi[i]
@@ -85,19 +88,14 @@ def cliff_kernel(depth, rows, nj, ni, lo, hi, range_m, block_xy, thresh,  # noqa
             for ii in range(ni):
                 s += colcnt[bi * ni + ii]
             f = (s >= thresh) & np.isfinite(block_xy[bj, bi, 0])
+            found[bj, bi] = f
+            any_found |= f
             for ii in range(ni):
                 fcol[bi * ni + ii] = f
-            if f:
-                any_found = True
-                blocks[n_found, 0] = bj
-                blocks[n_found, 1] = bi
-                points[n_found, 0] = block_xy[bj, bi, 0]
-                points[n_found, 1] = block_xy[bj, bi, 1]
-                n_found += 1
         if not any_found:
             continue
         for jj in range(nj):
-            i = bj * nj + jj
+            i = tb * nj + jj
             drow = depth[rows[i]]
             lo_i = lo[i]
             hi_i = hi[i]
@@ -117,9 +115,17 @@ def cliff_kernel(depth, rows, nj, ni, lo, hi, range_m, block_xy, thresh,  # noqa
     for b in range(out.shape[0]):
         if out[b] != inf or seen[b]:
             continue
-        for m in range(cov_start[b] + 1, cov_start[b + 1]):  # the probe had no reading
+        for m in range(cov_start[b], cov_start[b + 1] - 1):  # the probe (the last) had no reading
             if depth[rows[cov_row[m]], cov_col[m]] != 0:
                 break
         else:
             out[b] = nan
+    for bj in range(nbr):  # row-major from the bottom block row, as the original lists them
+        for bi in range(nbc):
+            if found[bj, bi]:
+                blocks[n_found, 0] = bj
+                blocks[n_found, 1] = bi
+                points[n_found, 0] = block_xy[bj, bi, 0]
+                points[n_found, 1] = block_xy[bj, bi, 1]
+                n_found += 1
     return n_found

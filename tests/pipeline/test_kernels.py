@@ -112,16 +112,20 @@ def reference_cliffs(depth: np.ndarray, intr: Intrinsics, mount: Mount, params: 
     """Eq. 7-8 and the cliff scan by their definition (numpy): (found blocks (nbr, nbc), scan (n,))."""
     t = cliff_mod._cliff_table(intr, mount, params, *layout)
     nbr, nj, nbc, ni = t.shape4
-    d = depth[np.ix_(t.rows, t.cols)]
-    mask = (d > t.lo_mm) & (d < t.hi_mm)
+    rows = np.sort(t.rows)[::-1]  # bottom-up: block row 0 (the lowest) first, as the original
+    assert np.array_equal(np.sort(t.rows), np.unique(t.rows))
+    bottom_up = np.argsort(-t.rows, kind="stable")
+    lo_mm, hi_mm, range_m = t.lo_mm[bottom_up], t.hi_mm[bottom_up], t.range_m[bottom_up]
+    d = depth[np.ix_(rows, t.cols)]
+    mask = (d > lo_mm) & (d < hi_mm)
     counts = mask.reshape(t.shape4).sum(axis=(1, 3))
     found = (counts >= params.block_points_thresh) & np.isfinite(t.block_xy_m[..., 0])
     marked = (mask.reshape(t.shape4) & found[:, None, :, None]).reshape(mask.shape)
-    vals = np.where(marked, t.range_m, np.where(d > 0, np.float32(np.inf), np.float32(np.nan)))
+    vals = np.where(marked, range_m, np.where(d > 0, np.float32(np.inf), np.float32(np.nan)))
     # every sample covers the bins between its col_step footprint's edges
     rot = cam_to_level(mount.tilt_rad, mount.roll_rad)
     u = t.cols.astype(np.float64)[None, :]
-    v = t.rows.astype(np.float64)[:, None]
+    v = rows.astype(np.float64)[:, None]
     e = params.col_step / 2.0
     lx, ly, _ = cliff_mod._floor_hits(intr, rot, u - e, v)
     rx, ry, _ = cliff_mod._floor_hits(intr, rot, u + e, v)
