@@ -42,6 +42,7 @@ from depthnav_daemon.pipeline.geometry import (
 from depthnav_daemon.pipeline.pose_kernels import (
     candidates_kernel,
     count_candidates_kernel,
+    hypotheses_kernel,
     plane_moments_kernel,
     ransac_count_kernel,
 )
@@ -294,23 +295,14 @@ def ransac_plane(
         inlier count; inliers 0 if no hypothesis was acceptable.
     """
     idx = rng.integers(0, len(pts), size=(iterations, 3))
-    p = pts.astype(np.float64)[idx]  # (I, 3, 3)
-    n = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])  # (I, 3)
-    norm = np.linalg.norm(n, axis=1)
-    good = norm > 1e-9
-    n = n / np.where(good, norm, 1.0)[:, None]
-    d = -np.einsum("ij,ij->i", n, p[:, 0])
-    flip = np.where(d < 0, -1.0, 1.0)  # orient: origin above the plane
-    n *= flip[:, None]
-    d *= flip
-    if accept is not None:
-        tilt = np.arctan2(-n[:, 2], np.hypot(n[:, 0], n[:, 1]))
-        roll = np.arctan2(-n[:, 0], -n[:, 1])
-        good &= (tilt >= accept[0, 0]) & (tilt <= accept[0, 1]) & (np.abs(roll) <= accept[1, 0])
-        good &= (d >= accept[2, 0]) & (d <= accept[2, 1])
+    pts32 = np.ascontiguousarray(pts, dtype=np.float32)
+    n = np.empty((iterations, 3))
+    d = np.empty(iterations)
+    good = np.empty(iterations, dtype=np.bool_)
+    hypotheses_kernel(pts32, idx, np.zeros((3, 2)) if accept is None else np.asarray(accept, dtype=np.float64),
+                      accept is not None, n, d, good)
     counts = np.zeros(iterations, dtype=np.int64)
     cand = np.flatnonzero(good)
-    pts32 = np.asarray(pts, dtype=np.float32)
     px, py, pz = (np.ascontiguousarray(pts32[:, i]) for i in range(3))
     # adaptive stop (as PCL): enough hypotheses that an all-inlier sample was drawn with
     # probability RANSAC_CONFIDENCE, given the best inlier share so far

@@ -81,6 +81,55 @@ def candidates_kernel(depth, row0, row_step, col0, col_step, zlo, zhi, rays, kee
 
 
 @kernel
+def hypotheses_kernel(pts, idx, accept, use_accept, normals, offsets, good):  # noqa: ANN001, ANN201
+    """Planes through point triples, oriented with the origin above them, checked against a prior.
+
+    Args:
+        pts: (K, 3) float32 points, metres.
+        idx: (I, 3) int64 indices of each hypothesis' three points (drawn by the caller).
+        accept: (3, 2) float64 [[tilt_lo, tilt_hi], [|roll| hi, unused], [h_lo, h_hi]] (radians, metres).
+        use_accept: check the prior at all.
+        normals: (I, 3) float64 unit normals, overwritten; offsets: (I,) float64: n.p + d = 0.
+        good: (I,) bool, overwritten: a proper plane (non-degenerate triple) inside the prior.
+    """
+    for h in range(idx.shape[0]):
+        i0 = idx[h, 0]
+        i1 = idx[h, 1]
+        i2 = idx[h, 2]
+        x0 = np.float64(pts[i0, 0])
+        y0 = np.float64(pts[i0, 1])
+        z0 = np.float64(pts[i0, 2])
+        ax = np.float64(pts[i1, 0]) - x0
+        ay = np.float64(pts[i1, 1]) - y0
+        az = np.float64(pts[i1, 2]) - z0
+        bx = np.float64(pts[i2, 0]) - x0
+        by = np.float64(pts[i2, 1]) - y0
+        bz = np.float64(pts[i2, 2]) - z0
+        nx = ay * bz - az * by
+        ny = az * bx - ax * bz
+        nz = ax * by - ay * bx
+        norm = math.sqrt(nx * nx + ny * ny + nz * nz)
+        ok = norm > 1e-9
+        if ok:
+            nx /= norm
+            ny /= norm
+            nz /= norm
+        d = -(nx * x0 + ny * y0 + nz * z0)
+        if d < 0:  # orient: the origin above the plane
+            nx, ny, nz, d = -nx, -ny, -nz, -d
+        if use_accept:
+            tilt = math.atan2(-nz, math.hypot(nx, ny))
+            roll = math.atan2(-nx, -ny)
+            ok &= (tilt >= accept[0, 0]) & (tilt <= accept[0, 1]) & (abs(roll) <= accept[1, 0])
+            ok &= (d >= accept[2, 0]) & (d <= accept[2, 1])
+        normals[h, 0] = nx
+        normals[h, 1] = ny
+        normals[h, 2] = nz
+        offsets[h] = d
+        good[h] = ok
+
+
+@kernel
 def ransac_count_kernel(px, py, pz, normals, offsets, order, inlier_dist, confidence, chunk, counts):  # noqa: ANN001, ANN201, PLR0913
     """Inlier counts of plane hypotheses, with PCL's adaptive stop.
 

@@ -235,7 +235,7 @@ def test_warm_up_compiles_every_kernel_the_daemon_path_calls() -> None:
 
     kernels = [scan_kernels.exact_scan_kernel, scan_kernels.paper_scan_kernel, cliff_kernels.cliff_kernel,
                pose_kernels.count_candidates_kernel, pose_kernels.candidates_kernel,
-               pose_kernels.ransac_count_kernel, pose_kernels.plane_moments_kernel]
+               pose_kernels.hypotheses_kernel, pose_kernels.ransac_count_kernel, pose_kernels.plane_moments_kernel]
     warmup.warm_up()
     before = [len(k.signatures) for k in kernels]
     mount = MOUNTS[0]
