@@ -134,7 +134,7 @@ class _CliffTable:
     range_m: F32  # (nbr * nj, nbc * ni) horizontal range of the floor point, +inf none
     block_xy_m: F32  # (nbr, nbc, 2) floor point of each block's centre ray, NaN none
     col_step: int  # sample columns are col0 + k * col_step (0: unevenly spaced, gather them)
-    ev_start: npt.NDArray[np.int32]  # run ends of the cliff scan, also at block rows (scan_kernels.run_ends)
+    ev_block: npt.NDArray[np.int64]  # (R, nbc + 1) run ends of the cliff scan per sample row and block column
     ev_col: npt.NDArray[np.int32]
     ev_lo: npt.NDArray[np.int32]
     ev_hi: npt.NDArray[np.int32]
@@ -278,7 +278,12 @@ def _cliff_table(
     b_l = np.arctan2(ly, lx)
     b_r = np.arctan2(ry, rx)
     first, last = _sample_bins(np.minimum(b_l, b_r), np.maximum(b_l, b_r), angle_min, inc, n_bins)
-    events = run_ends(first, last, row_block=j.size)
+    ev_start, ev_col, ev_lo, ev_hi = run_ends(first, last, row_block=j.size)
+    # index of each row's first run end in each block column (a row's ends are sorted by column)
+    ev_row = np.repeat(np.arange(first.shape[0]), np.diff(ev_start))
+    key = ev_row * (nbc + 1) + ev_col // i.size
+    ev_block = np.searchsorted(key, np.arange(first.shape[0])[:, None] * (nbc + 1) + np.arange(nbc + 1)[None, :])
+    events = (ev_block.astype(np.int64), ev_col, ev_lo, ev_hi)
     cover = _covering_samples(first, last, n_bins)
     cover += _probes(*cover, first.shape[0])
 
@@ -343,7 +348,7 @@ def detect_cliffs(
     n_cols = nbc * ni
     k = cliff_kernel(
         src, rows, nj, ni, t.lo_mm, t.hi_mm, t.range_m, t.block_xy_m, params.block_points_thresh,
-        t.ev_start, t.ev_col, t.ev_lo, t.ev_hi, t.cov_start, t.cov_row, t.cov_col, t.probe_start, t.probe_bin,
+        t.ev_block, t.ev_col, t.ev_lo, t.ev_hi, t.cov_start, t.cov_row, t.cov_col, t.probe_start, t.probe_bin,
         t.probe_col, np.empty(n_cols, dtype=np.uint16), np.empty(n_cols, dtype=np.bool_),
         np.empty(n_cols, dtype=np.float32), np.empty(n_bins, dtype=np.bool_), np.empty((nbr, nbc), dtype=np.bool_),
         blocks, points, ranges,

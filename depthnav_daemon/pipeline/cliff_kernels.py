@@ -16,7 +16,7 @@ from depthnav_daemon.pipeline.scan_kernels import SEEN
 
 @kernel
 def cliff_kernel(depth, rows, nj, ni, lo, hi, range_m, block_xy, thresh,  # noqa: ANN001, ANN201, PLR0913
-                 ev_start, ev_col, ev_lo, ev_hi, cov_start, cov_row, cov_col, probe_start, probe_bin, probe_col,
+                 ev_block, ev_col, ev_lo, ev_hi, cov_start, cov_row, cov_col, probe_start, probe_bin, probe_col,
                  colcnt, fcol, racc, seen, found, blocks, points, out):
     """Blocks with drop-offs and the cliff scan of one frame.
 
@@ -42,8 +42,9 @@ def cliff_kernel(depth, rows, nj, ni, lo, hi, range_m, block_xy, thresh,  # noqa
         block_xy: (nbr, nbc, 2) float32 floor point of each block's centre ray (not finite: the
             ray misses the floor, the block is never reported).
         thresh: drop-off samples a block needs (eq. 8).
-        ev_start, ev_col, ev_lo, ev_hi: run ends over the sample grid, with runs ending at every
-            block row too (``scan_kernels.run_ends(..., row_block=nj)``).
+        ev_block: (R, nbc + 1) int64: the run ends after sample row i in the columns of block
+            column bi are ev_block[i, bi]:ev_block[i, bi + 1] of ev_col, ev_lo, ev_hi (run ends
+            over the sample grid, runs ending at every block row too; ``scan_kernels.run_ends``).
         cov_start: (n + 1,) int64, cov_row, cov_col: (M,) int32: the samples covering bin b are
             (cov_row[m], cov_col[m]) for m in cov_start[b]:cov_start[b + 1].
         probe_start: (R + 1,) int64, probe_bin, probe_col: (P,) int32: the probes in sample row i
@@ -104,13 +105,16 @@ def cliff_kernel(depth, rows, nj, ni, lo, hi, range_m, block_xy, thresh,  # noqa
                 d = drow[k]
                 v = r_i[k] if (lo_i[k] < d) & (d < hi_i[k]) & fcol[k] else inf
                 racc[k] = min(racc[k], v)
-            for e in range(ev_start[i], ev_start[i + 1]):
-                c = ev_col[e]
-                m = racc[c]
-                if m < inf:  # only the columns of detected blocks
-                    for b in range(ev_lo[e], ev_hi[e] + 1):
-                        out[b] = min(out[b], m)
-                    racc[c] = inf
+            for bi in range(nbc):
+                if not found[bj, bi]:
+                    continue  # only the columns of detected blocks hold ranges
+                for e in range(ev_block[i, bi], ev_block[i, bi + 1]):
+                    c = ev_col[e]
+                    m = racc[c]
+                    if m < inf:
+                        for b in range(ev_lo[e], ev_hi[e] + 1):
+                            out[b] = min(out[b], m)
+                        racc[c] = inf
     nan = np.float32(np.nan)
     for b in range(out.shape[0]):
         if out[b] != inf or seen[b]:
