@@ -316,7 +316,8 @@ class RerunSink:
     def _file_problem(self, exc: BaseException) -> str:
         """Why writing the .rrd failed, in words: a full disk is the usual cause."""
         try:
-            if shutil.disk_usage(os.path.dirname(os.path.abspath(self.target))).free < LOW_SPACE_BYTES:
+            folder = os.path.dirname(os.path.abspath(self.target))
+            if shutil.disk_usage(folder).free < LOW_SPACE_BYTES:
                 return "no space left on the disk"
         except OSError:
             pass

@@ -9,8 +9,12 @@ import pytest
 
 def pytest_addoption(parser: pytest.Parser) -> None:
     # only seen when pytest is started on tests/faults; DEPTHNAV_SOAK=1 works from anywhere
-    parser.addoption("--soak", action="store_true", default=False,
-                     help="run the 100,000-frame soak (10-15 minutes) instead of the short form")
+    parser.addoption(
+        "--soak",
+        action="store_true",
+        default=False,
+        help="run the 100,000-frame soak (10-15 minutes) instead of the short form",
+    )
 
 
 @pytest.fixture

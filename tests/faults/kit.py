@@ -24,8 +24,12 @@ WAIT_S = 30.0  # generous bound for a slow, noisy 2-core machine; tests return a
 def depthnav(*args: str, timeout: float = 120, **kw: object) -> subprocess.CompletedProcess[str]:
     """Run the CLI to the end, as a user does."""
     return subprocess.run(  # noqa: PLW1510 - callers check the code and show stderr
-        [sys.executable, "-m", "depthnav_daemon", *args], capture_output=True, text=True,
-        timeout=timeout, cwd=ROOT, **kw,  # type: ignore[arg-type]
+        [sys.executable, "-m", "depthnav_daemon", *args],
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+        cwd=ROOT,
+        **kw,  # type: ignore[arg-type]
     )
 
 
@@ -41,8 +45,11 @@ def start(*args: str, stderr_path: Path | None = None) -> subprocess.Popen[str]:
         stderr_path = Path(name)
     with open(stderr_path, "w") as err:
         proc = subprocess.Popen(
-            [sys.executable, "-m", "depthnav_daemon", *args], stdout=subprocess.PIPE, stderr=err,
-            text=True, cwd=ROOT,
+            [sys.executable, "-m", "depthnav_daemon", *args],
+            stdout=subprocess.PIPE,
+            stderr=err,
+            text=True,
+            cwd=ROOT,
         )
     proc.stderr_path = stderr_path  # type: ignore[attr-defined]
     return proc
@@ -80,8 +87,9 @@ def read_lines(proc: subprocess.Popen[str], n: int) -> list[str]:
     return out
 
 
-def finish(proc: subprocess.Popen[str], sig: int | None = signal.SIGTERM,
-           timeout: float = WAIT_S) -> tuple[int, str, str]:
+def finish(
+    proc: subprocess.Popen[str], sig: int | None = signal.SIGTERM, timeout: float = WAIT_S
+) -> tuple[int, str, str]:
     """Signal the process, and return (exit code, rest of stdout, stderr) once it has exited.
 
     The rest of stdout is read through the same text buffer readline() used (communicate() with a

@@ -62,9 +62,15 @@ class Collect:
 
 def run_frames(frames: list[Frame], *sets: str) -> list[Result]:
     sink = Collect()
-    cfg = build_config([], ["daemon.pose_every_frames=1", *sets], {"device": "test", "sinks": ["c"]})
-    report = run(cfg, threading.Event(), driver_factory=lambda _s: ListDriver(frames),
-                 sink_factory=lambda _s: sink)
+    cfg = build_config(
+        [], ["daemon.pose_every_frames=1", *sets], {"device": "test", "sinks": ["c"]}
+    )
+    report = run(
+        cfg,
+        threading.Event(),
+        driver_factory=lambda _s: ListDriver(frames),
+        sink_factory=lambda _s: sink,
+    )
     assert report.frames == len(frames) == len(sink.results)
     return sink.results
 
@@ -73,7 +79,10 @@ def defined(result: Result, frame: Frame) -> None:
     """What every Result must be, whatever the depth: the frame's intrinsics, finite mount,
     ranges that are numbers or the REP 117 specials."""
     assert result.intrinsics == frame.intrinsics
-    assert all(math.isfinite(v) for v in (result.mount.height_m, result.mount.tilt_deg, result.mount.roll_deg))
+    assert all(
+        math.isfinite(v)
+        for v in (result.mount.height_m, result.mount.tilt_deg, result.mount.roll_deg)
+    )
     r = np.asarray(result.scan.ranges, dtype=np.float64)
     finite = r[np.isfinite(r)]
     assert np.all(finite >= 0)
@@ -83,8 +92,12 @@ DEPTH = st.one_of(
     st.sampled_from(["zeros", "saturated", "ones", "noise", "half"]),
     st.integers(0, 65535),
 )
-ACCEL = st.one_of(st.none(), st.tuples(*[st.floats(allow_nan=True, allow_infinity=True, width=32)] * 3),
-                  st.just((0.0, 0.0, 0.0)), st.just((0.0, -9.81, -2.6)))
+ACCEL = st.one_of(
+    st.none(),
+    st.tuples(*[st.floats(allow_nan=True, allow_infinity=True, width=32)] * 3),
+    st.just((0.0, 0.0, 0.0)),
+    st.just((0.0, -9.81, -2.6)),
+)
 
 
 def depth_of(kind: str | int, intr: Intrinsics, seed: int) -> np.ndarray:
@@ -97,18 +110,35 @@ def depth_of(kind: str | int, intr: Intrinsics, seed: int) -> np.ndarray:
         "saturated": lambda: np.full(shape, 65535, np.uint16),
         "ones": lambda: np.ones(shape, np.uint16),
         "noise": lambda: rng.integers(0, 65536, shape, dtype=np.uint16),
-        "half": lambda: np.where(rng.random(shape) < 0.5, 0, rng.integers(300, 5000, shape)).astype(np.uint16),
+        "half": lambda: np.where(rng.random(shape) < 0.5, 0, rng.integers(300, 5000, shape)).astype(
+            np.uint16
+        ),
     }[kind]()
 
 
-@settings(max_examples=150, deadline=None, derandomize=True, database=None,
-          suppress_health_check=list(HealthCheck))
-@given(kinds=st.lists(st.tuples(DEPTH, ACCEL, st.booleans()), min_size=1, max_size=4), seed=st.integers(0, 9))
+@settings(
+    max_examples=150,
+    deadline=None,
+    derandomize=True,
+    database=None,
+    suppress_health_check=list(HealthCheck),
+)
+@given(
+    kinds=st.lists(st.tuples(DEPTH, ACCEL, st.booleans()), min_size=1, max_size=4),
+    seed=st.integers(0, 9),
+)
 def test_extreme_frames_give_defined_results(kinds, seed: int) -> None:
     """Zeros, saturation, noise, NaN/inf/zero accelerometer and a resolution switching mid-stream."""
-    frames = [Frame(i, i / 30, depth_of(kind, B if switch else A, seed + i), B if switch else A,
-                    None if accel is None else tuple(map(float, accel)))
-              for i, (kind, accel, switch) in enumerate(kinds)]
+    frames = [
+        Frame(
+            i,
+            i / 30,
+            depth_of(kind, B if switch else A, seed + i),
+            B if switch else A,
+            None if accel is None else tuple(map(float, accel)),
+        )
+        for i, (kind, accel, switch) in enumerate(kinds)
+    ]
     for result, frame in zip(run_frames(frames), frames, strict=True):
         defined(result, frame)
 
@@ -124,7 +154,9 @@ def test_nan_inf_negative_depth_in_a_file_is_one_line(tmp_path: Path) -> None:
     depth = np.full((2, 48, 64), 1500.0, np.float32)
     depth[0, 0, :3] = [np.nan, np.inf, -1.0]
     np.savez(tmp_path / "bad.npz", depth_mm=depth, intrinsics=np.array([61.5, 57.25, 30.25, 22.75]))
-    p = depthnav("run", "--device", f"replay:{tmp_path / 'bad.npz'}?rate=max", "--sink", "stdout", timeout=60)
+    p = depthnav(
+        "run", "--device", f"replay:{tmp_path / 'bad.npz'}?rate=max", "--sink", "stdout", timeout=60
+    )
     assert p.returncode == 1, p.stderr
     line = one_error_line(p.stderr)
     assert "bad.npz" in line and "'depth_mm' must be uint16" in line
@@ -135,7 +167,9 @@ def test_intrinsics_that_do_not_match_the_image(tmp_path: Path) -> None:
     frames = [Frame(i, i / 30, np.full((48, 64), 1500, np.uint16), A) for i in range(2)]
     write_recording(tmp_path / "rec", frames)
     meta = tmp_path / "rec" / "recording.toml"
-    meta.write_text(meta.read_text().replace("width = 64", "width = 640").replace("height = 48", "height = 480"))
+    meta.write_text(
+        meta.read_text().replace("width = 64", "width = 640").replace("height = 48", "height = 480")
+    )
     p = depthnav("run", "--device", f"replay:{tmp_path / 'rec'}?rate=max", timeout=60)
     assert p.returncode == 1, p.stderr
     assert "[intrinsics] says 640x480 but frames are 64x48" in one_error_line(p.stderr)
@@ -154,7 +188,15 @@ def test_an_image_too_small_for_the_cliff_blocks_is_a_config_error(tmp_path: Pat
     p = depthnav("run", "--device", f"replay:{tmp_path / 'tiny'}?rate=max", timeout=60)
     assert p.returncode == 2, p.stderr
     assert "cliff.block_size=16 does not fit" in one_error_line(p.stderr)
-    p = depthnav("run", "--device", f"replay:{tmp_path / 'tiny'}?rate=max", "--set", "daemon.cliff=false",
-                 "--sink", "stdout", timeout=60)
+    p = depthnav(
+        "run",
+        "--device",
+        f"replay:{tmp_path / 'tiny'}?rate=max",
+        "--set",
+        "daemon.cliff=false",
+        "--sink",
+        "stdout",
+        timeout=60,
+    )
     assert p.returncode == 0, p.stderr
     assert len(json_lines(p.stdout)) == 1

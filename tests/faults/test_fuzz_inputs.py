@@ -11,9 +11,7 @@ from __future__ import annotations
 import io
 import math
 import string
-import struct
 import tempfile
-import zipfile
 from collections.abc import Callable
 from pathlib import Path
 
@@ -35,16 +33,20 @@ from drivers.errors import DriverError, RecordingError
 from drivers.fakenect_format import ACCEL_DUMP, write_fakenect
 from drivers.kinect import check_fakenect_recording
 from drivers.oni_format import check_oni, write_oni
-from drivers.recording import read_recording, write_recording
+from drivers.recording import write_recording
 from drivers.replay import ReplayDriver
 from drivers.serial_tilt import SerialTiltSource, parse_line
 
-BASE = settings(deadline=None, suppress_health_check=list(HealthCheck), derandomize=True, database=None)
+BASE = settings(
+    deadline=None, suppress_health_check=list(HealthCheck), derandomize=True, database=None
+)
 
 
 def fuzz(cases: int) -> settings:
     """Deterministic (derandomized) hypothesis settings running ``cases`` examples."""
     return settings(BASE, max_examples=cases)
+
+
 SMALL = Intrinsics(64, 48, 61.5, 57.25, 30.25, 22.75)  # asymmetric on purpose
 MAX_FRAMES = 50  # a fuzzed recording is read to its end, or this many frames
 
@@ -58,7 +60,9 @@ def one_line(exc: BaseException, *names: str) -> str:
     return msg
 
 
-def clean(call: Callable[[], object], errors: tuple[type[BaseException], ...], *names: str) -> object:
+def clean(
+    call: Callable[[], object], errors: tuple[type[BaseException], ...], *names: str
+) -> object:
     """Run ``call``; it returns, or raises one of ``errors`` with a one-line message naming the input."""
     try:
         return call()
@@ -69,8 +73,16 @@ def clean(call: Callable[[], object], errors: tuple[type[BaseException], ...], *
 
 def frames(n: int = 3, intr: Intrinsics = SMALL) -> list[Frame]:
     rng = np.random.default_rng(3)
-    return [Frame(i, i / 30, rng.integers(300, 6000, (intr.height, intr.width), dtype=np.uint16), intr,
-                  (0.0, -9.5, -2.5)) for i in range(n)]
+    return [
+        Frame(
+            i,
+            i / 30,
+            rng.integers(300, 6000, (intr.height, intr.width), dtype=np.uint16),
+            intr,
+            (0.0, -9.5, -2.5),
+        )
+        for i in range(n)
+    ]
 
 
 def mutate(data: bytes, edits: list[tuple[int, int]], cut: int | None) -> bytes:
@@ -88,6 +100,7 @@ CUTS = st.one_of(st.none(), st.integers(0, 4000))
 
 def replay_all(spec: str, *names: str) -> None:
     """Open a replay spec and read it to the end: clean or one DriverError line."""
+
     def go() -> None:
         driver = create_driver(spec)
         try:
@@ -97,6 +110,7 @@ def replay_all(spec: str, *names: str) -> None:
                     break
         finally:
             driver.close()
+
     clean(go, (DriverError,), *names)
     assert ReplayDriver.open_count == 0
 
@@ -121,9 +135,11 @@ def test_fuzz_npz_bytes(tmp_path_factory: pytest.TempPathFactory, edits, cut) ->
 
 ARRAYS = st.dictionaries(
     st.sampled_from(["depth_mm", "intrinsics", "timestamp_s", "accel_mps2", "other"]),
-    st.tuples(st.sampled_from(["u2", "i2", "f4", "f8", "u1", "i8", "b1", "U3"]),
-              st.lists(st.integers(0, 5), min_size=0, max_size=4),
-              st.sampled_from([0.0, -1.0, 65535.0, math.nan, math.inf, -math.inf, 1e30, 7.0])),
+    st.tuples(
+        st.sampled_from(["u2", "i2", "f4", "f8", "u1", "i8", "b1", "U3"]),
+        st.lists(st.integers(0, 5), min_size=0, max_size=4),
+        st.sampled_from([0.0, -1.0, 65535.0, math.nan, math.inf, -math.inf, 1e30, 7.0]),
+    ),
     max_size=5,
 )
 
@@ -136,21 +152,40 @@ def test_fuzz_npz_arrays(tmp_path_factory: pytest.TempPathFactory, arrays) -> No
     made = {}
     for name, (dtype, shape, fill) in arrays.items():
         with np.errstate(invalid="ignore", over="ignore"):
-            made[name] = np.full(shape, fill).astype(dtype) if dtype != "U3" else np.full(shape, "ab")
+            made[name] = (
+                np.full(shape, fill).astype(dtype) if dtype != "U3" else np.full(shape, "ab")
+            )
     np.savez(path, **made)
     replay_all(f"replay:{path}?rate=max", str(path))
 
 
-META_VALUES = st.one_of(st.integers(-5, 5000), st.floats(allow_nan=True, allow_infinity=True),
-                        st.text(max_size=5), st.booleans(), st.lists(st.integers(), max_size=3))
+META_VALUES = st.one_of(
+    st.integers(-5, 5000),
+    st.floats(allow_nan=True, allow_infinity=True),
+    st.text(max_size=5),
+    st.booleans(),
+    st.lists(st.integers(), max_size=3),
+)
 
 
 @fuzz(300)
-@given(text=st.one_of(st.text(max_size=200), st.dictionaries(
-    st.sampled_from(["format_version", "description", "device", "intrinsics", "truth"]),
-    st.one_of(META_VALUES, st.dictionaries(
-        st.sampled_from(["width", "height", "fx", "fy", "cx", "cy"]), META_VALUES, max_size=6)),
-    max_size=5)))
+@given(
+    text=st.one_of(
+        st.text(max_size=200),
+        st.dictionaries(
+            st.sampled_from(["format_version", "description", "device", "intrinsics", "truth"]),
+            st.one_of(
+                META_VALUES,
+                st.dictionaries(
+                    st.sampled_from(["width", "height", "fx", "fy", "cx", "cy"]),
+                    META_VALUES,
+                    max_size=6,
+                ),
+            ),
+            max_size=5,
+        ),
+    )
+)
 def test_fuzz_recording_toml(tmp_path_factory: pytest.TempPathFactory, text) -> None:
     folder = tmp_path_factory.mktemp("rec")
     (folder / "frames.npz").write_bytes(NPZ)
@@ -173,12 +208,26 @@ PNG = _png(frames(1)[0].depth_mm)
 
 
 @fuzz(300)
-@given(edits=EDITS, cut=CUTS, index=st.one_of(st.none(), st.text(max_size=80)),
-       sidecar=st.one_of(st.none(), st.text(max_size=80), st.dictionaries(
-           st.sampled_from(["depth_scale", "intrinsics"]),
-           st.one_of(META_VALUES, st.dictionaries(st.sampled_from(["fx", "fy", "cx", "cy"]),
-                                                  META_VALUES, max_size=4)), max_size=2)))
-def test_fuzz_png_folder(tmp_path_factory: pytest.TempPathFactory, edits, cut, index, sidecar) -> None:
+@given(
+    edits=EDITS,
+    cut=CUTS,
+    index=st.one_of(st.none(), st.text(max_size=80)),
+    sidecar=st.one_of(
+        st.none(),
+        st.text(max_size=80),
+        st.dictionaries(
+            st.sampled_from(["depth_scale", "intrinsics"]),
+            st.one_of(
+                META_VALUES,
+                st.dictionaries(st.sampled_from(["fx", "fy", "cx", "cy"]), META_VALUES, max_size=4),
+            ),
+            max_size=2,
+        ),
+    ),
+)
+def test_fuzz_png_folder(
+    tmp_path_factory: pytest.TempPathFactory, edits, cut, index, sidecar
+) -> None:
     """Corrupt PNGs, a random depth.txt and a random camera.toml sidecar."""
     folder = tmp_path_factory.mktemp("png")
     (folder / "000.png").write_bytes(PNG)
@@ -196,18 +245,34 @@ def test_fuzz_png_folder(tmp_path_factory: pytest.TempPathFactory, edits, cut, i
 
 
 FAKENECT_DIR = Path(tempfile.mkdtemp(prefix="fuzz-fakenect-"))
-write_fakenect(FAKENECT_DIR / "base", [
-    Frame(i, i / 30, np.full((480, 640), 1500 + 100 * i, np.uint16), Intrinsics(640, 480, 580, 580, 319.5, 239.5),
-          (0.0, -9.7, -1.4)) for i in range(2)])
+write_fakenect(
+    FAKENECT_DIR / "base",
+    [
+        Frame(
+            i,
+            i / 30,
+            np.full((480, 640), 1500 + 100 * i, np.uint16),
+            Intrinsics(640, 480, 580, 580, 319.5, 239.5),
+            (0.0, -9.7, -1.4),
+        )
+        for i in range(2)
+    ],
+)
 BASE_NAMES = (FAKENECT_DIR / "base" / "INDEX.txt").read_text().split()
 
 
 @fuzz(200)
-@given(lines=st.lists(st.one_of(st.sampled_from(BASE_NAMES), st.text(string.printable, max_size=30)),
-                      max_size=6),
-       pgm_edits=EDITS, pgm_cut=st.one_of(st.none(), st.integers(0, 614417)),
-       dump=st.binary(max_size=20))
-def test_fuzz_fakenect(tmp_path_factory: pytest.TempPathFactory, lines, pgm_edits, pgm_cut, dump) -> None:
+@given(
+    lines=st.lists(
+        st.one_of(st.sampled_from(BASE_NAMES), st.text(string.printable, max_size=30)), max_size=6
+    ),
+    pgm_edits=EDITS,
+    pgm_cut=st.one_of(st.none(), st.integers(0, 614417)),
+    dump=st.binary(max_size=20),
+)
+def test_fuzz_fakenect(
+    tmp_path_factory: pytest.TempPathFactory, lines, pgm_edits, pgm_cut, dump
+) -> None:
     """INDEX.txt lines, depth .pgm bytes and accelerometer dumps; the pure-Python reader and the
     guard that keeps bad files away from the native fakenect library."""
     folder = tmp_path_factory.mktemp("fk")
@@ -246,18 +311,48 @@ def test_fuzz_oni_structure(tmp_path_factory: pytest.TempPathFactory, edits, cut
 
 # --- configuration ----------------------------------------------------------------------------
 CONFIG_KEYS = ["device", "sinks", "mount", "scan", "cliff", "pose", "daemon", "bogus"]
-SECTION_KEYS = ["height_m", "tilt_deg", "roll_deg", "range_min_m", "range_max_m", "row_start",
-                "row_stop", "block_size", "method", "pose_every_frames", "reconnect_backoff_s",
-                "tilt_source", "serial_tilt", "seed", "used_depth_height", "nonsense"]
-CONFIG_VALUES = st.one_of(st.integers(-(2**70), 2**70), st.floats(), st.text(max_size=8), st.booleans(),
-                          st.lists(st.text(max_size=5), max_size=3))
+SECTION_KEYS = [
+    "height_m",
+    "tilt_deg",
+    "roll_deg",
+    "range_min_m",
+    "range_max_m",
+    "row_start",
+    "row_stop",
+    "block_size",
+    "method",
+    "pose_every_frames",
+    "reconnect_backoff_s",
+    "tilt_source",
+    "serial_tilt",
+    "seed",
+    "used_depth_height",
+    "nonsense",
+]
+CONFIG_VALUES = st.one_of(
+    st.integers(-(2**70), 2**70),
+    st.floats(),
+    st.text(max_size=8),
+    st.booleans(),
+    st.lists(st.text(max_size=5), max_size=3),
+)
 
 
 @fuzz(400)
-@given(doc=st.one_of(st.text(max_size=300), st.dictionaries(
-    st.sampled_from(CONFIG_KEYS),
-    st.one_of(CONFIG_VALUES, st.dictionaries(st.sampled_from(SECTION_KEYS), CONFIG_VALUES, max_size=4)),
-    max_size=5)), sets=st.lists(st.text(max_size=30), max_size=3))
+@given(
+    doc=st.one_of(
+        st.text(max_size=300),
+        st.dictionaries(
+            st.sampled_from(CONFIG_KEYS),
+            st.one_of(
+                CONFIG_VALUES,
+                st.dictionaries(st.sampled_from(SECTION_KEYS), CONFIG_VALUES, max_size=4),
+            ),
+            max_size=5,
+        ),
+    ),
+    sets=st.lists(st.text(max_size=30), max_size=3),
+)
 def test_fuzz_config_files_and_set(tmp_path_factory: pytest.TempPathFactory, doc, sets) -> None:
     path = tmp_path_factory.mktemp("cfg") / "robot.toml"
     if isinstance(doc, dict):
@@ -271,21 +366,56 @@ def test_fuzz_config_files_and_set(tmp_path_factory: pytest.TempPathFactory, doc
         clean(lambda item=item: parse_set(item), (ConfigError,))
 
 
-ROS_KEYS = ["range_min", "range_max", "sensor_mount_height", "sensor_tilt_angle", "scan_height",
-            "block_size", "used_depth_height", "depth_img_step_row", "ransac_max_iter",
-            "ground_remove_en", "tilt_angle_max", "mount_height_min", "output_frame_id", "weird"]
-ROS_VALUES = st.one_of(st.integers(-(2**40), 2**40), st.floats(), st.text(max_size=6), st.booleans(),
-                       st.none(), st.lists(st.integers(), max_size=2))
+ROS_KEYS = [
+    "range_min",
+    "range_max",
+    "sensor_mount_height",
+    "sensor_tilt_angle",
+    "scan_height",
+    "block_size",
+    "used_depth_height",
+    "depth_img_step_row",
+    "ransac_max_iter",
+    "ground_remove_en",
+    "tilt_angle_max",
+    "mount_height_min",
+    "output_frame_id",
+    "weird",
+]
+ROS_VALUES = st.one_of(
+    st.integers(-(2**40), 2**40),
+    st.floats(),
+    st.text(max_size=6),
+    st.booleans(),
+    st.none(),
+    st.lists(st.integers(), max_size=2),
+)
 
 
 @fuzz(400)
-@given(doc=st.one_of(
-    st.text(max_size=200),
-    st.dictionaries(st.sampled_from(ROS_KEYS), ROS_VALUES, max_size=6),
-    st.dictionaries(st.sampled_from(["laserscan_kinect", "/cliff_detector", "depth_sensor_pose", "/**", "x"]),
-                    st.one_of(ROS_VALUES, st.fixed_dictionaries({"ros__parameters": st.one_of(
-                        ROS_VALUES, st.dictionaries(st.sampled_from(ROS_KEYS), ROS_VALUES, max_size=5))})),
-                    max_size=3)))
+@given(
+    doc=st.one_of(
+        st.text(max_size=200),
+        st.dictionaries(st.sampled_from(ROS_KEYS), ROS_VALUES, max_size=6),
+        st.dictionaries(
+            st.sampled_from(
+                ["laserscan_kinect", "/cliff_detector", "depth_sensor_pose", "/**", "x"]
+            ),
+            st.one_of(
+                ROS_VALUES,
+                st.fixed_dictionaries(
+                    {
+                        "ros__parameters": st.one_of(
+                            ROS_VALUES,
+                            st.dictionaries(st.sampled_from(ROS_KEYS), ROS_VALUES, max_size=5),
+                        )
+                    }
+                ),
+            ),
+            max_size=3,
+        ),
+    )
+)
 def test_fuzz_ros_parameter_files(tmp_path_factory: pytest.TempPathFactory, doc) -> None:
     path = tmp_path_factory.mktemp("ros") / "params.yaml"
     text = doc if isinstance(doc, str) else yaml.safe_dump(doc)
@@ -295,12 +425,40 @@ def test_fuzz_ros_parameter_files(tmp_path_factory: pytest.TempPathFactory, doc)
 
 
 # --- specs ------------------------------------------------------------------------------------
-SPEC_TEXT = st.text(st.sampled_from(list(string.ascii_letters + string.digits + ":/?&=%.-+_[] \n\t\x00é")),
-                    max_size=40)
-DEVICE_PREFIX = st.sampled_from(["", "kinect", "kinect://", "openni://", "openni:", "replay:", "xtion",
-                                 "replay:fixtures/corridor_step?", "kinect?", "openni://Dummy?"])
-SINK_PREFIX = st.sampled_from(["", "stdout", "text?", "udp://", "udp:", "null", "rerun", "rerun:",
-                               "rerun+grpc://", "mavlink:", "mavlink+udp://", "udp://127.0.0.1:"])
+SPEC_TEXT = st.text(
+    st.sampled_from(list(string.ascii_letters + string.digits + ":/?&=%.-+_[] \n\t\x00é")),
+    max_size=40,
+)
+DEVICE_PREFIX = st.sampled_from(
+    [
+        "",
+        "kinect",
+        "kinect://",
+        "openni://",
+        "openni:",
+        "replay:",
+        "xtion",
+        "replay:fixtures/corridor_step?",
+        "kinect?",
+        "openni://Dummy?",
+    ]
+)
+SINK_PREFIX = st.sampled_from(
+    [
+        "",
+        "stdout",
+        "text?",
+        "udp://",
+        "udp:",
+        "null",
+        "rerun",
+        "rerun:",
+        "rerun+grpc://",
+        "mavlink:",
+        "mavlink+udp://",
+        "udp://127.0.0.1:",
+    ]
+)
 
 
 @fuzz(600)
@@ -325,15 +483,19 @@ def test_fuzz_serial_tilt_specs(rest: str) -> None:
 # --- the serial line protocol and MAVLink input -----------------------------------------------
 LINE_BYTES = st.one_of(
     st.binary(max_size=80),
-    st.builds(lambda t, r, ck: f"$TILT,{t},{r}*{ck}".encode(),
-              st.one_of(st.floats(), st.text("0123456789.-+e", max_size=8)),
-              st.one_of(st.floats(), st.text("0123456789.-+e", max_size=8)),
-              st.text("0123456789ABCDEFabcdefXYZ", min_size=0, max_size=3)),
+    st.builds(
+        lambda t, r, ck: f"$TILT,{t},{r}*{ck}".encode(),
+        st.one_of(st.floats(), st.text("0123456789.-+e", max_size=8)),
+        st.one_of(st.floats(), st.text("0123456789.-+e", max_size=8)),
+        st.text("0123456789ABCDEFabcdefXYZ", min_size=0, max_size=3),
+    ),
 )
 
 
 @fuzz(1000)
-@given(chunks=st.lists(LINE_BYTES, max_size=8), newline=st.sampled_from([b"\n", b"\r\n", b"", b"\r"]))
+@given(
+    chunks=st.lists(LINE_BYTES, max_size=8), newline=st.sampled_from([b"\n", b"\r\n", b"", b"\r"])
+)
 def test_fuzz_serial_line_protocol(chunks: list[bytes], newline: bytes) -> None:
     """Noise, split and malformed ``$TILT`` lines: never raises, only plausible readings published."""
     src = SerialTiltSource("loop://")
@@ -350,8 +512,13 @@ def test_fuzz_serial_line_protocol(chunks: list[bytes], newline: bytes) -> None:
 
 
 @fuzz(600)
-@given(pitch=st.floats(width=32), roll=st.floats(width=32), noise=st.binary(max_size=60),
-       edits=EDITS, split=st.integers(0, 80))
+@given(
+    pitch=st.floats(width=32),
+    roll=st.floats(width=32),
+    noise=st.binary(max_size=60),
+    edits=EDITS,
+    split=st.integers(0, 80),
+)
 def test_fuzz_mavlink_input(pitch: float, roll: float, noise: bytes, edits, split: int) -> None:
     """ATTITUDE with any float (NaN, inf, huge), corrupted bytes and noise: never raises, and only
     an attitude within +-90 deg pitch, +-180 deg roll is published."""

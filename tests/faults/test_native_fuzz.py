@@ -18,8 +18,8 @@ import pytest
 
 from drivers.base import Frame, Intrinsics
 from drivers.errors import RecordingError
-from drivers.openni import find_library
 from drivers.oni_format import check_oni, write_oni
+from drivers.openni import find_library
 
 from .kit import ROOT, depthnav, one_error_line
 
@@ -52,7 +52,10 @@ def base_oni(tmp_path_factory: pytest.TempPathFactory) -> Path:
     if find_library() is None:
         pytest.skip("libopenni2-0 not installed")
     rng = np.random.default_rng(3)
-    frames = [Frame(i, i / 30, rng.integers(300, 6000, (48, 64), dtype=np.uint16), SMALL) for i in range(3)]
+    frames = [
+        Frame(i, i / 30, rng.integers(300, 6000, (48, 64), dtype=np.uint16), SMALL)
+        for i in range(3)
+    ]
     path = tmp_path_factory.mktemp("oni") / "base.oni"
     write_oni(path, frames)
     return path
@@ -84,11 +87,18 @@ def accepted_mutants(base: Path, out: Path, count: int, seed: int) -> list[Path]
 def test_mutated_oni_files_never_crash_the_native_player(base_oni: Path, tmp_path: Path) -> None:
     files = accepted_mutants(base_oni, tmp_path, CASES, seed=20261122)
     assert len(files) == CASES
-    proc = subprocess.run([sys.executable, "-c", PLAYER, *map(str, files)], capture_output=True,
-                          text=True, timeout=600, cwd=ROOT)
+    proc = subprocess.run(
+        [sys.executable, "-c", PLAYER, *map(str, files)],
+        capture_output=True,
+        text=True,
+        timeout=600,
+        cwd=ROOT,
+    )
     events = [json.loads(line) for line in proc.stdout.splitlines() if line.startswith("{")]
     crashed = events[-1].get("start") if events and "start" in events[-1] else None
-    assert proc.returncode == 0, f"native crash ({proc.returncode}) on {crashed}: {proc.stderr[-1500:]}"
+    assert proc.returncode == 0, (
+        f"native crash ({proc.returncode}) on {crashed}: {proc.stderr[-1500:]}"
+    )
     ends = [e for e in events if "end" in e]
     assert len(ends) == CASES
     for e in ends:
@@ -96,7 +106,9 @@ def test_mutated_oni_files_never_crash_the_native_player(base_oni: Path, tmp_pat
             assert "\n" not in e["error"] and e["end"] in e["error"], e
 
 
-def test_non_ascii_property_name_is_rejected_before_libonifile(base_oni: Path, tmp_path: Path) -> None:
+def test_non_ascii_property_name_is_rejected_before_libonifile(
+    base_oni: Path, tmp_path: Path
+) -> None:
     """Found by the mutation test: one byte of a property name set to 0x8b made libOniFile SIGSEGV."""
     data = bytearray(base_oni.read_bytes())
     data[data.index(b"xnIsGenerating") + 4] = 0x8B
@@ -108,10 +120,13 @@ def test_non_ascii_property_name_is_rejected_before_libonifile(base_oni: Path, t
     assert str(bad) in line and "bad name" in line
 
 
-@pytest.mark.parametrize(("mode", "needle"), [((128, 96), "needs 24576"), ((0, 0), "out of range"),
-                                              ((65535, 48), "out of range")])
-def test_resolution_that_does_not_match_the_frames(base_oni: Path, tmp_path: Path,
-                                                   mode: tuple[int, int], needle: str) -> None:
+@pytest.mark.parametrize(
+    ("mode", "needle"),
+    [((128, 96), "needs 24576"), ((0, 0), "out of range"), ((65535, 48), "out of range")],
+)
+def test_resolution_that_does_not_match_the_frames(
+    base_oni: Path, tmp_path: Path, mode: tuple[int, int], needle: str
+) -> None:
     """Intrinsics (the stream's resolution) that do not match the image: one line, exit 1."""
     import struct
 

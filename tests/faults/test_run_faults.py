@@ -47,7 +47,6 @@ from .kit import (
     one_error_line,
     read_lines,
     start,
-    wait_until_ours,
 )
 
 
@@ -61,8 +60,14 @@ def small_disk(tmp_path: Path, size: str) -> Iterator[tuple[Path, Callable[[], N
     """
     folder = tmp_path / "disk"
     folder.mkdir()
-    mounted = subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={size}", "tmpfs", str(folder)],
-                             capture_output=True, check=False).returncode == 0
+    mounted = (
+        subprocess.run(
+            ["mount", "-t", "tmpfs", "-o", f"size={size}", "tmpfs", str(folder)],
+            capture_output=True,
+            check=False,
+        ).returncode
+        == 0
+    )
     if mounted:
         try:
             yield folder, None
@@ -81,13 +86,28 @@ def small_disk(tmp_path: Path, size: str) -> Iterator[tuple[Path, Callable[[], N
 def test_disk_full_while_recording(tmp_path: Path) -> None:
     with small_disk(tmp_path, "1m") as (disk, preexec):
         small = read_recording(FIXTURE).frames()[:1]
-        tiny = [Frame(0, 0.0, f.depth_mm[:48, :64].copy(), f.intrinsics.scaled(64, 48)) for f in small]
+        tiny = [
+            Frame(0, 0.0, f.depth_mm[:48, :64].copy(), f.intrinsics.scaled(64, 48)) for f in small
+        ]
         write_recording(disk / "earlier", tiny, description="already on the disk")
         before = (disk / "earlier" / "frames.npz").read_bytes()
         p = subprocess.run(
-            [os.sys.executable, "-m", "depthnav_daemon", "record", "--device", f"{FAST}&loop=1",
-             "--frames", "40", str(disk / "rec")],
-            capture_output=True, text=True, timeout=120, cwd=ROOT, preexec_fn=preexec,
+            [
+                os.sys.executable,
+                "-m",
+                "depthnav_daemon",
+                "record",
+                "--device",
+                f"{FAST}&loop=1",
+                "--frames",
+                "40",
+                str(disk / "rec"),
+            ],
+            capture_output=True,
+            text=True,
+            timeout=120,
+            cwd=ROOT,
+            preexec_fn=preexec,
         )
         assert p.returncode == 1, p.stderr
         line = one_error_line(p.stderr)
@@ -106,9 +126,25 @@ def test_disk_full_while_writing_an_rrd(tmp_path: Path) -> None:
     with small_disk(tmp_path, "8m") as (disk, preexec):
         rrd = disk / "run.rrd"
         p = subprocess.run(
-            [os.sys.executable, "-m", "depthnav_daemon", "run", "--device", f"{FAST}&loop=1",
-             "--sink", "stdout", "--sink", f"rerun:{rrd}", "--max-frames", "600"],
-            capture_output=True, text=True, timeout=300, cwd=ROOT, preexec_fn=preexec,
+            [
+                os.sys.executable,
+                "-m",
+                "depthnav_daemon",
+                "run",
+                "--device",
+                f"{FAST}&loop=1",
+                "--sink",
+                "stdout",
+                "--sink",
+                f"rerun:{rrd}",
+                "--max-frames",
+                "600",
+            ],
+            capture_output=True,
+            text=True,
+            timeout=300,
+            cwd=ROOT,
+            preexec_fn=preexec,
         )
         assert p.returncode == 0, p.stderr
         lines = json_lines(p.stdout)
@@ -132,9 +168,19 @@ def test_resolution_change_mid_recording_ends_the_run_once(tmp_path: Path) -> No
     for i in range(6):
         shape = (40, 64) if i == 3 else (48, 64)
         Image.fromarray(np.full(shape, 6000, np.uint16)).save(folder / f"{i:03d}.png")
-    (folder / "camera.toml").write_text("[intrinsics]\nfx = 60.0\nfy = 58.0\ncx = 31.0\ncy = 23.0\n")
-    p = depthnav("run", "--device", f"replay:{folder}?rate=max", "--sink", "stdout",
-                 "--set", "daemon.reconnect_backoff_s=0.01", timeout=60)
+    (folder / "camera.toml").write_text(
+        "[intrinsics]\nfx = 60.0\nfy = 58.0\ncx = 31.0\ncy = 23.0\n"
+    )
+    p = depthnav(
+        "run",
+        "--device",
+        f"replay:{folder}?rate=max",
+        "--sink",
+        "stdout",
+        "--set",
+        "daemon.reconnect_backoff_s=0.01",
+        timeout=60,
+    )
     assert p.returncode == 1, p.stderr
     line = one_error_line(p.stderr)
     assert "003.png" in line and "64x40" in line and "64x48" in line
@@ -149,8 +195,16 @@ def test_udp_receiver_that_disappears(tmp_path: Path) -> None:
     rx.settimeout(WAIT_S)
     port = rx.getsockname()[1]
     err = tmp_path / "err.txt"
-    proc = start("run", "--device", ENDLESS, "--sink", "stdout", "--sink", f"udp://127.0.0.1:{port}",
-                 stderr_path=err)
+    proc = start(
+        "run",
+        "--device",
+        ENDLESS,
+        "--sink",
+        "stdout",
+        "--sink",
+        f"udp://127.0.0.1:{port}",
+        stderr_path=err,
+    )
     got = [rx.recv(65535) for _ in range(2)]
     rx.close()  # the receiver goes away: the next sends get ICMP port unreachable
     seen = read_lines(proc, 8)
@@ -192,11 +246,21 @@ def _read_some(fd: int, n: int) -> bytes:
     return data
 
 
-def test_mavlink_serial_port_that_vanishes(tmp_path: Path, pty_master: tuple[int, str, int]) -> None:
+def test_mavlink_serial_port_that_vanishes(
+    tmp_path: Path, pty_master: tuple[int, str, int]
+) -> None:
     master, name, _ = pty_master
     err = tmp_path / "err.txt"
-    proc = start("run", "--device", ENDLESS, "--sink", "stdout", "--sink", f"mavlink:{name}?baud=921600",
-                 stderr_path=err)
+    proc = start(
+        "run",
+        "--device",
+        ENDLESS,
+        "--sink",
+        "stdout",
+        "--sink",
+        f"mavlink:{name}?baud=921600",
+        stderr_path=err,
+    )
     assert _read_some(master, 17)[:1] in (b"\xfd", b"\xfe")  # MAVLink bytes arrive
     read_lines(proc, 2)
     unplug(pty_master)  # the USB-serial adapter is pulled: its tty is gone
@@ -219,9 +283,18 @@ def test_serial_tilt_source_that_vanishes_does_not_stop_the_run(
     master, name, _ = pty_master
     os.write(master, format_line(15.0, 0.0) * 3)
     err = tmp_path / "err.txt"
-    proc = start("run", "--device", f"replay:{FIXTURE}?rate=realtime&loop=1", "--sink", "stdout",
-                 "--set", f'daemon.serial_tilt="serialtilt:{name}"', "--set", "daemon.tilt_source=serial",
-                 stderr_path=err)
+    proc = start(
+        "run",
+        "--device",
+        f"replay:{FIXTURE}?rate=realtime&loop=1",
+        "--sink",
+        "stdout",
+        "--set",
+        f'daemon.serial_tilt="serialtilt:{name}"',
+        "--set",
+        "daemon.tilt_source=serial",
+        stderr_path=err,
+    )
     read_lines(proc, 3)
     unplug(pty_master)
     deadline = time.monotonic() + WAIT_S
@@ -244,8 +317,18 @@ def test_rerun_viewer_that_is_closed(tmp_path: Path) -> None:
     log_path = tmp_path / "viewer.log"
     with open(log_path, "wb") as log_file:
         viewer = subprocess.Popen(
-            [str(binary), "--bind", "127.0.0.1", "--port", str(port), "--save", str(tmp_path / "v.rrd")],
-            stdout=log_file, stderr=subprocess.STDOUT, start_new_session=True,
+            [
+                str(binary),
+                "--bind",
+                "127.0.0.1",
+                "--port",
+                str(port),
+                "--save",
+                str(tmp_path / "v.rrd"),
+            ],
+            stdout=log_file,
+            stderr=subprocess.STDOUT,
+            start_new_session=True,
         )
     try:
         deadline = time.monotonic() + WAIT_S
@@ -253,8 +336,16 @@ def test_rerun_viewer_that_is_closed(tmp_path: Path) -> None:
             assert viewer.poll() is None and time.monotonic() < deadline, log_path.read_text()
             time.sleep(0.1)
         err = tmp_path / "err.txt"
-        proc = start("run", "--device", ENDLESS, "--sink", "stdout",
-                     "--sink", f"rerun+grpc://127.0.0.1:{port}?image=0", stderr_path=err)
+        proc = start(
+            "run",
+            "--device",
+            ENDLESS,
+            "--sink",
+            "stdout",
+            "--sink",
+            f"rerun+grpc://127.0.0.1:{port}?image=0",
+            stderr_path=err,
+        )
         read_lines(proc, 3)
         os.killpg(viewer.pid, signal.SIGKILL)  # the user closes the viewer (or it crashes)
         viewer.wait(timeout=WAIT_S)
@@ -286,8 +377,13 @@ class ReplayWithMotor:
     def read_frame(self, timeout_s: float = 1.0) -> Frame | None:
         frame = self.depth.read_frame(timeout_s)
         state = self.motor.read_state()  # DeviceLost on errno 19
-        return None if frame is None else Frame(frame.seq, frame.timestamp_s, frame.depth_mm,
-                                                frame.intrinsics, state.accel_mps2)
+        return (
+            None
+            if frame is None
+            else Frame(
+                frame.seq, frame.timestamp_s, frame.depth_mm, frame.intrinsics, state.accel_mps2
+            )
+        )
 
     def close(self) -> None:
         self.motor.close()
@@ -305,15 +401,25 @@ def test_usb_unplug_errno_19_reconnects_with_backoff(caplog: pytest.LogCaptureFi
             model.unplugged, model.unplug_after_reads = False, None
         return ReplayWithMotor(model)
 
-    cfg = build_config([], ["daemon.reconnect_backoff_s=0.02", "daemon.reconnect_backoff_max_s=0.2"],
-                       {"device": "kinect-on-a-bench", "sinks": ["null"]})
+    cfg = build_config(
+        [],
+        ["daemon.reconnect_backoff_s=0.02", "daemon.reconnect_backoff_max_s=0.2"],
+        {"device": "kinect-on-a-bench", "sinks": ["null"]},
+    )
     sink = NullSink()
     with caplog.at_level(logging.WARNING, logger="depthnav_daemon"):
-        report = run(cfg, threading.Event(), max_frames=10, driver_factory=factory,
-                     sink_factory=lambda _s: sink)
+        report = run(
+            cfg,
+            threading.Event(),
+            max_frames=10,
+            driver_factory=factory,
+            sink_factory=lambda _s: sink,
+        )
     assert report.frames == 10 and sink.frames == 10 and report.reconnects == 1
     text = caplog.text
-    assert "device kinect-on-a-bench lost (the Kinect motor (045e:02b0) went away: unplugged?)" in text
+    assert (
+        "device kinect-on-a-bench lost (the Kinect motor (045e:02b0) went away: unplugged?)" in text
+    )
     assert "reconnect attempt 3" in text and "device kinect-on-a-bench reconnected" in text
     gaps = np.diff(attempts[1:])
     assert gaps[-1] > gaps[0]  # the wait grew between attempts (backoff), whatever the clock
@@ -327,8 +433,9 @@ def test_fakenect_recording_that_ends(tmp_path: Path) -> None:
     if find_library(fakenect=True) is None:
         pytest.skip("libfreenect0.5 (fakenect) not installed")
     write_fakenect(tmp_path / "fk", read_recording(FIXTURE).frames()[:4])
-    p = depthnav("run", "--device", f"kinect?fakenect={tmp_path / 'fk'}", "--sink", "stdout", timeout=120)
+    p = depthnav(
+        "run", "--device", f"kinect?fakenect={tmp_path / 'fk'}", "--sink", "stdout", timeout=120
+    )
     assert p.returncode == 0, p.stderr
     assert [m["seq"] for m in json_lines(p.stdout)] == [0, 1, 2, 3]
     assert "Traceback" not in p.stderr
-

@@ -52,9 +52,21 @@ def test_no_listening_socket_with_every_client_sink(tmp_path: Path) -> None:
     rx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     rx.bind(("127.0.0.1", 0))
     mav = free_udp_port()
-    proc = start("run", "--device", ENDLESS, "--sink", "stdout", "--sink", "null",
-                 "--sink", f"udp://127.0.0.1:{rx.getsockname()[1]}", "--sink", f"mavlink+udp://127.0.0.1:{mav}",
-                 "--sink", f"rerun:{tmp_path / 'x.rrd'}?image=0")
+    proc = start(
+        "run",
+        "--device",
+        ENDLESS,
+        "--sink",
+        "stdout",
+        "--sink",
+        "null",
+        "--sink",
+        f"udp://127.0.0.1:{rx.getsockname()[1]}",
+        "--sink",
+        f"mavlink+udp://127.0.0.1:{mav}",
+        "--sink",
+        f"rerun:{tmp_path / 'x.rrd'}?image=0",
+    )
     try:
         read_lines(proc, 3)
         found = sockets_of(proc.pid)
@@ -65,7 +77,11 @@ def test_no_listening_socket_with_every_client_sink(tmp_path: Path) -> None:
     assert len(found) >= 2  # the two UDP sinks' sockets were seen
     for proto, local, remote, state in found:
         assert not (proto.startswith("tcp") and state == "0A"), (proto, local, state)
-        assert not (proto.startswith("udp") and set(remote.split(":")[1]) == {"0"}), (proto, local, remote)
+        assert not (proto.startswith("udp") and set(remote.split(":")[1]) == {"0"}), (
+            proto,
+            local,
+            remote,
+        )
 
 
 def test_defaults_are_loopback() -> None:
@@ -103,11 +119,17 @@ def test_yaml_tags_are_not_executed(tmp_path: Path) -> None:
 
 
 def test_the_code_never_unpickles_evals_or_uses_a_shell() -> None:
-    banned = re.compile(r"\bpickle\b|\beval\(|\bexec\(|yaml\.load\(|allow_pickle=True|shell=True|"
-                        r"yaml\.unsafe_load|marshal\.loads")
-    hits = [f"{path.relative_to(ROOT)}:{n}: {line.strip()}"
-            for folder in ("depthnav_daemon", "drivers") for path in (ROOT / folder).rglob("*.py")
-            for n, line in enumerate(path.read_text().splitlines(), 1) if banned.search(line)]
+    banned = re.compile(
+        r"\bpickle\b|\beval\(|\bexec\(|yaml\.load\(|allow_pickle=True|shell=True|"
+        r"yaml\.unsafe_load|marshal\.loads"
+    )
+    hits = [
+        f"{path.relative_to(ROOT)}:{n}: {line.strip()}"
+        for folder in ("depthnav_daemon", "drivers")
+        for path in (ROOT / folder).rglob("*.py")
+        for n, line in enumerate(path.read_text().splitlines(), 1)
+        if banned.search(line)
+    ]
     assert hits == []
 
 
@@ -132,11 +154,22 @@ def test_a_recording_write_never_follows_a_planted_link(tmp_path: Path) -> None:
 def test_record_writes_only_inside_the_folder_it_names(tmp_path: Path) -> None:
     parent = tmp_path / "space"
     parent.mkdir()
-    p = depthnav("record", "--device", f"replay:{ROOT / 'fixtures' / 'corridor_step'}?rate=max", "--frames", "2",
-                 str(parent / "a" / ".." / "rec"), timeout=120)
+    p = depthnav(
+        "record",
+        "--device",
+        f"replay:{ROOT / 'fixtures' / 'corridor_step'}?rate=max",
+        "--frames",
+        "2",
+        str(parent / "a" / ".." / "rec"),
+        timeout=120,
+    )
     assert p.returncode == 0, p.stderr
     assert sorted(str(x.relative_to(parent)) for x in parent.rglob("*")) == [
-        "a", "rec", "rec/frames.npz", "rec/recording.toml"]
+        "a",
+        "rec",
+        "rec/frames.npz",
+        "rec/recording.toml",
+    ]
 
 
 @pytest.mark.parametrize("name", ["../outside.png", "/etc/hostname", "link/x.png"])

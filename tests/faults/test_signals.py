@@ -45,7 +45,9 @@ def test_signal_while_recording_keeps_every_frame_read(tmp_path: Path, sig: int)
     """record stops at the signal and writes the frames it has: a complete, readable recording."""
     out = tmp_path / "rec"
     err_path = tmp_path / "err.txt"
-    proc = start("record", "--device", ENDLESS, "--frames", "100000", str(out), stderr_path=err_path)
+    proc = start(
+        "record", "--device", ENDLESS, "--frames", "100000", str(out), stderr_path=err_path
+    )
     wait_until_ours(proc)
     time.sleep(1.5)  # some realtime frames are in memory by now
     code, _, _ = finish(proc, sig)
@@ -60,8 +62,15 @@ def test_signal_while_recording_keeps_every_frame_read(tmp_path: Path, sig: int)
 def test_sigkill_while_recording_leaves_no_recording_that_looks_complete(tmp_path: Path) -> None:
     """Even a SIGKILL mid-write leaves either nothing or .partial files, never a false recording."""
     out = tmp_path / "rec"
-    proc = start("record", "--device", f"replay:{FIXTURE}?rate=max&loop=1", "--frames", "600",
-                 str(out), stderr_path=tmp_path / "err.txt")
+    proc = start(
+        "record",
+        "--device",
+        f"replay:{FIXTURE}?rate=max&loop=1",
+        "--frames",
+        "600",
+        str(out),
+        stderr_path=tmp_path / "err.txt",
+    )
     wait_until_ours(proc)
     deadline = time.monotonic() + 60
     while not out.exists() and proc.poll() is None and time.monotonic() < deadline:
@@ -85,11 +94,15 @@ def test_sigterm_leaves_a_readable_rrd(tmp_path: Path) -> None:
     assert code == 0, err
     n = len(json_lines("".join(seen) + rest))
     binary = Path(rerun_bin.__file__).with_name("rerun")
-    verify = subprocess.run([str(binary), "rrd", "verify", str(rrd)], capture_output=True,
-                            text=True, timeout=120)
+    verify = subprocess.run(
+        [str(binary), "rrd", "verify", str(rrd)], capture_output=True, text=True, timeout=120
+    )
     assert verify.returncode == 0, verify.stderr
     from rerun.chunk import RrdReader
 
-    rows = sum(c.num_rows for c in RrdReader(str(rrd)).stream()
-               if c.entity_path == "/world/scan" and not c.is_static)
+    rows = sum(
+        c.num_rows
+        for c in RrdReader(str(rrd)).stream()
+        if c.entity_path == "/world/scan" and not c.is_static
+    )
     assert rows == n  # every frame written to stdout is in the file too
