@@ -35,7 +35,13 @@ import numpy as np
 from depthnav_daemon.pipeline import process
 from depthnav_daemon.pipeline.cliff import CliffParams, detect_cliffs
 from depthnav_daemon.pipeline.geometry import Mount
-from depthnav_daemon.pipeline.pose import PoseParams, estimate_pose, floor_candidates, ransac_plane, refine_plane
+from depthnav_daemon.pipeline.pose import (
+    PoseParams,
+    estimate_pose,
+    floor_candidates,
+    ransac_plane,
+    refine_plane,
+)
 from depthnav_daemon.pipeline.scan import ScanParams, depth_to_scan, scan_layout
 from depthnav_daemon.synthetic import Box, KinectNoise, Scene, render, step_down
 from drivers.base import KINECT_V1, Frame, Intrinsics
@@ -50,7 +56,9 @@ RESOLUTIONS: dict[str, Intrinsics] = {
     "848x480 (RealSense D435)": Intrinsics(848, 480, 425.0, 425.0, 423.5, 239.5),
     "1280x720 (RealSense D435)": Intrinsics(1280, 720, 640.0, 640.0, 639.5, 359.5),
 }
-DENSE_CLIFF = CliffParams(block_size=8, row_step=1, col_step=1, block_points_thresh=10, used_depth_height=8192)
+DENSE_CLIFF = CliffParams(
+    block_size=8, row_step=1, col_step=1, block_points_thresh=10, used_depth_height=8192
+)
 RANSAC_TARGET = PoseParams(row_step=2, col_step=2, max_points=5000, ransac_iterations=200)
 
 
@@ -89,11 +97,17 @@ class BenchReport:
     resolutions: dict[str, list[Timing]] = field(default_factory=dict)
 
 
-def bench_scene(intr: Intrinsics = KINECT_V1, mount: Mount | None = None, seed: int = 1) -> tuple[np.ndarray, Mount]:
+def bench_scene(
+    intr: Intrinsics = KINECT_V1, mount: Mount | None = None, seed: int = 1
+) -> tuple[np.ndarray, Mount]:
     """A noisy corridor-like frame: boxes, a wall and a step down, as uint16 mm."""
     mount = mount or Mount(0.55, 15.0, 0.0)
     scene = Scene(
-        boxes=(Box(1.5, 0.4, 0.3, 0.3, 0.3), Box(2.2, -0.5, 0.4, 0.4, 0.6, yaw_deg=20), Box(4.0, 0.0, 0.1, 6.0, 2.5)),
+        boxes=(
+            Box(1.5, 0.4, 0.3, 0.3, 0.3),
+            Box(2.2, -0.5, 0.4, 0.4, 0.6, yaw_deg=20),
+            Box(4.0, 0.0, 0.1, 6.0, 2.5),
+        ),
         holes=(step_down(3.0, 0.18),),
     )
     view = render(scene, intr, mount, KinectNoise(), np.random.default_rng(seed))
@@ -123,7 +137,10 @@ class Work:
 
 
 def time_work(
-    work: Sequence[Work], frames: Sequence[np.ndarray], rounds: int = 7, samples: int = 5,
+    work: Sequence[Work],
+    frames: Sequence[np.ndarray],
+    rounds: int = 7,
+    samples: int = 5,
     min_batch_s: float = 0.002,
 ) -> list[Timing]:
     """Interleaved rounds: np.copy of a frame, then every piece of work; per-frame statistics.
@@ -146,24 +163,38 @@ def time_work(
         for _ in range(rounds):
             copies.append([_sample(lambda: np.copy(nxt()), min_batch_s) for _ in range(samples)])
             for w in work:
-                got[w.name].append([_sample(w.fn, min_batch_s) / w.frames_per_call for _ in range(samples)])
+                got[w.name].append(
+                    [_sample(w.fn, min_batch_s) / w.frames_per_call for _ in range(samples)]
+                )
             gc.collect()  # between rounds, never inside a sample
     finally:
         if gc_was:
             gc.enable()
-    return [_stats("np.copy(frame)", copies, copies)] + [_stats(name, xs, copies) for name, xs in got.items()]
+    return [_stats("np.copy(frame)", copies, copies)] + [
+        _stats(name, xs, copies) for name, xs in got.items()
+    ]
 
 
 def _stats(name: str, per_round: list[list[float]], copies: list[list[float]]) -> Timing:
     xs = np.concatenate(per_round)
-    ratios = [float(np.median(r)) / float(np.median(c)) for r, c in zip(per_round, copies)]
+    ratios = [float(np.median(r)) / float(np.median(c)) for r, c in zip(per_round, copies, strict=True)]
     med = float(np.median(xs))
-    return Timing(name, med, float(np.percentile(xs, 90)), float(xs.min()), float(np.median(ratios)), 1.0 / med)
+    return Timing(
+        name,
+        med,
+        float(np.percentile(xs, 90)),
+        float(xs.min()),
+        float(np.median(ratios)),
+        1.0 / med,
+    )
 
 
 def format_timings(timings: list[Timing], title: str) -> str:
     """A text table of timings, ms per frame."""
-    lines = [title, f"  {'work':<58} {'median ms':>9} {'p90 ms':>8} {'best ms':>8} {'frames/s':>9} {'x np.copy':>9}"]
+    lines = [
+        title,
+        f"  {'work':<58} {'median ms':>9} {'p90 ms':>8} {'best ms':>8} {'frames/s':>9} {'x np.copy':>9}",
+    ]
     for t in timings:
         lines.append(
             f"  {t.name:<58} {t.median_s * 1e3:>9.3f} {t.p90_s * 1e3:>8.3f} {t.best_s * 1e3:>8.3f} "
@@ -195,7 +226,9 @@ def load_frames(spec: str, limit: int = MAX_FRAMES) -> list[Frame]:
 
 def floor_mount(frames: Sequence[Frame], fallback: Mount) -> Mount:
     """The mount the daemon would settle on: a floor estimate on the first frame, else ``fallback``."""
-    est = estimate_pose(frames[0].depth_mm, frames[0].intrinsics, PoseParams(), np.random.default_rng(0))
+    est = estimate_pose(
+        frames[0].depth_mm, frames[0].intrinsics, PoseParams(), np.random.default_rng(0)
+    )
     if not est.ok:
         return fallback
     return Mount(round(est.height_m, 3), round(est.tilt_deg, 2), round(est.roll_deg, 2))
@@ -215,31 +248,54 @@ def stage_work(frames: Sequence[Frame], mount: Mount, pipeline: bool = True) -> 
 
     def ransac_target() -> None:
         pts = floor_candidates(nxt(), intr, RANSAC_TARGET)
-        plane, _ = ransac_plane(pts, RANSAC_TARGET.ransac_iterations, RANSAC_TARGET.inlier_dist_m, rng,
-                                adaptive=False)
+        plane, _ = ransac_plane(
+            pts, RANSAC_TARGET.ransac_iterations, RANSAC_TARGET.inlier_dist_m, rng, adaptive=False
+        )
         refine_plane(pts, plane, RANSAC_TARGET.inlier_dist_m)
 
     work = [
         Work("scan exact, whole image", lambda: depth_to_scan(nxt(), intr, mount, exact)),
-        Work(f"scan paper, whole band ({band} rows), ground + tilt on", lambda: depth_to_scan(nxt(), intr, mount, paper)),
-        Work(f"scan paper, params.yaml ({yaml_paper.scan_height} rows)",
-             lambda: depth_to_scan(nxt(), intr, mount, yaml_paper)),
-        Work("cliff, params.yaml (16 px blocks, 8x8 step, 400 rows)",
-             lambda: detect_cliffs(nxt(), intr, mount, cliff, *layout)),
-        Work("cliff, 8 px blocks over every pixel (step 1)",
-             lambda: detect_cliffs(nxt(), intr, mount, DENSE_CLIFF, *layout)),
-        Work("pose, daemon defaults (3000 pts, <= 500 hyps, adaptive)",
-             lambda: estimate_pose(nxt(), intr, pose, rng)),
+        Work(
+            f"scan paper, whole band ({band} rows), ground + tilt on",
+            lambda: depth_to_scan(nxt(), intr, mount, paper),
+        ),
+        Work(
+            f"scan paper, params.yaml ({yaml_paper.scan_height} rows)",
+            lambda: depth_to_scan(nxt(), intr, mount, yaml_paper),
+        ),
+        Work(
+            "cliff, params.yaml (16 px blocks, 8x8 step, 400 rows)",
+            lambda: detect_cliffs(nxt(), intr, mount, cliff, *layout),
+        ),
+        Work(
+            "cliff, 8 px blocks over every pixel (step 1)",
+            lambda: detect_cliffs(nxt(), intr, mount, DENSE_CLIFF, *layout),
+        ),
+        Work(
+            "pose, daemon defaults (3000 pts, <= 500 hyps, adaptive)",
+            lambda: estimate_pose(nxt(), intr, pose, rng),
+        ),
         Work("pose: candidates + RANSAC 200 x 5000 (no early stop) + refine", ransac_target),
     ]
     if pipeline:
-        work.append(Work(f"pipeline per frame (scan + cliff, pose every {POSE_EVERY})",
-                         _pipeline_fn(frames, mount, exact, cliff, pose, rng), POSE_EVERY))
+        work.append(
+            Work(
+                f"pipeline per frame (scan + cliff, pose every {POSE_EVERY})",
+                _pipeline_fn(frames, mount, exact, cliff, pose, rng),
+                POSE_EVERY,
+            )
+        )
     return work
 
 
-def _pipeline_fn(frames: Sequence[Frame], mount: Mount, scan: ScanParams, cliff: CliffParams, pose: PoseParams,
-                 rng: np.random.Generator) -> Callable[[], None]:
+def _pipeline_fn(
+    frames: Sequence[Frame],
+    mount: Mount,
+    scan: ScanParams,
+    cliff: CliffParams,
+    pose: PoseParams,
+    rng: np.random.Generator,
+) -> Callable[[], None]:
     """POSE_EVERY frames through ``process`` as the daemon calls it, the first with a pose estimate."""
     nxt = itertools.cycle(frames).__next__
 
@@ -338,12 +394,12 @@ def udp_latency(spec: str, n_frames: int = 600) -> dict[str, float]:
     Returns:
         p50_ms, p99_ms, max_ms of the latency, frames, and fps of the loop (frames / wall time).
     """
+    import logging
+
     from depthnav_daemon.config import Config, DaemonParams
     from depthnav_daemon.daemon import run
     from depthnav_daemon.sinks import create_sink
     from drivers import create_driver
-
-    import logging
 
     drain = _UdpDrain()
     marks: dict[int, float] = {}
@@ -351,12 +407,20 @@ def udp_latency(spec: str, n_frames: int = 600) -> dict[str, float]:
     quiet = logging.getLogger("depthnav_daemon")
     level = quiet.level
     quiet.setLevel(logging.WARNING)  # the loop's info lines are not the bench's output
-    cfg = Config(device=spec, sinks=(f"udp://127.0.0.1:{drain.port}",), daemon=DaemonParams(tilt_source="floor"))
+    cfg = Config(
+        device=spec,
+        sinks=(f"udp://127.0.0.1:{drain.port}",),
+        daemon=DaemonParams(tilt_source="floor"),
+    )
     try:
         t0 = time.perf_counter()
-        report = run(cfg, threading.Event(), n_frames,
-                     driver_factory=lambda s: _TimedDriver(create_driver(s), marks),
-                     sink_factory=lambda s: _TimedSink(create_sink(s), marks, lat))
+        report = run(
+            cfg,
+            threading.Event(),
+            n_frames,
+            driver_factory=lambda s: _TimedDriver(create_driver(s), marks),
+            sink_factory=lambda s: _TimedSink(create_sink(s), marks, lat),
+        )
         wall = time.perf_counter() - t0
     finally:
         drain.close()
@@ -387,12 +451,16 @@ def cpu_at_30fps(seconds: float = 20.0, settle_s: float = 3.0) -> dict[str, floa
     The first ``settle_s`` (start-up, imports, table builds) are left out of the share.
     """
     drain = _UdpDrain()
-    cmd = _daemon_cmd(f"replay:{FIXTURE}?rate=realtime&loop=1", "--sink", f"udp://127.0.0.1:{drain.port}")
+    cmd = _daemon_cmd(
+        f"replay:{FIXTURE}?rate=realtime&loop=1", "--sink", f"udp://127.0.0.1:{drain.port}"
+    )
     proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
     try:
         time.sleep(settle_s)
         if proc.poll() is not None:
-            raise RuntimeError(f"depthnav run ended early: {proc.stderr.read().decode(errors='replace')[-300:]}")
+            raise RuntimeError(
+                f"depthnav run ended early: {proc.stderr.read().decode(errors='replace')[-300:]}"
+            )
         c0, n0, t0 = _cpu_s(proc.pid), drain.count, time.perf_counter()
         time.sleep(seconds)
         c1, n1, t1 = _cpu_s(proc.pid), drain.count, time.perf_counter()
@@ -404,8 +472,12 @@ def cpu_at_30fps(seconds: float = 20.0, settle_s: float = 3.0) -> dict[str, floa
             proc.kill()
         drain.close()
     wall = t1 - t0
-    return {"cpu_percent_of_one_core": 100.0 * (c1 - c0) / wall, "seconds": wall,
-            "datagrams_per_s": (n1 - n0) / wall, "startup_cpu_s": c0}
+    return {
+        "cpu_percent_of_one_core": 100.0 * (c1 - c0) / wall,
+        "seconds": wall,
+        "datagrams_per_s": (n1 - n0) / wall,
+        "startup_cpu_s": c0,
+    }
 
 
 def startup_time(repeats: int = 5) -> dict[str, float]:
@@ -436,14 +508,25 @@ def machine() -> dict[str, Any]:
     except OSError:
         pass
     return {
-        "cpu": model, "cores": os.cpu_count(), "loadavg": list(os.getloadavg()),
-        "python": platform.python_version(), "numpy": np.__version__, "numba": numba.__version__,
+        "cpu": model,
+        "cores": os.cpu_count(),
+        "loadavg": list(os.getloadavg()),
+        "python": platform.python_version(),
+        "numpy": np.__version__,
+        "numba": numba.__version__,
     }
 
 
-def run_bench(device: str | None = None, rounds: int = 7, samples: int = 5, latency_frames: int = 600,
-              resolutions: bool = False, cpu_seconds: float = 0.0, startup: bool = False,
-              min_batch_s: float = 0.002) -> BenchReport:
+def run_bench(
+    device: str | None = None,
+    rounds: int = 7,
+    samples: int = 5,
+    latency_frames: int = 600,
+    resolutions: bool = False,
+    cpu_seconds: float = 0.0,
+    startup: bool = False,
+    min_batch_s: float = 0.002,
+) -> BenchReport:
     """Measure; see the module docstring. ``device`` None = the bundled fixture."""
     spec = device or f"replay:{FIXTURE}"
     frames = load_frames(spec)
@@ -451,8 +534,12 @@ def run_bench(device: str | None = None, rounds: int = 7, samples: int = 5, late
         raise RuntimeError(f"{spec} delivered no frames")
     intr = frames[0].intrinsics
     mount = floor_mount(frames, Mount())
-    timings = time_work(stage_work(frames, mount), [f.depth_mm for f in frames], rounds, samples, min_batch_s)
-    report = BenchReport(machine(), spec, len(frames), f"{intr.width}x{intr.height}", asdict(mount), timings)
+    timings = time_work(
+        stage_work(frames, mount), [f.depth_mm for f in frames], rounds, samples, min_batch_s
+    )
+    report = BenchReport(
+        machine(), spec, len(frames), f"{intr.width}x{intr.height}", asdict(mount), timings
+    )
     loop_spec = spec if device else f"replay:{FIXTURE}?rate=max&loop=1"
     if latency_frames:
         report.latency = udp_latency(loop_spec, latency_frames)
@@ -460,7 +547,11 @@ def run_bench(device: str | None = None, rounds: int = 7, samples: int = 5, late
         for name, res_intr in RESOLUTIONS.items():
             res_frames, res_mount = synthetic_frames(res_intr)
             report.resolutions[name] = time_work(
-                stage_work(res_frames, res_mount), [f.depth_mm for f in res_frames], rounds, samples, min_batch_s
+                stage_work(res_frames, res_mount),
+                [f.depth_mm for f in res_frames],
+                rounds,
+                samples,
+                min_batch_s,
             )
     if cpu_seconds:
         report.cpu_30fps = cpu_at_30fps(cpu_seconds)
@@ -480,32 +571,47 @@ def format_report(r: BenchReport) -> str:
     ]
     if r.latency:
         lt = r.latency
-        out.append(f"frame read -> UDP datagram sent (daemon loop, full speed, {lt['frames']:.0f} frames): "
-                   f"p50 {lt['p50_ms']:.3f} ms, p99 {lt['p99_ms']:.3f} ms, max {lt['max_ms']:.3f} ms; "
-                   f"loop {lt['loop_fps']:.0f} frames/s")
+        out.append(
+            f"frame read -> UDP datagram sent (daemon loop, full speed, {lt['frames']:.0f} frames): "
+            f"p50 {lt['p50_ms']:.3f} ms, p99 {lt['p99_ms']:.3f} ms, max {lt['max_ms']:.3f} ms; "
+            f"loop {lt['loop_fps']:.0f} frames/s"
+        )
     for name, ts in r.resolutions.items():
         out.append(format_timings(ts, f"synthetic corridor, {name}:"))
     if r.cpu_30fps:
         c = r.cpu_30fps
-        out.append(f"depthnav run at 30 frames/s to UDP: {c['cpu_percent_of_one_core']:.1f} % of one core "
-                   f"over {c['seconds']:.0f} s ({c['datagrams_per_s']:.1f} datagrams/s; start-up "
-                   f"{c['startup_cpu_s']:.2f} s CPU not counted)")
+        out.append(
+            f"depthnav run at 30 frames/s to UDP: {c['cpu_percent_of_one_core']:.1f} % of one core "
+            f"over {c['seconds']:.0f} s ({c['datagrams_per_s']:.1f} datagrams/s; start-up "
+            f"{c['startup_cpu_s']:.2f} s CPU not counted)"
+        )
     if r.startup:
         s = r.startup
-        out.append(f"start-up to first output (depthnav run --max-frames 1, warm cache): median "
-                   f"{s['median_s']:.2f} s, best {s['best_s']:.2f} s over {s['runs']:.0f} runs")
+        out.append(
+            f"start-up to first output (depthnav run --max-frames 1, warm cache): median "
+            f"{s['median_s']:.2f} s, best {s['best_s']:.2f} s over {s['runs']:.0f} runs"
+        )
     return "\n".join(out)
 
 
-def main(device: str | None = None, as_json: bool = False, resolutions: bool = False,
-         cpu_seconds: float = 0.0, startup: bool = False, rounds: int = 7, quick: bool = False) -> int:
+def main(
+    device: str | None = None,
+    as_json: bool = False,
+    resolutions: bool = False,
+    cpu_seconds: float = 0.0,
+    startup: bool = False,
+    rounds: int = 7,
+    quick: bool = False,
+) -> int:
     """``depthnav bench``: measure and print; returns the exit code (0)."""
     kwargs: dict[str, Any] = {}
     if quick:  # a smoke run (tests): one short round, few frames through the loop
         kwargs = {"rounds": 1, "samples": 1, "latency_frames": 40, "min_batch_s": 0.0002}
     else:
         kwargs["rounds"] = rounds
-    report = run_bench(device, resolutions=resolutions, cpu_seconds=cpu_seconds, startup=startup, **kwargs)
+    report = run_bench(
+        device, resolutions=resolutions, cpu_seconds=cpu_seconds, startup=startup, **kwargs
+    )
     if as_json:
         print(json.dumps(asdict(report), indent=1))  # noqa: T201
     else:

@@ -24,8 +24,10 @@ from drivers.base import Frame, Intrinsics
 # contiguous frame vs column-strided view (col_step > 1) vs gathered samples (uneven columns)
 SCAN_VARIANTS = (ScanParams(), ScanParams(col_step=2), ScanParams(method="paper", scan_height=100))
 CLIFF_VARIANTS = (
-    CliffParams(used_depth_height=100),                                              # step 8: view
-    CliffParams(used_depth_height=100, block_size=8, row_step=1, col_step=1, block_points_thresh=10),
+    CliffParams(used_depth_height=100),  # step 8: view
+    CliffParams(
+        used_depth_height=100, block_size=8, row_step=1, col_step=1, block_points_thresh=10
+    ),
     CliffParams(used_depth_height=100, block_size=8, row_step=2, col_step=3, block_points_thresh=4),
 )
 
@@ -39,7 +41,9 @@ def warm_up() -> float:
     t0 = time.perf_counter()
     intr = Intrinsics(160, 120, 145.0, 145.0, 79.5, 59.5)
     mount = Mount(0.5, 15.0, 0.0)
-    view = render(Scene(boxes=(Box(1.5, 0.0, 0.3, 0.3, 0.3),), holes=(step_down(2.0, 0.2),)), intr, mount)
+    view = render(
+        Scene(boxes=(Box(1.5, 0.0, 0.3, 0.3, 0.3),), holes=(step_down(2.0, 0.2),)), intr, mount
+    )
     frame = Frame(0, 0.0, view.depth_mm.copy(), intr)  # Frame makes its depth read-only
     writable = view.depth_mm.copy()
     rng = np.random.default_rng(0)

@@ -9,11 +9,21 @@ import pytest
 from depthnav_daemon import bench
 from depthnav_daemon.cli import build_parser, main
 
-STAGES = ("scan exact", "scan paper, whole band", "scan paper, params.yaml", "cliff, params.yaml",
-          "cliff, 8 px blocks", "pose, daemon defaults", "pose: candidates + RANSAC 200 x 5000", "pipeline per frame")
+STAGES = (
+    "scan exact",
+    "scan paper, whole band",
+    "scan paper, params.yaml",
+    "cliff, params.yaml",
+    "cliff, 8 px blocks",
+    "pose, daemon defaults",
+    "pose: candidates + RANSAC 200 x 5000",
+    "pipeline per frame",
+)
 
 
-def test_quick_bench_json_has_every_stage_latency_and_machine(capsys: pytest.CaptureFixture[str]) -> None:
+def test_quick_bench_json_has_every_stage_latency_and_machine(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
     assert main(["bench", "--quick", "--json"]) == 0
     report = json.loads(capsys.readouterr().out)
     names = [t["name"] for t in report["timings"]]
@@ -30,7 +40,9 @@ def test_quick_bench_json_has_every_stage_latency_and_machine(capsys: pytest.Cap
     assert {"cpu", "cores", "loadavg", "numpy", "numba"} <= set(report["machine"])
 
 
-def test_text_report_names_the_copy_reference_and_latency(capsys: pytest.CaptureFixture[str]) -> None:
+def test_text_report_names_the_copy_reference_and_latency(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
     assert main(["bench", "--quick"]) == 0
     out = capsys.readouterr().out
     assert "np.copy(frame)" in out and "x np.copy" in out
@@ -38,7 +50,9 @@ def test_text_report_names_the_copy_reference_and_latency(capsys: pytest.Capture
 
 
 def test_bench_options_parse() -> None:
-    args = build_parser().parse_args(["bench", "--cpu-30fps", "--resolutions", "--startup", "--rounds", "3"])
+    args = build_parser().parse_args(
+        ["bench", "--cpu-30fps", "--resolutions", "--startup", "--rounds", "3"]
+    )
     assert args.cpu_30fps == 20.0 and args.resolutions and args.startup and args.rounds == 3
     assert build_parser().parse_args(["bench"]).cpu_30fps == 0.0
 
@@ -50,6 +64,11 @@ def test_bad_rounds_is_a_usage_error(capsys: pytest.CaptureFixture[str]) -> None
 
 def test_resolutions_table_times_every_size() -> None:
     frames, mount = bench.synthetic_frames(bench.RESOLUTIONS["512x424 (Kinect v2)"], n=1)
-    timings = bench.time_work(bench.stage_work(frames, mount, pipeline=False), [frames[0].depth_mm],
-                              rounds=1, samples=1, min_batch_s=0.0)
+    timings = bench.time_work(
+        bench.stage_work(frames, mount, pipeline=False),
+        [frames[0].depth_mm],
+        rounds=1,
+        samples=1,
+        min_batch_s=0.0,
+    )
     assert len(timings) == 8 and all(t.median_s > 0 for t in timings)

@@ -33,6 +33,7 @@ import numpy as np
 import numpy.typing as npt
 
 from depthnav_daemon.errors import ConfigError
+from depthnav_daemon.pipeline.cliff_kernels import cliff_kernel
 from depthnav_daemon.pipeline.geometry import (
     F32,
     F64,
@@ -44,7 +45,6 @@ from depthnav_daemon.pipeline.geometry import (
     paper_floor_depth_m,
     paper_row_angles_rad,
 )
-from depthnav_daemon.pipeline.cliff_kernels import cliff_kernel
 from depthnav_daemon.pipeline.scan import LaserScan
 from depthnav_daemon.pipeline.scan_kernels import run_ends
 from drivers.base import Intrinsics

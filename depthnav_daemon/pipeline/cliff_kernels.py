@@ -11,13 +11,38 @@ from __future__ import annotations
 import numpy as np
 
 from depthnav_daemon.pipeline._jit import kernel
-from depthnav_daemon.pipeline.scan_kernels import SEEN
 
 
 @kernel
-def cliff_kernel(depth, rows, nj, ni, lo, hi, range_m, block_xy, thresh,  # noqa: ANN001, ANN201, PLR0913
-                 ev_block, ev_col, ev_lo, ev_hi, cov_start, cov_row, cov_col, probe_start, probe_bin, probe_col,
-                 colcnt, fcol, racc, seen, found, blocks, points, out):
+def cliff_kernel(
+    depth,
+    rows,
+    nj,
+    ni,
+    lo,
+    hi,
+    range_m,
+    block_xy,
+    thresh,
+    ev_block,
+    ev_col,
+    ev_lo,
+    ev_hi,
+    cov_start,
+    cov_row,
+    cov_col,
+    probe_start,
+    probe_bin,
+    probe_col,
+    colcnt,
+    fcol,
+    racc,
+    seen,
+    found,
+    blocks,
+    points,
+    out,
+):
     """Blocks with drop-offs and the cliff scan of one frame.
 
     A bin of the cliff scan holds the nearest floor range of the drop-off samples of detected

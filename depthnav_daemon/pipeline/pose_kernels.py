@@ -14,7 +14,7 @@ from depthnav_daemon.pipeline._jit import kernel
 
 
 @kernel
-def count_candidates_kernel(depth, row0, row_step, col0, col_step, zlo, zhi):  # noqa: ANN001, ANN201, PLR0913
+def count_candidates_kernel(depth, row0, row_step, col0, col_step, zlo, zhi):
     """Eq. 9-11: how many grid pixels have a depth inside their floor envelope.
 
     Args:
@@ -38,7 +38,7 @@ def count_candidates_kernel(depth, row0, row_step, col0, col_step, zlo, zhi):  #
 
 
 @kernel
-def candidates_kernel(depth, row0, row_step, col0, col_step, zlo, zhi, rays, keep, colbuf, out):  # noqa: ANN001, ANN201, PLR0913
+def candidates_kernel(depth, row0, row_step, col0, col_step, zlo, zhi, rays, keep, colbuf, out):
     """Eq. 12: back-project the candidates whose rank (row-major grid order) is listed in ``keep``.
 
     Args:
@@ -81,7 +81,7 @@ def candidates_kernel(depth, row0, row_step, col0, col_step, zlo, zhi, rays, kee
 
 
 @kernel
-def hypotheses_kernel(pts, idx, accept, use_accept, normals, offsets, good):  # noqa: ANN001, ANN201
+def hypotheses_kernel(pts, idx, accept, use_accept, normals, offsets, good):
     """Planes through point triples, oriented with the origin above them, checked against a prior.
 
     Args:
@@ -130,7 +130,9 @@ def hypotheses_kernel(pts, idx, accept, use_accept, normals, offsets, good):  # 
 
 
 @kernel
-def ransac_count_kernel(px, py, pz, normals, offsets, order, inlier_dist, confidence, chunk, counts):  # noqa: ANN001, ANN201, PLR0913
+def ransac_count_kernel(
+    px, py, pz, normals, offsets, order, inlier_dist, confidence, chunk, counts
+):
     """Inlier counts of plane hypotheses, with PCL's adaptive stop.
 
     Hypotheses are scored in ``order``, ``chunk`` at a time; after each chunk, with w the best
@@ -165,7 +167,9 @@ def ransac_count_kernel(px, py, pz, normals, offsets, order, inlier_dist, confid
             c = normals[h, 2]
             dd = offsets[h]
             cnt = np.int32(0)
-            for j in range(k_pts):  # the same float32 operations, in the same order, as numpy would do
+            for j in range(
+                k_pts
+            ):  # the same float32 operations, in the same order, as numpy would do
                 dist = abs(px[j] * a + py[j] * b + pz[j] * c + dd)
                 cnt += np.int32(dist <= inlier_dist)
             counts[h] = cnt
@@ -182,7 +186,7 @@ def ransac_count_kernel(px, py, pz, normals, offsets, order, inlier_dist, confid
 
 
 @kernel
-def plane_moments_kernel(pts, normal, offset, inlier_dist, mean, scatter):  # noqa: ANN001, ANN201
+def plane_moments_kernel(pts, normal, offset, inlier_dist, mean, scatter):
     """Mean and scatter matrix of the points within ``inlier_dist`` of a plane (float64 sums).
 
     Args:

@@ -23,7 +23,6 @@ import numpy as np
 import numpy.typing as npt
 
 from depthnav_daemon.errors import ConfigError
-from depthnav_daemon.pipeline.scan_kernels import exact_scan_kernel, paper_scan_kernel, run_flushes
 from depthnav_daemon.pipeline.geometry import (
     F32,
     F64,
@@ -31,11 +30,11 @@ from depthnav_daemon.pipeline.geometry import (
     cam_to_level,
     check_int,
     check_range,
-    depth_to_m,
     depth_to_mm,
     paper_floor_depth_m,
     paper_row_angles_rad,
 )
+from depthnav_daemon.pipeline.scan_kernels import exact_scan_kernel, paper_scan_kernel, run_flushes
 from drivers.base import Intrinsics
 
 METHODS = ("exact", "paper")

@@ -43,9 +43,12 @@ def run_ends(
     return ev_start, jj.astype(np.int32), cb_lo[ii, jj].astype(np.int32), cb_hi[ii, jj].astype(np.int32)
 
 
+I32 = NDArray[np.int32]
+
+
 def run_flushes(
     cb_lo: NDArray[np.integer], cb_hi: NDArray[np.integer]
-) -> tuple[NDArray[np.int32], NDArray[np.int32], NDArray[np.int32], NDArray[np.int32], NDArray[np.int32]]:
+) -> tuple[I32, I32, I32, I32, I32]:
     """``run_ends`` with every run's bins listed one by one (best where a run feeds one or two bins).
 
     Returns:
@@ -64,7 +67,7 @@ def run_flushes(
 
 
 @kernel
-def exact_scan_kernel(depth, rows, zlo, zhi, nlo, nhi, kr, fl_start, fl_col, fl_bin, rs_start, rs_col, acc, out):  # noqa: ANN001, ANN201, PLR0913
+def exact_scan_kernel(depth, rows, zlo, zhi, nlo, nhi, kr, fl_start, fl_col, fl_bin, rs_start, rs_col, acc, out):
     """Exact scan of one frame into ``out`` (n,) float32, REP 117 values.
 
     One row-major pass keeps a running minimum per column (``acc``) for as long as the column
@@ -119,7 +122,7 @@ def exact_scan_kernel(depth, rows, zlo, zhi, nlo, nhi, kr, fl_start, fl_col, fl_
 
 
 @kernel
-def paper_scan_kernel(depth, row0, row_step, lo_mm, hi_mm, factor, range_per_z, index, scratch, out):  # noqa: ANN001, ANN201, PLR0913
+def paper_scan_kernel(depth, row0, row_step, lo_mm, hi_mm, factor, range_per_z, index, scratch, out):
     """Eq. 1, 2 and 4 over a band of rows, then the original's column-to-bin map.
 
     Args:

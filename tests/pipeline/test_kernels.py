@@ -23,22 +23,35 @@ from depthnav_daemon.pipeline.scan import ScanParams, depth_to_scan
 from depthnav_daemon.synthetic import Box, KinectNoise, Scene, render, step_down
 from drivers.base import KINECT_V1, Intrinsics
 
-MOUNTS = [Mount(0.55, 15.0, 0.0), Mount(0.5, 0.0, 0.0), Mount(0.5, 30.0, 5.0), Mount(1.0, 45.0, -8.0),
-          Mount(0.3, 60.0, 10.0)]
+MOUNTS = [
+    Mount(0.55, 15.0, 0.0),
+    Mount(0.5, 0.0, 0.0),
+    Mount(0.5, 30.0, 5.0),
+    Mount(1.0, 45.0, -8.0),
+    Mount(0.3, 60.0, 10.0),
+]
 SMALL = Intrinsics(200, 150, 180.0, 181.0, 97.3, 77.9)
 
 
 def noisy_frame(intr: Intrinsics, mount: Mount, seed: int) -> np.ndarray:
     """A corridor-like frame with noise, zero pixels, a near box and a step down, uint16 mm."""
     scene = Scene(
-        boxes=(Box(0.3, 0.05, 0.2, 0.2, 0.4), Box(1.5, 0.4, 0.3, 0.3, 0.3),
-               Box(2.2, -0.5, 0.4, 0.4, 0.6, yaw_deg=20), Box(4.0, 0.0, 0.1, 6.0, 2.5)),
+        boxes=(
+            Box(0.3, 0.05, 0.2, 0.2, 0.4),
+            Box(1.5, 0.4, 0.3, 0.3, 0.3),
+            Box(2.2, -0.5, 0.4, 0.4, 0.6, yaw_deg=20),
+            Box(4.0, 0.0, 0.1, 6.0, 2.5),
+        ),
         holes=(step_down(3.0, 0.18),),
     )
-    return render(scene, intr, mount, KinectNoise(), np.random.default_rng(seed), min_range_m=0.05).depth_mm
+    return render(
+        scene, intr, mount, KinectNoise(), np.random.default_rng(seed), min_range_m=0.05
+    ).depth_mm
 
 
-def reference_exact_scan(depth: np.ndarray, intr: Intrinsics, mount: Mount, params: ScanParams) -> np.ndarray:
+def reference_exact_scan(
+    depth: np.ndarray, intr: Intrinsics, mount: Mount, params: ScanParams
+) -> np.ndarray:
     """The exact scan by its definition: per row, each bin takes the min over its columns (numpy).
 
     Uses the stage's per-pixel thresholds and bin map (what the scan *means*), not its kernel tables.
@@ -54,12 +67,15 @@ def reference_exact_scan(depth: np.ndarray, intr: Intrinsics, mount: Mount, para
     b_r = scan_mod._bearing(intr, rot, u + half, v)
     lo_b, hi_b = np.minimum(b_l, b_r), np.maximum(b_l, b_r)
     centre = scan_mod._bearing(intr, rot, u + 0.0 * v, v + 0.0 * u)
-    g_lo, g_hi, _, _ = scan_mod._bin_map(centre, lo_b, hi_b, (hi_b - lo_b) < math.pi, t.angle_min,
-                                         t.angle_increment, t.n_bins)
+    g_lo, g_hi, _, _ = scan_mod._bin_map(
+        centre, lo_b, hi_b, (hi_b - lo_b) < math.pi, t.angle_min, t.angle_increment, t.n_bins
+    )
     d = depth[rows][:, cols]
     obstacle = (d >= t.zlo_mm) & (d <= t.zhi_mm)
     close = (d >= t.near_lo_mm) & (d <= t.near_hi_mm)
-    val = np.where(obstacle, d.astype(np.float32) * t.kr_m_per_mm, np.float32(np.inf)).astype(np.float32)
+    val = np.where(obstacle, d.astype(np.float32) * t.kr_m_per_mm, np.float32(np.inf)).astype(
+        np.float32
+    )
     val[close] = -np.inf
     ws = d.shape[1]
     out = np.full(t.n_bins, np.inf, dtype=np.float32)
@@ -74,11 +90,15 @@ def reference_exact_scan(depth: np.ndarray, intr: Intrinsics, mount: Mount, para
 
 
 @pytest.mark.parametrize("mount", MOUNTS, ids=lambda m: f"t{m.tilt_deg:g}_r{m.roll_deg:g}")
-@pytest.mark.parametrize("params", [
-    ScanParams(),
-    ScanParams(range_min_m=0.4, row_start=20, row_stop=140, row_step=3, col_step=2),
-    ScanParams(range_min_m=0.0, min_obstacle_height_m=-0.2, angle_increment_deg=0.9),
-], ids=["defaults", "strided", "coarse_bins"])
+@pytest.mark.parametrize(
+    "params",
+    [
+        ScanParams(),
+        ScanParams(range_min_m=0.4, row_start=20, row_stop=140, row_step=3, col_step=2),
+        ScanParams(range_min_m=0.0, min_obstacle_height_m=-0.2, angle_increment_deg=0.9),
+    ],
+    ids=["defaults", "strided", "coarse_bins"],
+)
 def test_exact_scan_kernel_equals_per_row_binning(mount: Mount, params: ScanParams) -> None:
     depth = noisy_frame(SMALL, mount, seed=int(mount.tilt_deg))
     got = depth_to_scan(depth, SMALL, mount, params).ranges
@@ -94,7 +114,9 @@ def test_exact_scan_kernel_full_resolution_bit_exact() -> None:
     depth = noisy_frame(KINECT_V1, mount, seed=3)
     params = ScanParams()
     got = depth_to_scan(depth, KINECT_V1, mount, params).ranges
-    assert np.array_equal(got, reference_exact_scan(depth, KINECT_V1, mount, params), equal_nan=True)
+    assert np.array_equal(
+        got, reference_exact_scan(depth, KINECT_V1, mount, params), equal_nan=True
+    )
 
 
 def test_exact_scan_reads_a_read_only_strided_frame() -> None:
@@ -103,15 +125,26 @@ def test_exact_scan_reads_a_read_only_strided_frame() -> None:
     ro = depth.copy()
     ro.setflags(write=False)
     params = ScanParams(col_step=3)
-    assert np.array_equal(depth_to_scan(ro, SMALL, mount, params).ranges,
-                          depth_to_scan(depth, SMALL, mount, params).ranges, equal_nan=True)
+    assert np.array_equal(
+        depth_to_scan(ro, SMALL, mount, params).ranges,
+        depth_to_scan(depth, SMALL, mount, params).ranges,
+        equal_nan=True,
+    )
 
 
-def reference_cliffs(depth: np.ndarray, intr: Intrinsics, mount: Mount, params: CliffParams,
-                     layout: tuple[float, float, int]) -> tuple[np.ndarray, np.ndarray]:
-    """Eq. 7-8 and the cliff scan by their definition (numpy): (found blocks (nbr, nbc), scan (n,))."""
+def reference_cliffs(
+    depth: np.ndarray,
+    intr: Intrinsics,
+    mount: Mount,
+    params: CliffParams,
+    layout: tuple[float, float, int],
+) -> tuple[np.ndarray, np.ndarray]:
+    """Eq. 7-8 and the cliff scan by their definition (numpy).
+
+    Returns:
+        (found blocks (nbr, nbc) bool, cliff scan (n,) float32).
+    """
     t = cliff_mod._cliff_table(intr, mount, params, *layout)
-    nbr, nj, nbc, ni = t.shape4
     rows = np.sort(t.rows)[::-1]  # bottom-up: block row 0 (the lowest) first, as the original
     assert np.array_equal(np.sort(t.rows), np.unique(t.rows))
     bottom_up = np.argsort(-t.rows, kind="stable")
@@ -130,7 +163,9 @@ def reference_cliffs(depth: np.ndarray, intr: Intrinsics, mount: Mount, params: 
     lx, ly, _ = cliff_mod._floor_hits(intr, rot, u - e, v)
     rx, ry, _ = cliff_mod._floor_hits(intr, rot, u + e, v)
     b_l, b_r = np.arctan2(ly, lx), np.arctan2(ry, rx)
-    first, last = cliff_mod._sample_bins(np.minimum(b_l, b_r), np.maximum(b_l, b_r), *layout[:2], layout[2])
+    first, last = cliff_mod._sample_bins(
+        np.minimum(b_l, b_r), np.maximum(b_l, b_r), *layout[:2], layout[2]
+    )
     out = np.full(layout[2], np.nan, dtype=np.float32)
     for (r, c), f in np.ndenumerate(first):
         for b in range(f, last[r, c] + 1):
@@ -141,27 +176,43 @@ def reference_cliffs(depth: np.ndarray, intr: Intrinsics, mount: Mount, params: 
 CLIFF_PARAMS = [
     CliffParams(),
     CliffParams(block_size=8, row_step=1, col_step=1, block_points_thresh=10),
-    CliffParams(block_size=8, row_step=2, col_step=3, block_points_thresh=4),  # uneven sample columns
+    CliffParams(
+        block_size=8, row_step=2, col_step=3, block_points_thresh=4
+    ),  # uneven sample columns
     CliffParams(method="paper"),
-    CliffParams(method="paper", block_size=8, row_step=1, col_step=1, block_points_thresh=10, used_depth_height=90),
+    CliffParams(
+        method="paper",
+        block_size=8,
+        row_step=1,
+        col_step=1,
+        block_points_thresh=10,
+        used_depth_height=90,
+    ),
 ]
 
 
 @pytest.mark.parametrize("mount", MOUNTS, ids=lambda m: f"t{m.tilt_deg:g}_r{m.roll_deg:g}")
-@pytest.mark.parametrize("params", CLIFF_PARAMS, ids=["defaults", "dense", "uneven", "paper", "paper_dense"])
+@pytest.mark.parametrize(
+    "params", CLIFF_PARAMS, ids=["defaults", "dense", "uneven", "paper", "paper_dense"]
+)
 def test_cliff_kernel_equals_numpy_definition(mount: Mount, params: CliffParams) -> None:
     depth = noisy_frame(SMALL, mount, seed=11 + int(mount.tilt_deg))
     layout = scan_mod.scan_layout(SMALL, mount, ScanParams())
     res = detect_cliffs(depth, SMALL, mount, params, *layout)
     found, want = reference_cliffs(depth, SMALL, mount, params, layout)
     bj, bi = np.nonzero(found)
-    np.testing.assert_array_equal(res.blocks, np.stack([SMALL.height - (bj + 1) * params.block_size,
-                                                        bi * params.block_size], axis=-1))
+    np.testing.assert_array_equal(
+        res.blocks,
+        np.stack([SMALL.height - (bj + 1) * params.block_size, bi * params.block_size], axis=-1),
+    )
     assert np.array_equal(res.scan.ranges, want, equal_nan=True)
 
 
-POSE_PARAMS = [PoseParams(), PoseParams(row_step=3, col_step=5, max_points=400, min_inliers=100),
-               PoseParams(max_points=100_000, row_step=1, col_step=1)]
+POSE_PARAMS = [
+    PoseParams(),
+    PoseParams(row_step=3, col_step=5, max_points=400, min_inliers=100),
+    PoseParams(max_points=100_000, row_step=1, col_step=1),
+]
 
 
 @pytest.mark.parametrize("mount", MOUNTS[:4], ids=lambda m: f"t{m.tilt_deg:g}_r{m.roll_deg:g}")
@@ -190,15 +241,25 @@ def test_ransac_counts_equal_numpy_and_the_adaptive_stop_is_pcls() -> None:
     offsets = rng.uniform(0.3, 0.8, size=50)
     n32, d32 = normals.astype(np.float32), offsets.astype(np.float32)
     px, py, pz = (np.ascontiguousarray(pts[:, i]) for i in range(3))
-    want = np.count_nonzero(np.abs(px[:, None] * n32[:, 0] + py[:, None] * n32[:, 1] + pz[:, None] * n32[:, 2]
-                                   + d32) <= np.float32(0.02), axis=0)
+    want = np.count_nonzero(
+        np.abs(px[:, None] * n32[:, 0] + py[:, None] * n32[:, 1] + pz[:, None] * n32[:, 2] + d32)
+        <= np.float32(0.02),
+        axis=0,
+    )
     counts = np.zeros(50, dtype=np.int64)
     order = np.arange(50)
-    assert pose_kernels.ransac_count_kernel(px, py, pz, n32, d32, order, np.float32(0.02), 1.0, 8, counts) == 50
+    assert (
+        pose_kernels.ransac_count_kernel(
+            px, py, pz, n32, d32, order, np.float32(0.02), 1.0, 8, counts
+        )
+        == 50
+    )
     np.testing.assert_array_equal(counts, want)
     # adaptive: stops after the first chunk whose best share w makes log(1-p)/log(1-w^3) <= scored
     counts[:] = 0
-    scored = pose_kernels.ransac_count_kernel(px, py, pz, n32, d32, order, np.float32(0.02), 0.99, 8, counts)
+    scored = pose_kernels.ransac_count_kernel(
+        px, py, pz, n32, d32, order, np.float32(0.02), 0.99, 8, counts
+    )
     need, s = 50, 0
     while s < min(50, need):
         s += 8 if s + 8 <= 50 else 50 - s
@@ -225,7 +286,9 @@ def test_refined_plane_equals_numpy_least_squares() -> None:
         inl = np.abs(p @ n + d) <= 0.02
     np.testing.assert_allclose(plane, want, atol=1e-9)
     assert n_in == inl.sum()
-    assert rms == pytest.approx(float(np.sqrt(np.mean((p[inl] @ want[:3] + want[3]) ** 2))), rel=1e-9)
+    assert rms == pytest.approx(
+        float(np.sqrt(np.mean((p[inl] @ want[:3] + want[3]) ** 2))), rel=1e-9
+    )
 
 
 def test_warm_up_compiles_every_kernel_the_daemon_path_calls() -> None:
@@ -233,15 +296,29 @@ def test_warm_up_compiles_every_kernel_the_daemon_path_calls() -> None:
     from depthnav_daemon.pipeline import cliff_kernels, process, scan_kernels
     from drivers.base import Frame
 
-    kernels = [scan_kernels.exact_scan_kernel, scan_kernels.paper_scan_kernel, cliff_kernels.cliff_kernel,
-               pose_kernels.count_candidates_kernel, pose_kernels.candidates_kernel,
-               pose_kernels.hypotheses_kernel, pose_kernels.ransac_count_kernel, pose_kernels.plane_moments_kernel]
+    kernels = [
+        scan_kernels.exact_scan_kernel,
+        scan_kernels.paper_scan_kernel,
+        cliff_kernels.cliff_kernel,
+        pose_kernels.count_candidates_kernel,
+        pose_kernels.candidates_kernel,
+        pose_kernels.hypotheses_kernel,
+        pose_kernels.ransac_count_kernel,
+        pose_kernels.plane_moments_kernel,
+    ]
     warmup.warm_up()
     before = [len(k.signatures) for k in kernels]
     mount = MOUNTS[0]
     depth = noisy_frame(SMALL, mount, seed=1)
     frame = Frame(0, 0.0, depth.copy(), SMALL)  # read-only, as drivers deliver
     for scan in (ScanParams(), ScanParams(method="paper", scan_height=100)):
-        process(frame, mount, scan, CliffParams(), PoseParams(used_depth_height=100), np.random.default_rng(0))
+        process(
+            frame,
+            mount,
+            scan,
+            CliffParams(),
+            PoseParams(used_depth_height=100),
+            np.random.default_rng(0),
+        )
     depth_to_scan(depth.astype(np.float32) / 1000, SMALL, mount, ScanParams())  # float metres input
     assert [len(k.signatures) for k in kernels] == before
