@@ -130,11 +130,33 @@ def write_mount(path: Path, c: Calibration) -> None:
         "roll_deg": round(c.roll_deg, 3),
     }
     folder = path.resolve().parent
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=folder)
+    try:
+        # the new file keeps the old one's permissions (mkstemp makes 0600), or the umask's
+        mode = path.stat().st_mode & 0o7777 if path.exists() else 0o666 & ~_umask()
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=folder)
+    except OSError as exc:
+        raise DepthnavError(f"cannot write {path}: {exc.strerror or exc}",
+                            hint="check the folder exists and is writable") from None
     try:
         with os.fdopen(fd, "wb") as fh:
             tomli_w.dump(data, fh)
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.chmod(tmp, mode)
         os.replace(tmp, path)
+    except OSError as exc:  # a full disk: the old file stays as it was
+        Path(tmp).unlink(missing_ok=True)
+        raise DepthnavError(
+            f"writing {path} failed: {exc.strerror or exc}; the file was not changed",
+            hint="free some disk space and calibrate again",
+        ) from None
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
+
+
+def _umask() -> int:
+    """The process umask (reading it means setting it; set it straight back)."""
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask

@@ -439,3 +439,25 @@ def test_fakenect_recording_that_ends(tmp_path: Path) -> None:
     assert p.returncode == 0, p.stderr
     assert [m["seq"] for m in json_lines(p.stdout)] == [0, 1, 2, 3]
     assert "Traceback" not in p.stderr
+
+
+def test_disk_full_while_calibrate_writes_the_config(tmp_path: Path) -> None:
+    """Before the fix: 'internal error: OSError'. The robot's config must stay as it was."""
+    with small_disk(tmp_path, "1m") as (disk, preexec):
+        robot = disk / "robot.toml"
+        robot.write_text('device = "kinect"\n[scan]\nrange_max_m = 4.0\n')
+        robot.chmod(0o644)
+        before = robot.read_bytes()
+        if preexec is None:  # fill the tmpfs; with the file-size fallback nothing more is needed
+            with contextlib.suppress(OSError), open(disk / "filler", "wb") as fh:
+                fh.write(b"\0" * (2 << 20))
+        p = subprocess.run(
+            [os.sys.executable, "-m", "depthnav_daemon", "calibrate", "--device", FAST,
+             "--frames", "4", "--write", str(robot)],
+            capture_output=True, text=True, timeout=120, cwd=ROOT, preexec_fn=preexec,
+        )
+        assert p.returncode == 1, p.stderr
+        line = one_error_line(p.stderr)
+        assert str(robot) in line and "the file was not changed" in line
+        assert robot.read_bytes() == before
+        assert sorted(x.name for x in disk.iterdir() if x.name != "filler") == ["robot.toml"]

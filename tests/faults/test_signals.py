@@ -106,3 +106,25 @@ def test_sigterm_leaves_a_readable_rrd(tmp_path: Path) -> None:
         if c.entity_path == "/world/scan" and not c.is_static
     )
     assert rows == n  # every frame written to stdout is in the file too
+
+
+def test_sigterm_during_calibrate_uses_the_frames_so_far(tmp_path: Path) -> None:
+    """SIGTERM: calibrate from the frames read so far, write the config keeping its permissions;
+    SIGINT: 130 and the config untouched."""
+    robot = tmp_path / "robot.toml"
+    robot.write_text('device = "kinect"\n')
+    robot.chmod(0o640)
+    for sig, code in ((signal.SIGINT, 130), (signal.SIGTERM, 0)):
+        before = robot.read_text()
+        proc = start("calibrate", "--device", ENDLESS, "--frames", "100000", "--write", str(robot))
+        wait_until_ours(proc)
+        time.sleep(2.0)  # some realtime frames have been read
+        got, out, err = finish(proc, sig)
+        assert got == code, err
+        assert "Traceback" not in err
+        if sig == signal.SIGINT:
+            assert robot.read_text() == before
+    text = robot.read_text()
+    assert 'device = "kinect"' in text and "[mount]" in text and "height_m" in text
+    assert robot.stat().st_mode & 0o777 == 0o640
+    assert "height" in out
