@@ -544,3 +544,50 @@ def test_mavlink_attitude_out_of_range_is_not_published() -> None:
     src = SerialTiltSource("loop://", protocol="mavlink")
     src._mavlink_feeder()(mav.attitude_encode(0, 0.0, 10.0, 0.0, 0.0, 0.0, 0.0).pack(mav))
     assert src.latest() is None and src.bad_messages == 1
+
+
+# --- the command line itself ------------------------------------------------------------------
+ARG_WORDS = st.sampled_from([
+    "run", "replay", "calibrate", "mount", "info", "devices", "frobnicate", "--device", "--sink",
+    "--max-frames", "--set", "-c", "--height-m", "--tilt-deg", "--roll-deg", "--frames", "--vfov-deg",
+    "--distances-m", "--sensor", "--rate", "--loop", "--method", "-v", "-q", "--json", "nan", "inf",
+    "-1", "0", "1e309", "replay:/nonexistent", "stdout", "null", "udp://", "kinect?bogus=1",
+    "mount.height_m=-1", "daemon.seed=x", "/nonexistent.toml", "exact", "", "=", "\x00",
+])
+
+
+@fuzz(300)
+@given(argv=st.lists(st.one_of(ARG_WORDS, st.text(max_size=12)), max_size=7))
+def test_fuzz_command_line(argv: list[str]) -> None:
+    """Random argument lists through cli.main(): exit 0, 1, 2 or 130, never an internal error.
+
+    In process (300 subprocesses would take minutes); logging and signal handlers are restored.
+    """
+    import contextlib
+    import io
+    import logging
+    import signal
+
+    from depthnav_daemon import cli
+
+    if any(w in ("--write", "--plot", "record", "bench") for w in argv):
+        return  # commands that write files or run long are covered in their own tests
+    root = logging.getLogger()
+    saved = (root.handlers[:], root.level, signal.getsignal(signal.SIGINT),
+             signal.getsignal(signal.SIGTERM))
+    err = io.StringIO()
+    try:
+        with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()):
+            try:
+                code = cli.main(argv)
+            except SystemExit as exc:  # argparse: --help, --version, usage errors
+                code = exc.code if isinstance(exc.code, int) else 2
+    finally:
+        root.handlers[:], root.level = saved[0], saved[1]
+        signal.signal(signal.SIGINT, saved[2])
+        signal.signal(signal.SIGTERM, saved[3])
+        for name in ("depthnav_daemon", "drivers"):
+            logging.getLogger(name).setLevel(logging.NOTSET)
+    text = err.getvalue()
+    assert code in (0, 1, 2, 130), (argv, code, text)
+    assert "internal error" not in text and "Traceback" not in text, (argv, text)
