@@ -83,6 +83,12 @@ def check_fakenect_recording(folder: Path) -> tuple[int, int]:
                 )
             if entry.kind == "r" and b"\n" not in head:
                 raise RecordingError(f"{entry.path}: colour file without a header line")
+        elif entry.kind == "a" and entry.path.stat().st_size != fakenect_format.ACCEL_DUMP.size:
+            # fakenect printf()s a warning about it onto stdout, the daemon's JSON channel
+            raise RecordingError(
+                f"{entry.path}: {entry.path.stat().st_size} bytes, an accelerometer dump has "
+                f"{fakenect_format.ACCEL_DUMP.size} (truncated or from another libfreenect version)"
+            )
     return sum(e.kind == "d" for e in entries), len(lines)
 
 

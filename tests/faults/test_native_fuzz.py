@@ -138,3 +138,79 @@ def test_resolution_that_does_not_match_the_frames(
     p = depthnav("run", "--device", f"replay:{bad}?rate=max", "--sink", "null", timeout=120)
     assert p.returncode == 1, p.stderr
     assert needle in one_error_line(p.stderr)
+
+
+# --- fakenect through Debian's real fakenect library ------------------------------------------
+FAKENECT_CASES = 6  # one child process each: fakenect's playback state is process-global
+
+
+@pytest.fixture(scope="module")
+def fakenect_base(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    from drivers.fakenect_format import write_fakenect
+    from drivers.freenect_lib import find_library as find_freenect
+
+    if find_freenect(fakenect=True) is None:
+        pytest.skip("libfreenect0.5 (fakenect) not installed")
+    vga = Intrinsics(640, 480, 580.0, 580.0, 319.5, 239.5)
+    rng = np.random.default_rng(5)
+    frames = [Frame(i, i / 30, rng.integers(500, 4000, (480, 640), dtype=np.uint16), vga,
+                    (0.0, -9.7, -1.4)) for i in range(3)]
+    folder = tmp_path_factory.mktemp("fk") / "base"
+    write_fakenect(folder, frames)
+    return folder
+
+
+def fakenect_mutant(base: Path, out: Path, r: random.Random) -> Path:
+    """A copy of ``base`` with shuffled/duplicated index lines, random accelerometer bytes,
+    disparities beyond 11 bits and a colour file with a random header."""
+    import shutil
+
+    shutil.copytree(base, out)
+    names = (out / "INDEX.txt").read_text().split()
+    for path in out.glob("a-*.dump"):
+        path.write_bytes(r.randbytes(12))
+    pgm = next(out.glob("d-*.pgm"))
+    data = bytearray(pgm.read_bytes())
+    for _ in range(r.randint(1, 50)):
+        data[r.randrange(17, len(data))] = r.randrange(256)
+    pgm.write_bytes(bytes(data))
+    rgb = "r-1000000.010000-1.ppm"
+    (out / rgb).write_bytes(r.choice([b"P6 640 480 255\n", b"P6 1 1 255\n", b"P6 99999 99999 255\n",
+                                      b"garbage\n"]) + r.randbytes(r.randrange(0, 64)))
+    names.insert(r.randrange(len(names) + 1), rgb)
+    if r.random() < 0.5:
+        names.append(r.choice(names))
+    if r.random() < 0.3:
+        r.shuffle(names)
+    (out / "INDEX.txt").write_text("".join(n + "\n" for n in names))
+    return out
+
+
+def test_fakenect_mutants_never_crash_or_write_into_stdout(fakenect_base: Path, tmp_path: Path) -> None:
+    from drivers.kinect import check_fakenect_recording
+
+    r = random.Random(7)
+    for i in range(FAKENECT_CASES):
+        folder = fakenect_mutant(fakenect_base, tmp_path / f"m{i}", r)
+        check_fakenect_recording(folder)  # the mutants are ones the guard lets through
+        p = depthnav("run", "--device", f"kinect?fakenect={folder}", "--sink", "stdout", timeout=120)
+        assert p.returncode in (0, 1), (folder, p.returncode, p.stderr[-1500:])
+        if p.returncode == 1:
+            assert str(folder) in one_error_line(p.stderr)
+        for line in p.stdout.splitlines():  # only our JSON: nothing the C library printed
+            json.loads(line)
+
+
+def test_short_accelerometer_dump_is_rejected_before_fakenect(fakenect_base: Path, tmp_path: Path) -> None:
+    """Found here: fakenect printf()s 'Warning: Accelerometer data has an unexpected size' onto
+    stdout, into the JSON stream. The guard now refuses such a dump with one line."""
+    import shutil
+
+    folder = tmp_path / "short"
+    shutil.copytree(fakenect_base, folder)
+    dump = next(folder.glob("a-*.dump"))
+    dump.write_bytes(dump.read_bytes()[:10])
+    p = depthnav("run", "--device", f"kinect?fakenect={folder}", "--sink", "stdout", timeout=120)
+    assert p.returncode == 1, p.stderr
+    assert p.stdout == ""
+    assert f"{dump}: 10 bytes, an accelerometer dump has 12" in one_error_line(p.stderr)
