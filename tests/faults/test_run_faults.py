@@ -461,3 +461,20 @@ def test_disk_full_while_calibrate_writes_the_config(tmp_path: Path) -> None:
         assert str(robot) in line and "the file was not changed" in line
         assert robot.read_bytes() == before
         assert sorted(x.name for x in disk.iterdir() if x.name != "filler") == ["robot.toml"]
+
+
+def test_stdout_closed_or_full() -> None:
+    """A daemon started with stdout closed (>&-) or on a full device (/dev/full)."""
+    cmd = [os.sys.executable, "-m", "depthnav_daemon", "run", "--device", FAST, "--max-frames", "3"]
+    closed = subprocess.run([*cmd, "--sink", "stdout"], stderr=subprocess.PIPE, text=True,
+                            timeout=120, cwd=ROOT, preexec_fn=lambda: os.close(1))
+    assert closed.returncode == 1, closed.stderr
+    assert "sink stdout could not start: stdout is closed" in closed.stderr
+    assert "no output sink could start" in one_error_line(closed.stderr)
+    with open("/dev/full", "w") as full:
+        p = subprocess.run([*cmd, "--sink", "stdout", "--sink", "null"], stdout=full,
+                           stderr=subprocess.PIPE, text=True, timeout=120, cwd=ROOT)
+    assert p.returncode == 0, p.stderr
+    assert "sink stdout failed: writing to stdout failed: [Errno 28] No space left on device" in p.stderr
+    assert "3 frames processed; dropped sinks: stdout" in p.stderr
+    assert "Traceback" not in p.stderr
