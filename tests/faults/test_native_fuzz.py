@@ -214,3 +214,23 @@ def test_short_accelerometer_dump_is_rejected_before_fakenect(fakenect_base: Pat
     assert p.returncode == 1, p.stderr
     assert p.stdout == ""
     assert f"{dump}: 10 bytes, an accelerometer dump has 12" in one_error_line(p.stderr)
+
+
+def test_openni_stream_error_mid_run_ends_a_file_replay_once(base_oni: Path, tmp_path: Path) -> None:
+    """A stream that starts, then delivers frames that are not depth (the pixel format property
+    says RGB888). Before the fix: 'internal error: ValueError: cannot reshape array' (and a format
+    error was DeviceLost, which the daemon retries forever on a file). Now: one line, exit 1, no
+    reconnect."""
+    import struct
+
+    data = bytearray(base_oni.read_bytes())
+    at = data.index(b"oniPixelFormat") + len(b"oniPixelFormat\0") + 4
+    struct.pack_into("<Q", data, at, 200)  # ONI_PIXEL_FORMAT_RGB888
+    bad = tmp_path / "rgb.oni"
+    bad.write_bytes(bytes(data))
+    p = depthnav("run", "--device", f"replay:{bad}?rate=max", "--sink", "stdout",
+                 "--set", "daemon.reconnect_backoff_s=0.01", timeout=120)
+    assert p.returncode == 1, p.stderr
+    line = one_error_line(p.stderr)
+    assert str(bad) in line and "is not depth" in line
+    assert "reconnect" not in p.stderr and p.stdout == ""
