@@ -174,6 +174,9 @@ class _ExactTable:
     zhi_mm: npt.NDArray[np.uint16]
     near_lo_mm: npt.NDArray[np.uint16]  # (Hs, Ws) obstacle height but closer than range_min iff
     near_hi_mm: npt.NDArray[np.uint16]  # near_lo <= d <= near_hi
+    k_lo: npt.NDArray[np.uint16]        # (Hs, Ws) the kernel's form: close iff k_lo <= d <= k_mid,
+    k_mid: npt.NDArray[np.uint16]       # obstacle iff k_mid < d <= k_hi (2 bytes a pixel less to read)
+    k_hi: npt.NDArray[np.uint16]
     kr_m_per_mm: F32                    # (Hs, Ws) horizontal range per millimetre of depth
     fl_start: npt.NDArray[np.int32]     # (Hs + 1,) flushes after row i: fl_start[i]:fl_start[i + 1]
     fl_col: npt.NDArray[np.int32]       # (F,) column whose run minimum is flushed ..
@@ -285,6 +288,15 @@ def _exact_table(intr: Intrinsics, mount: Mount, params: ScanParams) -> _ExactTa
     zhi_mm = np.clip(np.floor(zhi), 0, 65535).astype(np.uint16)
     near_lo_mm = np.clip(np.ceil(np.maximum(hlo, 1.0)), 1, 65535).astype(np.uint16)
     near_hi_mm = np.clip(np.ceil(np.minimum(hhi, rlo)) - 1, 0, 65535).astype(np.uint16)
+    # the kernel's three thresholds: close iff k_lo <= d <= k_mid, obstacle iff k_mid < d <= k_hi.
+    # Z = [zlo, zhi] and N = [near_lo, near_hi] adjoin whenever both are non-empty (N holds the
+    # depths below range_min, zlo = ceil(rlo) = near_hi + 1; with clipping at 65535 N covers Z),
+    # and "close" wins over "obstacle", so Z minus N is (near_hi, zhi]; with N empty it is
+    # (zlo - 1, zhi]; with Z empty, (k_mid, 0] is empty
+    near = near_lo_mm <= near_hi_mm
+    k_lo = np.where(near, near_lo_mm, zlo_mm).astype(np.uint16)
+    k_mid = np.where(near, near_hi_mm, zlo_mm.astype(np.int64) - 1).astype(np.uint16)
+    k_hi = np.where(zlo_mm <= zhi_mm, zhi_mm, 0).astype(np.uint16)
 
     half = params.col_step / 2.0
     b_left = _bearing(intr, rot, u - half, v)
@@ -310,10 +322,11 @@ def _exact_table(intr: Intrinsics, mount: Mount, params: ScanParams) -> _ExactTa
     fl_start, fl_col, fl_bin, rs_start, rs_col = run_flushes(cb_lo, cb_hi)
     kr32 = (kr / 1000.0).astype(np.float32)
     row_idx = np.arange(intr.height, dtype=np.int32)[rows]
-    for arr in (zlo_mm, zhi_mm, near_lo_mm, near_hi_mm, kr32, fl_start, fl_col, fl_bin, rs_start, rs_col, row_idx):
+    for arr in (zlo_mm, zhi_mm, near_lo_mm, near_hi_mm, k_lo, k_mid, k_hi, kr32, fl_start, fl_col, fl_bin,
+                rs_start, rs_col, row_idx):
         arr.setflags(write=False)
     return _ExactTable(
-        row_idx, 0, params.col_step, zlo_mm, zhi_mm, near_lo_mm, near_hi_mm, kr32,
+        row_idx, 0, params.col_step, zlo_mm, zhi_mm, near_lo_mm, near_hi_mm, k_lo, k_mid, k_hi, kr32,
         fl_start, fl_col, fl_bin, rs_start, rs_col, n, angle_min, inc,
     )
 
@@ -340,8 +353,8 @@ def _exact_scan(depth_mm: npt.NDArray[np.uint16], intr: Intrinsics, mount: Mount
     ranges = np.empty(t.n_bins, dtype=np.float32)
     acc = np.empty(t.zlo_mm.shape[1], dtype=np.float32)
     exact_scan_kernel(
-        depth_mm[:, t.col0 :: t.col_step], t.rows, t.zlo_mm, t.zhi_mm, t.near_lo_mm, t.near_hi_mm,
-        t.kr_m_per_mm, t.fl_start, t.fl_col, t.fl_bin, t.rs_start, t.rs_col, acc, ranges,
+        depth_mm[:, t.col0 :: t.col_step], t.rows, t.k_lo, t.k_mid, t.k_hi, t.kr_m_per_mm,
+        t.fl_start, t.fl_col, t.fl_bin, t.rs_start, t.rs_col, acc, ranges,
     )
     n = ranges.size
     return LaserScan(

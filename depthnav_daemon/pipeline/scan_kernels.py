@@ -67,7 +67,7 @@ def run_flushes(
 
 
 @kernel
-def exact_scan_kernel(depth, rows, zlo, zhi, nlo, nhi, kr, fl_start, fl_col, fl_bin, rs_start, rs_col, acc, out):
+def exact_scan_kernel(depth, rows, near_lo, near_hi, obst_hi, kr, fl_start, fl_col, fl_bin, rs_start, rs_col, acc, out):
     """Exact scan of one frame into ``out`` (n,) float32, REP 117 values.
 
     One row-major pass keeps a running minimum per column (``acc``) for as long as the column
@@ -79,8 +79,9 @@ def exact_scan_kernel(depth, rows, zlo, zhi, nlo, nhi, kr, fl_start, fl_col, fl_
     Args:
         depth: (H, Ws) uint16 mm, already reduced to the used columns (a strided view is fine).
         rows: (Hs,) int32 image row of every used row.
-        zlo, zhi: (Hs, Ws) uint16: obstacle iff zlo <= d <= zhi.
-        nlo, nhi: (Hs, Ws) uint16: an obstacle closer than range_min iff nlo <= d <= nhi.
+        near_lo, near_hi, obst_hi: (Hs, Ws) uint16: an obstacle closer than range_min iff
+            near_lo <= d <= near_hi; an obstacle in range iff near_hi < d <= obst_hi (three
+            thresholds, not four: the two intervals always adjoin, see scan._exact_table).
         kr: (Hs, Ws) float32 horizontal range per mm of depth.
         fl_start: (Hs + 1,) int32: flushes after row i are fl_start[i]:fl_start[i + 1].
         fl_col, fl_bin: (F,) int32: a flush takes column fl_col's run minimum into bin fl_bin.
@@ -88,7 +89,7 @@ def exact_scan_kernel(depth, rows, zlo, zhi, nlo, nhi, kr, fl_start, fl_col, fl_
         acc: (Ws,) float32 work space.
         out: (n,) float32, overwritten.
     """
-    n_rows, n_cols = zlo.shape
+    n_rows, n_cols = near_lo.shape
     inf = np.float32(np.inf)
     seen = SEEN
     for b in range(out.shape[0]):
@@ -97,14 +98,13 @@ def exact_scan_kernel(depth, rows, zlo, zhi, nlo, nhi, kr, fl_start, fl_col, fl_
         acc[j] = inf
     for i in range(n_rows):
         drow = depth[rows[i]]
-        zl = zlo[i]
-        zh = zhi[i]
-        nl = nlo[i]
-        nh = nhi[i]
+        nl = near_lo[i]
+        nh = near_hi[i]
+        oh = obst_hi[i]
         k = kr[i]
         for j in range(n_cols):  # branch-free and an unconditional store, so LLVM vectorises it
             d = drow[j]
-            obstacle = (zl[j] <= d) & (d <= zh[j])
+            obstacle = (nh[j] < d) & (d <= oh[j])
             close = (nl[j] <= d) & (d <= nh[j])
             # obstacle range < SEEN (a reading, no obstacle) < inf (no reading); -inf too close
             v = np.float32(d) * k[j] if obstacle else (seen if d != 0 else inf)

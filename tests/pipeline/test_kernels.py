@@ -109,6 +109,25 @@ def test_exact_scan_kernel_equals_per_row_binning(mount: Mount, params: ScanPara
     assert np.array_equal(got, want, equal_nan=True)
 
 
+@pytest.mark.parametrize("mount", MOUNTS, ids=lambda m: f"t{m.tilt_deg:g}_r{m.roll_deg:g}")
+@pytest.mark.parametrize("params", [
+    ScanParams(),
+    ScanParams(range_min_m=0.0, min_obstacle_height_m=-0.2, max_obstacle_height_m=0.3),
+    ScanParams(range_min_m=3.0, range_max_m=60.0, min_obstacle_height_m=-9.0, max_obstacle_height_m=9.0),
+], ids=["defaults", "low_band", "far"])
+def test_three_kernel_thresholds_classify_every_depth_as_the_four(mount: Mount, params: ScanParams) -> None:
+    t = scan_mod._exact_table(SMALL, mount, params)
+    # every depth at and around every threshold, and the ends of the uint16 range
+    edges = np.stack([t.zlo_mm, t.zhi_mm, t.near_lo_mm, t.near_hi_mm]).astype(np.int64)
+    for delta in (-1, 0, 1):
+        for d in [*(edges + delta), np.zeros_like(edges[0]), np.full_like(edges[0], 65535)]:
+            d = np.clip(d, 0, 65535)
+            close = (t.near_lo_mm <= d) & (d <= t.near_hi_mm)
+            obstacle = (t.zlo_mm <= d) & (d <= t.zhi_mm) & ~close
+            assert np.array_equal((t.k_lo <= d) & (d <= t.k_mid), close)
+            assert np.array_equal((t.k_mid < d) & (d <= t.k_hi), obstacle)
+
+
 def test_exact_scan_kernel_full_resolution_bit_exact() -> None:
     mount = MOUNTS[0]
     depth = noisy_frame(KINECT_V1, mount, seed=3)
