@@ -32,6 +32,7 @@ from typing import Any
 
 import numpy as np
 
+from depthnav_daemon.errors import DepthnavError
 from depthnav_daemon.pipeline import process
 from depthnav_daemon.pipeline.cliff import CliffParams, detect_cliffs
 from depthnav_daemon.pipeline.geometry import Mount
@@ -429,7 +430,9 @@ def udp_latency(spec: str, n_frames: int = 600) -> dict[str, float]:
     finally:
         drain.close()
         quiet.setLevel(level)
-    ms = np.array(lat[1:]) * 1e3  # the first frame also builds the stage tables
+    ms = np.array(lat[1:] if len(lat) > 1 else lat) * 1e3  # the first frame also builds tables
+    if ms.size == 0:
+        raise DepthnavError(f"{spec} delivered no frame to time the UDP latency on")
     return {
         "p50_ms": float(np.percentile(ms, 50)),
         "p99_ms": float(np.percentile(ms, 99)),
@@ -462,7 +465,7 @@ def cpu_at_30fps(seconds: float = 20.0, settle_s: float = 3.0) -> dict[str, floa
     try:
         time.sleep(settle_s)
         if proc.poll() is not None:
-            raise RuntimeError(
+            raise DepthnavError(
                 f"depthnav run ended early: {proc.stderr.read().decode(errors='replace')[-300:]}"
             )
         c0, n0, t0 = _cpu_s(proc.pid), drain.count, time.perf_counter()
@@ -535,7 +538,7 @@ def run_bench(
     spec = device or f"replay:{FIXTURE}"
     frames = load_frames(spec)
     if not frames:
-        raise RuntimeError(f"{spec} delivered no frames")
+        raise DepthnavError(f"{spec} delivered no frames")
     intr = frames[0].intrinsics
     mount = floor_mount(frames, Mount())
     timings = time_work(

@@ -72,3 +72,11 @@ def test_resolutions_table_times_every_size() -> None:
         min_batch_s=0.0,
     )
     assert len(timings) == 8 and all(t.median_s > 0 for t in timings)
+
+
+def test_a_recording_without_frames_is_a_one_line_error(
+    tmp_path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    assert main(["bench", "--quick", "--device", f"replay:{tmp_path / 'missing'}"]) != 0
+    err = capsys.readouterr().err
+    assert "Traceback" not in err and "depthnav: error" in err
