@@ -33,7 +33,7 @@ from drivers import fakenect_format, png_folder
 from drivers.base import KINECT_V1, DeviceInfo, Driver, Frame, Intrinsics, TiltState
 from drivers.errors import DeviceSpecError, DriverError, RecordingError
 from drivers.kinect_axes import accel_counts_to_camera, tilt_status_name
-from drivers.recording import read_recording
+from drivers.recording import Recording, read_recording
 from drivers.spec import (
     Spec,
     bool_option,
@@ -83,6 +83,7 @@ class ReplayDriver:
         self.start = start
         self.spec_text = spec_text or f"replay:{path}"
         self._items: Iterator[Item] | None = None
+        self._recording: Recording | None = None  # a depthnav recording, decompressed once
         self._inner: Driver | None = None
         self._intrinsics: Intrinsics | None = None
         self._seq = 0
@@ -140,7 +141,10 @@ class ReplayDriver:
             raise RecordingError(f"{self.path}: bad intrinsics: {exc}") from None
 
     def _depthnav_items(self) -> tuple[Iterator[Item], Intrinsics, str]:
-        rec = read_recording(self.path, default_fps=self.fps)
+        # read_recording decompresses every frame: keep it for the next loop, not per pass
+        rec = self._recording
+        if rec is None:
+            rec = self._recording = read_recording(self.path, default_fps=self.fps)
         self._has_accel = rec.accel_mps2 is not None
         intr = self._intrinsics_with(rec.intrinsics, None)
 
@@ -324,6 +328,7 @@ class ReplayDriver:
             self._inner.close()
             self._inner = None
         self._items = None
+        self._recording = None
         if self._is_open:
             self._is_open = False
             with ReplayDriver._count_lock:
