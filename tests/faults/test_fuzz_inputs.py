@@ -547,13 +547,52 @@ def test_mavlink_attitude_out_of_range_is_not_published() -> None:
 
 
 # --- the command line itself ------------------------------------------------------------------
-ARG_WORDS = st.sampled_from([
-    "run", "replay", "calibrate", "mount", "info", "devices", "frobnicate", "--device", "--sink",
-    "--max-frames", "--set", "-c", "--height-m", "--tilt-deg", "--roll-deg", "--frames", "--vfov-deg",
-    "--distances-m", "--sensor", "--rate", "--loop", "--method", "-v", "-q", "--json", "nan", "inf",
-    "-1", "0", "1e309", "replay:/nonexistent", "stdout", "null", "udp://", "kinect?bogus=1",
-    "mount.height_m=-1", "daemon.seed=x", "/nonexistent.toml", "exact", "", "=", "\x00",
-])
+ARG_WORDS = st.sampled_from(
+    [
+        "run",
+        "replay",
+        "calibrate",
+        "mount",
+        "info",
+        "devices",
+        "frobnicate",
+        "--device",
+        "--sink",
+        "--max-frames",
+        "--set",
+        "-c",
+        "--height-m",
+        "--tilt-deg",
+        "--roll-deg",
+        "--frames",
+        "--vfov-deg",
+        "--distances-m",
+        "--sensor",
+        "--rate",
+        "--loop",
+        "--method",
+        "-v",
+        "-q",
+        "--json",
+        "nan",
+        "inf",
+        "-1",
+        "0",
+        "1e309",
+        "replay:/nonexistent",
+        "stdout",
+        "null",
+        "udp://",
+        "kinect?bogus=1",
+        "mount.height_m=-1",
+        "daemon.seed=x",
+        "/nonexistent.toml",
+        "exact",
+        "",
+        "=",
+        "\x00",
+    ]
+)
 
 
 @fuzz(300)
@@ -573,8 +612,12 @@ def test_fuzz_command_line(argv: list[str]) -> None:
     if any(w in ("--write", "--plot", "record", "bench") for w in argv):
         return  # commands that write files or run long are covered in their own tests
     root = logging.getLogger()
-    saved = (root.handlers[:], root.level, signal.getsignal(signal.SIGINT),
-             signal.getsignal(signal.SIGTERM))
+    saved = (
+        root.handlers[:],
+        root.level,
+        signal.getsignal(signal.SIGINT),
+        signal.getsignal(signal.SIGTERM),
+    )
     err = io.StringIO()
     try:
         with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()):

@@ -24,7 +24,7 @@ from drivers.openni import find_library
 from .kit import ROOT, depthnav, one_error_line
 
 SMALL = Intrinsics(64, 48, 61.5, 57.25, 30.25, 22.75)
-CASES = 60  # accepted mutants played natively (docs/hardening.md)
+CASES, CASES_LONG = 40, 200  # accepted mutants played natively, CI / --soak (docs/hardening.md)
 
 PLAYER = """
 import json, sys
@@ -84,9 +84,12 @@ def accepted_mutants(base: Path, out: Path, count: int, seed: int) -> list[Path]
     return found
 
 
-def test_mutated_oni_files_never_crash_the_native_player(base_oni: Path, tmp_path: Path) -> None:
-    files = accepted_mutants(base_oni, tmp_path, CASES, seed=20261122)
-    assert len(files) == CASES
+def test_mutated_oni_files_never_crash_the_native_player(
+    base_oni: Path, tmp_path: Path, soak_long: bool
+) -> None:
+    cases = CASES_LONG if soak_long else CASES
+    files = accepted_mutants(base_oni, tmp_path, cases, seed=20261122)
+    assert len(files) == cases
     proc = subprocess.run(
         [sys.executable, "-c", PLAYER, *map(str, files)],
         capture_output=True,
@@ -100,7 +103,7 @@ def test_mutated_oni_files_never_crash_the_native_player(base_oni: Path, tmp_pat
         f"native crash ({proc.returncode}) on {crashed}: {proc.stderr[-1500:]}"
     )
     ends = [e for e in events if "end" in e]
-    assert len(ends) == CASES
+    assert len(ends) == cases
     for e in ends:
         if "error" in e:
             assert "\n" not in e["error"] and e["end"] in e["error"], e
@@ -141,7 +144,7 @@ def test_resolution_that_does_not_match_the_frames(
 
 
 # --- fakenect through Debian's real fakenect library ------------------------------------------
-FAKENECT_CASES = 6  # one child process each: fakenect's playback state is process-global
+FAKENECT_CASES, FAKENECT_CASES_LONG = 4, 20  # one child process each (fakenect is process-global)
 
 
 @pytest.fixture(scope="module")
@@ -153,8 +156,12 @@ def fakenect_base(tmp_path_factory: pytest.TempPathFactory) -> Path:
         pytest.skip("libfreenect0.5 (fakenect) not installed")
     vga = Intrinsics(640, 480, 580.0, 580.0, 319.5, 239.5)
     rng = np.random.default_rng(5)
-    frames = [Frame(i, i / 30, rng.integers(500, 4000, (480, 640), dtype=np.uint16), vga,
-                    (0.0, -9.7, -1.4)) for i in range(3)]
+    frames = [
+        Frame(
+            i, i / 30, rng.integers(500, 4000, (480, 640), dtype=np.uint16), vga, (0.0, -9.7, -1.4)
+        )
+        for i in range(3)
+    ]
     folder = tmp_path_factory.mktemp("fk") / "base"
     write_fakenect(folder, frames)
     return folder
@@ -175,8 +182,10 @@ def fakenect_mutant(base: Path, out: Path, r: random.Random) -> Path:
         data[r.randrange(17, len(data))] = r.randrange(256)
     pgm.write_bytes(bytes(data))
     rgb = "r-1000000.010000-1.ppm"
-    (out / rgb).write_bytes(r.choice([b"P6 640 480 255\n", b"P6 1 1 255\n", b"P6 99999 99999 255\n",
-                                      b"garbage\n"]) + r.randbytes(r.randrange(0, 64)))
+    (out / rgb).write_bytes(
+        r.choice([b"P6 640 480 255\n", b"P6 1 1 255\n", b"P6 99999 99999 255\n", b"garbage\n"])
+        + r.randbytes(r.randrange(0, 64))
+    )
     names.insert(r.randrange(len(names) + 1), rgb)
     if r.random() < 0.5:
         names.append(r.choice(names))
@@ -186,14 +195,18 @@ def fakenect_mutant(base: Path, out: Path, r: random.Random) -> Path:
     return out
 
 
-def test_fakenect_mutants_never_crash_or_write_into_stdout(fakenect_base: Path, tmp_path: Path) -> None:
+def test_fakenect_mutants_never_crash_or_write_into_stdout(
+    fakenect_base: Path, tmp_path: Path, soak_long: bool
+) -> None:
     from drivers.kinect import check_fakenect_recording
 
     r = random.Random(7)
-    for i in range(FAKENECT_CASES):
+    for i in range(FAKENECT_CASES_LONG if soak_long else FAKENECT_CASES):
         folder = fakenect_mutant(fakenect_base, tmp_path / f"m{i}", r)
         check_fakenect_recording(folder)  # the mutants are ones the guard lets through
-        p = depthnav("run", "--device", f"kinect?fakenect={folder}", "--sink", "stdout", timeout=120)
+        p = depthnav(
+            "run", "--device", f"kinect?fakenect={folder}", "--sink", "stdout", timeout=120
+        )
         assert p.returncode in (0, 1), (folder, p.returncode, p.stderr[-1500:])
         if p.returncode == 1:
             assert str(folder) in one_error_line(p.stderr)
@@ -201,7 +214,9 @@ def test_fakenect_mutants_never_crash_or_write_into_stdout(fakenect_base: Path, 
             json.loads(line)
 
 
-def test_short_accelerometer_dump_is_rejected_before_fakenect(fakenect_base: Path, tmp_path: Path) -> None:
+def test_short_accelerometer_dump_is_rejected_before_fakenect(
+    fakenect_base: Path, tmp_path: Path
+) -> None:
     """Found here: fakenect printf()s 'Warning: Accelerometer data has an unexpected size' onto
     stdout, into the JSON stream. The guard now refuses such a dump with one line."""
     import shutil
@@ -216,7 +231,9 @@ def test_short_accelerometer_dump_is_rejected_before_fakenect(fakenect_base: Pat
     assert f"{dump}: 10 bytes, an accelerometer dump has 12" in one_error_line(p.stderr)
 
 
-def test_openni_stream_error_mid_run_ends_a_file_replay_once(base_oni: Path, tmp_path: Path) -> None:
+def test_openni_stream_error_mid_run_ends_a_file_replay_once(
+    base_oni: Path, tmp_path: Path
+) -> None:
     """A stream that starts, then delivers frames that are not depth (the pixel format property
     says RGB888). Before the fix: 'internal error: ValueError: cannot reshape array' (and a format
     error was DeviceLost, which the daemon retries forever on a file). Now: one line, exit 1, no
@@ -228,8 +245,16 @@ def test_openni_stream_error_mid_run_ends_a_file_replay_once(base_oni: Path, tmp
     struct.pack_into("<Q", data, at, 200)  # ONI_PIXEL_FORMAT_RGB888
     bad = tmp_path / "rgb.oni"
     bad.write_bytes(bytes(data))
-    p = depthnav("run", "--device", f"replay:{bad}?rate=max", "--sink", "stdout",
-                 "--set", "daemon.reconnect_backoff_s=0.01", timeout=120)
+    p = depthnav(
+        "run",
+        "--device",
+        f"replay:{bad}?rate=max",
+        "--sink",
+        "stdout",
+        "--set",
+        "daemon.reconnect_backoff_s=0.01",
+        timeout=120,
+    )
     assert p.returncode == 1, p.stderr
     line = one_error_line(p.stderr)
     assert str(bad) in line and "is not depth" in line

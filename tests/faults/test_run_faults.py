@@ -452,9 +452,23 @@ def test_disk_full_while_calibrate_writes_the_config(tmp_path: Path) -> None:
             with contextlib.suppress(OSError), open(disk / "filler", "wb") as fh:
                 fh.write(b"\0" * (2 << 20))
         p = subprocess.run(
-            [os.sys.executable, "-m", "depthnav_daemon", "calibrate", "--device", FAST,
-             "--frames", "4", "--write", str(robot)],
-            capture_output=True, text=True, timeout=120, cwd=ROOT, preexec_fn=preexec,
+            [
+                os.sys.executable,
+                "-m",
+                "depthnav_daemon",
+                "calibrate",
+                "--device",
+                FAST,
+                "--frames",
+                "4",
+                "--write",
+                str(robot),
+            ],
+            capture_output=True,
+            text=True,
+            timeout=120,
+            cwd=ROOT,
+            preexec_fn=preexec,
         )
         assert p.returncode == 1, p.stderr
         line = one_error_line(p.stderr)
@@ -466,15 +480,30 @@ def test_disk_full_while_calibrate_writes_the_config(tmp_path: Path) -> None:
 def test_stdout_closed_or_full() -> None:
     """A daemon started with stdout closed (>&-) or on a full device (/dev/full)."""
     cmd = [os.sys.executable, "-m", "depthnav_daemon", "run", "--device", FAST, "--max-frames", "3"]
-    closed = subprocess.run([*cmd, "--sink", "stdout"], stderr=subprocess.PIPE, text=True,
-                            timeout=120, cwd=ROOT, preexec_fn=lambda: os.close(1))
+    closed = subprocess.run(
+        [*cmd, "--sink", "stdout"],
+        stderr=subprocess.PIPE,
+        text=True,
+        timeout=120,
+        cwd=ROOT,
+        preexec_fn=lambda: os.close(1),
+    )
     assert closed.returncode == 1, closed.stderr
     assert "sink stdout could not start: stdout is closed" in closed.stderr
     assert "no output sink could start" in one_error_line(closed.stderr)
     with open("/dev/full", "w") as full:
-        p = subprocess.run([*cmd, "--sink", "stdout", "--sink", "null"], stdout=full,
-                           stderr=subprocess.PIPE, text=True, timeout=120, cwd=ROOT)
+        p = subprocess.run(
+            [*cmd, "--sink", "stdout", "--sink", "null"],
+            stdout=full,
+            stderr=subprocess.PIPE,
+            text=True,
+            timeout=120,
+            cwd=ROOT,
+        )
     assert p.returncode == 0, p.stderr
-    assert "sink stdout failed: writing to stdout failed: [Errno 28] No space left on device" in p.stderr
+    assert (
+        "sink stdout failed: writing to stdout failed: [Errno 28] No space left on device"
+        in p.stderr
+    )
     assert "3 frames processed; dropped sinks: stdout" in p.stderr
     assert "Traceback" not in p.stderr

@@ -49,7 +49,7 @@ def test_signal_while_recording_keeps_every_frame_read(tmp_path: Path, sig: int)
         "record", "--device", ENDLESS, "--frames", "100000", str(out), stderr_path=err_path
     )
     wait_until_ours(proc)
-    time.sleep(1.5)  # some realtime frames are in memory by now
+    time.sleep(1.0)  # some realtime frames are in memory by now
     code, _, _ = finish(proc, sig)
     err = err_path.read_text()
     assert code == CODES[sig], err
@@ -118,7 +118,7 @@ def test_sigterm_during_calibrate_uses_the_frames_so_far(tmp_path: Path) -> None
         before = robot.read_text()
         proc = start("calibrate", "--device", ENDLESS, "--frames", "100000", "--write", str(robot))
         wait_until_ours(proc)
-        time.sleep(2.0)  # some realtime frames have been read
+        time.sleep(1.2)  # some realtime frames have been read
         got, out, err = finish(proc, sig)
         assert got == code, err
         assert "Traceback" not in err

@@ -1,6 +1,6 @@
 """Soak: a max-rate replay through every sink with flat memory and no frame dropped.
 
-The short form (2,000 frames, about 15 s) runs in CI; the long form (100,000 frames, 10-15
+The short form (1,500 frames, about 10 s) runs in CI; the long form (100,000 frames, 10-15
 minutes) with ``pytest tests/faults --soak`` or DEPTHNAV_SOAK=1, or as ``scripts/soak.py``.
 """
 
@@ -10,7 +10,7 @@ import pytest
 
 from depthnav_daemon.soak import RSS_LIMIT_MB, run_soak
 
-SHORT, LONG = 2000, 100_000
+SHORT, LONG = 1500, 100_000
 
 
 def test_soak_through_every_sink(soak_long: bool, tmp_path) -> None:  # noqa: ANN001
@@ -18,7 +18,7 @@ def test_soak_through_every_sink(soak_long: bool, tmp_path) -> None:  # noqa: AN
     report = run_soak(
         frames,
         workdir=tmp_path,
-        warmup=max(800, frames // 10),
+        warmup=max(500, frames // 10),
         timeout_s=3600.0 if soak_long else 600.0,
     )
     print(report.text())  # noqa: T201 - the figures, with -s
