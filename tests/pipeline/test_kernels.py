@@ -128,6 +128,66 @@ def test_three_kernel_thresholds_classify_every_depth_as_the_four(mount: Mount, 
             assert np.array_equal((t.k_mid < d) & (d <= t.k_hi), obstacle)
 
 
+def numpy_bin_map(centre: np.ndarray, lo_b: np.ndarray, hi_b: np.ndarray, sane: np.ndarray, angle_min: float,
+                  inc: float, n: int) -> tuple[np.ndarray, ...]:
+    """The bin map as numpy computed it before it was compiled (the reference for bin_map_kernel)."""
+    hs, ws = centre.shape
+    bidx = np.floor((centre - angle_min) / inc + 0.5).astype(np.int64)
+    ii, jj = np.nonzero(sane)
+    bb = np.clip(bidx[ii, jj], 0, n - 1)
+    flat = ii * n + bb
+    g_lo = np.full(hs * n, ws, dtype=np.int64)
+    g_hi = np.full(hs * n, -1, dtype=np.int64)
+    np.minimum.at(g_lo, flat, jj)
+    np.maximum.at(g_hi, flat, jj)
+    cb_lo = np.full((hs, ws), n, dtype=np.int64)
+    cb_hi = np.full((hs, ws), -1, dtype=np.int64)
+    cb_lo[ii, jj] = bb
+    cb_hi[ii, jj] = bb
+    g_lo = g_lo.reshape(hs, n)
+    g_hi = g_hi.reshape(hs, n)
+    centres = angle_min + inc * np.arange(n)
+    for i in range(hs):
+        ok = sane[i]
+        if not ok.any():
+            continue
+        cols = np.flatnonzero(ok)[::-1]
+        lo_r, hi_r = lo_b[i][cols], hi_b[i][cols]
+        empty = np.flatnonzero(g_hi[i] < 0)
+        k = np.searchsorted(lo_r, centres[empty], side="right") - 1
+        kk = np.clip(k, 0, cols.size - 1)
+        hit = (k >= 0) & (centres[empty] <= hi_r[kk])
+        b_hit, c_hit = empty[hit], cols[kk[hit]]
+        g_lo[i, b_hit] = c_hit
+        g_hi[i, b_hit] = c_hit
+        np.minimum.at(cb_lo[i], c_hit, b_hit)
+        np.maximum.at(cb_hi[i], c_hit, b_hit)
+    g_hi = np.where(g_hi < 0, ws, g_hi)
+    return g_lo.astype(np.int16), g_hi.astype(np.int16), cb_lo.astype(np.int16), cb_hi.astype(np.int16)
+
+
+@pytest.mark.parametrize("mount", [*MOUNTS, Mount(1.2, 85.0, 30.0)], ids=lambda m: f"t{m.tilt_deg:g}_r{m.roll_deg:g}")
+@pytest.mark.parametrize("col_step", [1, 3])
+def test_bin_map_kernel_equals_numpy(mount: Mount, col_step: int) -> None:
+    intr = SMALL
+    v = np.arange(intr.height, dtype=np.float64)[:, None]
+    u = np.arange(intr.width, dtype=np.float64)[::col_step][None, :]
+    rot = cam_to_level(mount.tilt_rad, mount.roll_rad)
+    half = col_step / 2.0
+    b_l = scan_mod._bearing(intr, rot, u - half, v)
+    b_r = scan_mod._bearing(intr, rot, u + half, v)
+    lo_b, hi_b = np.minimum(b_l, b_r), np.maximum(b_l, b_r)
+    centre = scan_mod._bearing(intr, rot, u + 0.0 * v, v + 0.0 * u)
+    sane = (hi_b - lo_b) < math.pi
+    inc = float(np.median(hi_b - lo_b))
+    angle_min = float(lo_b[sane].min()) + inc / 2
+    n = int(math.ceil((float(hi_b[sane].max()) - float(lo_b[sane].min())) / inc))
+    got = scan_mod._bin_map(centre, lo_b, hi_b, sane, angle_min, inc, n)
+    want = numpy_bin_map(centre, lo_b, hi_b, sane, angle_min, inc, n)
+    for g, w in zip(got, want, strict=True):
+        np.testing.assert_array_equal(g, w)
+
+
 def test_exact_scan_kernel_full_resolution_bit_exact() -> None:
     mount = MOUNTS[0]
     depth = noisy_frame(KINECT_V1, mount, seed=3)
@@ -318,6 +378,7 @@ def test_warm_up_compiles_every_kernel_the_daemon_path_calls() -> None:
     kernels = [
         scan_kernels.exact_scan_kernel,
         scan_kernels.paper_scan_kernel,
+        scan_kernels.bin_map_kernel,
         cliff_kernels.cliff_kernel,
         pose_kernels.count_candidates_kernel,
         pose_kernels.candidates_kernel,
