@@ -201,9 +201,17 @@ def test_fakenect_mutants_never_crash_or_write_into_stdout(
     from drivers.kinect import check_fakenect_recording
 
     r = random.Random(7)
-    for i in range(FAKENECT_CASES_LONG if soak_long else FAKENECT_CASES):
+    wanted = FAKENECT_CASES_LONG if soak_long else FAKENECT_CASES
+    played = 0
+    for i in range(wanted * 20):
+        if played == wanted:
+            break
         folder = fakenect_mutant(fakenect_base, tmp_path / f"m{i}", r)
-        check_fakenect_recording(folder)  # the mutants are ones the guard lets through
+        try:
+            check_fakenect_recording(folder)  # only mutants the guard lets through reach fakenect
+        except RecordingError:
+            continue
+        played += 1
         p = depthnav(
             "run", "--device", f"kinect?fakenect={folder}", "--sink", "stdout", timeout=120
         )
@@ -212,6 +220,7 @@ def test_fakenect_mutants_never_crash_or_write_into_stdout(
             assert str(folder) in one_error_line(p.stderr)
         for line in p.stdout.splitlines():  # only our JSON: nothing the C library printed
             json.loads(line)
+    assert played == wanted
 
 
 def test_short_accelerometer_dump_is_rejected_before_fakenect(
