@@ -86,7 +86,6 @@ def process(
     from depthnav_daemon.pipeline.pose import estimate_pose
 
     depth, intr = frame.depth_mm, frame.intrinsics
-    warning = None if depth.any() else "no valid depth in this frame (all pixels 0)"
     tick = clock or (lambda: 0.0)
     timings: dict[str, float] = {}
 
@@ -109,6 +108,8 @@ def process(
             depth, intr, mount, cliff_params, scan.angle_min, scan.angle_increment, scan.ranges.size
         )
         timings["cliff"] = tick() - t0
+    # the scan already visited every used pixel: all-NaN means none of them had a reading
+    warning = "no valid depth in this frame (all pixels 0)" if np.isnan(scan.ranges).all() else None
     return Result(
         frame.seq,
         frame.timestamp_s,
