@@ -34,22 +34,29 @@ class Spec:
     options: Mapping[str, str] = field(default_factory=dict)
 
 
-def parse_spec(text: str) -> Spec:
-    """Split a device spec into scheme, target and options.
+def parse_spec(
+    text: str, kind: str = "device", examples: str = "kinect, openni://, replay:fixtures/x?rate=max"
+) -> Spec:
+    """Split a spec into scheme, target and options (device specs here; sink specs use it too).
+
+    Args:
+        text: the spec.
+        kind: what the spec names, for messages ("device", "sink").
+        examples: a few valid specs of that kind, for hints.
 
     Raises:
         DeviceSpecError: empty spec, bad scheme, malformed or repeated option.
     """
     if not isinstance(text, str) or not text.strip():
-        raise DeviceSpecError("empty device spec", hint="e.g. kinect, openni://, replay:PATH")
+        raise DeviceSpecError(f"empty {kind} spec", hint=f"e.g. {examples}")
     text = text.strip()
     body, sep, query = text.partition("?")
     scheme, colon, target = body.partition(":")
     scheme = scheme.lower()
     if not _SCHEME.match(scheme):
         raise DeviceSpecError(
-            f"device spec {text!r} does not start with a scheme",
-            hint="write scheme[://target][?key=value&...], e.g. replay:fixtures/x?rate=max",
+            f"{kind} spec {text!r} does not start with a scheme",
+            hint=f"write scheme[://target][?key=value&...], e.g. {examples.split(', ')[-1]}",
         )
     if colon and target.startswith("//"):
         target = target[2:]
@@ -62,22 +69,23 @@ def parse_spec(text: str) -> Spec:
             key = unquote(key).strip().lower()
             if not key or not eq:
                 raise DeviceSpecError(
-                    f"option {part!r} in device spec {text!r} is not key=value",
-                    hint="separate options with '&', e.g. ?rate=max&loop=1",
+                    f"option {part!r} in {kind} spec {text!r} is not key=value",
+                    hint="separate options with '&', e.g. ?key=value&other=value",
                 )
             if key in options:
-                raise DeviceSpecError(f"option {key!r} is given twice in device spec {text!r}")
+                raise DeviceSpecError(f"option {key!r} is given twice in {kind} spec {text!r}")
             options[key] = unquote(value)
     return Spec(text=text, scheme=scheme, target=unquote(target), options=options)
 
 
-def check_options(spec: Spec, valid: Iterable[str], grammar: str) -> None:
-    """Reject options the driver does not know.
+def check_options(spec: Spec, valid: Iterable[str], grammar: str, kind: str = "") -> None:
+    """Reject options the driver (or sink) does not know.
 
     Args:
         spec: the parsed spec.
         valid: option names the driver accepts.
         grammar: the driver's spec grammar, quoted in the hint.
+        kind: "" for devices, "sink " for sinks (the word before the scheme in messages).
 
     Raises:
         DeviceSpecError: naming the unknown option and listing the valid ones.
@@ -87,7 +95,7 @@ def check_options(spec: Spec, valid: Iterable[str], grammar: str) -> None:
         if key not in allowed:
             names = ", ".join(sorted(allowed)) or "none"
             raise DeviceSpecError(
-                f"unknown option {key!r} for {spec.scheme!r} in {spec.text!r}; "
+                f"unknown option {key!r} for {kind}{spec.scheme!r} in {spec.text!r}; "
                 f"valid options: {names}",
                 hint=f"the {spec.scheme} spec is {grammar}",
             )

@@ -12,12 +12,14 @@ import logging
 import math
 import re
 import time
-from collections.abc import Iterable, Mapping
-from dataclasses import dataclass, field
+from collections.abc import Iterable
+from dataclasses import dataclass
 from typing import TYPE_CHECKING, Protocol, runtime_checkable
-from urllib.parse import unquote
 
 from depthnav_daemon.errors import ConfigError
+from drivers.errors import DeviceSpecError
+from drivers.spec import Spec, parse_spec
+from drivers.spec import check_options as check_driver_options
 
 if TYPE_CHECKING:
     from depthnav_daemon.pipeline import Result
@@ -77,21 +79,8 @@ class Sink(Protocol):
         ...
 
 
-@dataclass(frozen=True, slots=True)
-class SinkSpec:
-    """A parsed sink spec.
-
-    Attributes:
-        text: the spec as given.
-        scheme: lower-case sink key, e.g. "udp" or "rerun+grpc".
-        target: what follows ``scheme:`` or ``scheme://`` up to ``?``; "" when absent.
-        options: query options in the order given (keys lower-case).
-    """
-
-    text: str
-    scheme: str
-    target: str = ""
-    options: Mapping[str, str] = field(default_factory=dict)
+# A sink spec has the grammar and shape of a device spec: one parser serves both.
+SinkSpec = Spec
 
 
 def parse_sink_spec(text: str) -> SinkSpec:
@@ -100,37 +89,10 @@ def parse_sink_spec(text: str) -> SinkSpec:
     Raises:
         ConfigError: empty spec, bad scheme, malformed or repeated option.
     """
-    if not isinstance(text, str) or not text.strip():
-        raise ConfigError(
-            "empty sink spec", hint="e.g. stdout, udp://127.0.0.1:5600, rerun:run.rrd"
-        )
-    text = text.strip()
-    body, sep, query = text.partition("?")
-    scheme, colon, target = body.partition(":")
-    scheme = scheme.lower()
-    if not _SCHEME.match(scheme):
-        raise ConfigError(
-            f"sink spec {text!r} does not start with a scheme",
-            hint="write scheme[://target][?key=value&...], e.g. udp://127.0.0.1:5600",
-        )
-    if colon and target.startswith("//"):
-        target = target[2:]
-    options: dict[str, str] = {}
-    if sep:
-        for part in query.split("&"):
-            if not part:
-                continue
-            key, eq, value = part.partition("=")
-            key = unquote(key).strip().lower()
-            if not key or not eq:
-                raise ConfigError(
-                    f"option {part!r} in sink spec {text!r} is not key=value",
-                    hint="separate options with '&', e.g. ?rate=10&sysid=1",
-                )
-            if key in options:
-                raise ConfigError(f"option {key!r} is given twice in sink spec {text!r}")
-            options[key] = unquote(value)
-    return SinkSpec(text=text, scheme=scheme, target=unquote(target), options=options)
+    try:
+        return parse_spec(text, "sink", "stdout, rerun:run.rrd, udp://127.0.0.1:5600")
+    except DeviceSpecError as exc:
+        raise ConfigError(str(exc), hint=exc.hint) from None
 
 
 def check_options(spec: SinkSpec, valid: Iterable[str], grammar: str) -> None:
@@ -139,15 +101,10 @@ def check_options(spec: SinkSpec, valid: Iterable[str], grammar: str) -> None:
     Raises:
         ConfigError: naming the unknown option and the valid ones; the hint quotes ``grammar``.
     """
-    allowed = set(valid)
-    for key in spec.options:
-        if key not in allowed:
-            names = ", ".join(sorted(allowed)) or "none"
-            raise ConfigError(
-                f"unknown option {key!r} for sink {spec.scheme!r} in {spec.text!r}; "
-                f"valid options: {names}",
-                hint=f"the {spec.scheme} sink spec is {grammar}",
-            )
+    try:
+        check_driver_options(spec, valid, grammar, kind="sink ")
+    except DeviceSpecError as exc:
+        raise ConfigError(str(exc), hint=exc.hint) from None
 
 
 def number_option(
