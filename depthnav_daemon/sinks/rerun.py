@@ -27,10 +27,13 @@ Every rerun call of depthnav lives in this module (the API moves between release
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
+import queue
 import shutil
 import struct
+import threading
 import time
 import uuid
 from typing import TYPE_CHECKING, Any
@@ -40,6 +43,7 @@ import numpy as np
 from depthnav_daemon.errors import ConfigError, SinkError
 from depthnav_daemon.pipeline.geometry import rot_x, rot_y
 from depthnav_daemon.sinks.base import (
+    RateLimitedLog,
     SinkContext,
     SinkSpec,
     bool_option,
@@ -66,6 +70,13 @@ STATS = "/stats"
 FILE_CHECK_S = 1.0
 FILE_CHECK_TIMEOUT_S = 10.0
 LOW_SPACE_BYTES = 1 << 20
+# A viewer (gRPC) that is gone or never came: once rerun's send quota is full, every rerun call
+# (log, flush, disconnect) blocks until the viewer answers, which may be never. So viewer output
+# is logged from its own thread through a short queue: the frame loop never waits for it, a full
+# queue skips frames for the viewer, and shutdown waits VIEWER_JOIN_S at most (rerun itself then
+# gives up on unsent data within 5 s at exit).
+VIEWER_QUEUE_FRAMES = 30  # 1 s at 30 frames/s: bursts pass, a dead viewer costs <= 30 frames
+VIEWER_JOIN_S = 1.5
 
 
 def _xy_to_points3d(x: np.ndarray, y: np.ndarray, z: float) -> np.ndarray:
@@ -182,12 +193,17 @@ class RerunSink:
     ) -> None:
         self.name, self.mode, self.target, self.every, self.image = name, mode, target, every, image
         self._rec: Any = None
+        self._stream: Any = None
         self._rr: Any = None
         self._context: SinkContext | None = None
         self._pinhole: Intrinsics | None = None
         self._frames = 0
         self._next_check = 0.0
         self._file_failed = False
+        self._queue: queue.Queue[tuple[Frame, Result] | None] | None = None
+        self._thread: threading.Thread | None = None
+        self._error: BaseException | None = None
+        self._skipped = RateLimitedLog(log)
         self.logged = 0
 
     @classmethod
@@ -256,12 +272,17 @@ class RerunSink:
             raise SinkError(
                 f"rerun sink ({self.mode} {self.target or 'viewer'}) failed: {exc}"
             ) from exc
-        self._rec = rec
+        self._rec = self._stream = rec  # _rec: open; _stream: what the logging calls use
         self._log_static()
+        if self.mode != "save":  # a file is written in the frame loop: it must not skip frames
+            self._queue = queue.Queue(maxsize=VIEWER_QUEUE_FRAMES)
+            self._thread = threading.Thread(target=self._pump, args=(rec,), name=f"sink {self.name}",
+                                            daemon=True)
+            self._thread.start()
         log.info("rerun sink: %s %s", self.mode, self.target or "viewer")
 
     def _log_static(self) -> None:
-        rr, rec = self._rr, self._rec
+        rr, rec = self._rr, self._stream
         rec.log("/world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
         lines = [[[x, -4.0, 0.0], [x, 4.0, 0.0]] for x in range(0, 7)]
         lines += [[[0.0, y, 0.0], [6.0, y, 0.0]] for y in range(-4, 5)]
@@ -301,8 +322,21 @@ class RerunSink:
         """
         if self._rec is None:
             raise SinkError(f"sink {self.name!r} is not open")
+        if self._error is not None:
+            raise SinkError(
+                f"rerun sink: logging to {self.target or 'the viewer'} failed: {self._error}"
+            )
         self._frames += 1
         if (self._frames - 1) % self.every:
+            return
+        if self._queue is not None:
+            try:
+                self._queue.put_nowait((frame, result))
+            except queue.Full:
+                self._skipped.failed(
+                    "rerun sink: the viewer at %s is not keeping up (gone?); frames skipped for it",
+                    self.target or "(spawned)",
+                )
             return
         try:
             self._log_frame(frame, result)
@@ -337,7 +371,7 @@ class RerunSink:
             ) from exc
 
     def _log_frame(self, frame: Frame, result: Result) -> None:
-        rr, rec = self._rr, self._rec
+        rr, rec = self._rr, self._stream
         rec.set_time("frame", sequence=int(result.seq))
         rec.set_time("sensor_time", duration=float(result.timestamp_s))
         m = result.mount
@@ -380,7 +414,7 @@ class RerunSink:
             )
 
     def _log_image(self, frame: Frame, result: Result) -> None:
-        rr, rec, ctx = self._rr, self._rec, self._context
+        rr, rec, ctx = self._rr, self._stream, self._context
         intr = frame.intrinsics
         if intr != self._pinhole:  # intrinsics rarely change: log the pinhole again only then
             rec.log(
@@ -438,11 +472,49 @@ class RerunSink:
             ),
         )
 
+    def _pump(self, rec: Any) -> None:
+        """The viewer thread: log queued frames until the None that close() sends, then finish."""
+        assert self._queue is not None
+        while True:
+            item = self._queue.get()
+            if item is None:
+                break
+            try:
+                self._log_frame(*item)
+            except Exception as exc:  # reported by the next write()
+                log.debug("rerun viewer thread failed", exc_info=True)
+                self._error = exc
+                return
+            self.logged += 1
+        self._finish(rec)
+
     def close(self) -> None:
-        """Flush and disconnect (which writes the .rrd footer). Safe to call twice."""
+        """Flush and disconnect (which writes the .rrd footer). Safe to call twice.
+
+        A viewer is given VIEWER_JOIN_S to take what is queued; one that does not answer is left
+        behind (its thread is a daemon thread), so it never holds the daemon's shutdown.
+        """
         rec, self._rec = self._rec, None
         if rec is None:
             return
+        thread, self._thread = self._thread, None
+        if thread is None:
+            self._finish(rec)
+            return
+        assert self._queue is not None
+        while True:  # make room for the stop marker: a queued frame may be dropped for it
+            try:
+                self._queue.put_nowait(None)
+                break
+            except queue.Full:
+                with contextlib.suppress(queue.Empty):
+                    self._queue.get_nowait()
+        thread.join(VIEWER_JOIN_S)
+        if thread.is_alive():
+            log.warning("rerun sink: the viewer at %s does not answer; not waiting for it "
+                        "(%d frames logged)", self.target or "(spawned)", self.logged)
+
+    def _finish(self, rec: Any) -> None:
         try:
             # a file must be complete, and writing it is fast; a viewer that went away must not
             # hold the daemon's shutdown (rerun's gRPC sink itself gives up after a few seconds)

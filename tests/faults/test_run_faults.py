@@ -311,24 +311,18 @@ def test_serial_tilt_source_that_vanishes_does_not_stop_the_run(
 
 
 def test_rerun_viewer_that_is_closed(tmp_path: Path) -> None:
+    """The viewer dies mid-run. Once rerun's send quota is full every rerun call blocks until a
+    viewer answers: before the fix the frame loop froze (no output on any sink) and SIGTERM could
+    not end the daemon. Depth images at max rate fill the quota within a few seconds."""
     rerun_cli = pytest.importorskip("rerun_cli")
     binary = Path(rerun_cli.__file__).with_name("rerun")
     port = free_tcp_port()
     log_path = tmp_path / "viewer.log"
     with open(log_path, "wb") as log_file:
         viewer = subprocess.Popen(
-            [
-                str(binary),
-                "--bind",
-                "127.0.0.1",
-                "--port",
-                str(port),
-                "--save",
-                str(tmp_path / "v.rrd"),
-            ],
-            stdout=log_file,
-            stderr=subprocess.STDOUT,
-            start_new_session=True,
+            [str(binary), "--bind", "127.0.0.1", "--port", str(port), "--save",
+             str(tmp_path / "v.rrd")],
+            stdout=log_file, stderr=subprocess.STDOUT, start_new_session=True,
         )
     try:
         deadline = time.monotonic() + WAIT_S
@@ -336,29 +330,32 @@ def test_rerun_viewer_that_is_closed(tmp_path: Path) -> None:
             assert viewer.poll() is None and time.monotonic() < deadline, log_path.read_text()
             time.sleep(0.1)
         err = tmp_path / "err.txt"
-        proc = start(
-            "run",
-            "--device",
-            ENDLESS,
-            "--sink",
-            "stdout",
-            "--sink",
-            f"rerun+grpc://127.0.0.1:{port}?image=0",
-            stderr_path=err,
-        )
+        proc = start("run", "--device", f"{FAST}&loop=1", "--sink", "stdout",
+                     "--sink", f"rerun+grpc://127.0.0.1:{port}", stderr_path=err)
         read_lines(proc, 3)
         os.killpg(viewer.pid, signal.SIGKILL)  # the user closes the viewer (or it crashes)
         viewer.wait(timeout=WAIT_S)
-        seen = read_lines(proc, 10)  # the frame loop goes on
-        code, rest, _ = finish(proc, timeout=WAIT_S)  # the shutdown flush gives up, no hang
+        seen = read_lines(proc, 1500)  # ~0.9 GB of depth images later, the frame loop goes on
+        code, rest, _ = finish(proc, timeout=WAIT_S)  # and the daemon still stops
         text = err.read_text()
         assert code == 0, text
         assert "Traceback" not in text
+        assert "is not keeping up (gone?); frames skipped for it" in text
         json_lines("".join(seen) + rest)
     finally:
         if viewer.poll() is None:
             os.killpg(viewer.pid, signal.SIGKILL)
             viewer.wait(timeout=10)
+
+
+def test_rerun_viewer_that_never_came(tmp_path: Path) -> None:
+    port = free_tcp_port()  # nothing listens there
+    p = depthnav("run", "--device", f"{FAST}&loop=1", "--sink", "stdout",
+                 "--sink", f"rerun+grpc://127.0.0.1:{port}", "--max-frames", "1500", timeout=120)
+    assert p.returncode == 0, p.stderr
+    assert [m["seq"] for m in json_lines(p.stdout)] == list(range(1500))
+    assert "does not answer; not waiting for it" in p.stderr
+    assert "Traceback" not in p.stderr
 
 
 # --- inputs that go away ----------------------------------------------------------------------
