@@ -1,22 +1,29 @@
 """``stdout``: one JSON object per frame per line on standard output (docs/json_schema.md).
 
 Spec: ``stdout`` (no target, no options). Each line is flushed as soon as it is written so a
-consumer (or journald) sees every frame at once. Logs must go to stderr: ``open()`` refuses to run
+consumer (or journald) sees every frame at once. A consumer that stops reading (stalled, not
+closed) must not freeze the frame loop and with it every other output: lines are written by a
+writer thread, ``write()`` waits for each at most STALL_S, and while one is still stuck the next
+ones are skipped (counted, logged; the consumer sees the gap in ``seq``). Logs must go to stderr: ``open()`` refuses to run
 when a logging handler writes to stdout, since that would corrupt the stream. A closed reader
 (``depthnav run ... | head -1``) ends the sink with a SinkError rather than a traceback.
 """
 
 from __future__ import annotations
 
+import contextlib
+import io
 import logging
 import os
+import queue
 import sys
+import threading
 import time
 from typing import TYPE_CHECKING, TextIO
 
 from depthnav_daemon.errors import ConfigError, SinkError
 from depthnav_daemon.sinks import jsonmsg
-from depthnav_daemon.sinks.base import SinkContext, SinkSpec, check_options
+from depthnav_daemon.sinks.base import RateLimitedLog, SinkContext, SinkSpec, check_options
 
 if TYPE_CHECKING:
     from depthnav_daemon.pipeline import Result
@@ -25,6 +32,7 @@ if TYPE_CHECKING:
 log = logging.getLogger(__name__)
 
 GRAMMAR = "stdout"
+STALL_S = 1.0  # longest write() waits for a line to reach the pipe before going on without it
 
 
 class StdoutSink:
@@ -41,6 +49,13 @@ class StdoutSink:
         self._stream: TextIO | None = None
         self._version = "unknown"
         self.lines = 0
+        self._fd: int | None = None
+        self._queue: queue.Queue[bytes | None] | None = None
+        self._thread: threading.Thread | None = None
+        self._done = threading.Event()
+        self._done.set()
+        self._error: BaseException | None = None
+        self._skipped = RateLimitedLog(log)
 
     @classmethod
     def from_spec(cls, spec: SinkSpec) -> StdoutSink:
@@ -68,6 +83,30 @@ class StdoutSink:
                 )
         self._stream = stream
         self._version = context.version
+        try:
+            fd = stream.fileno()
+        except (AttributeError, OSError, ValueError, io.UnsupportedOperation):
+            return  # an in-memory stream: written directly, it cannot stall
+        stream.flush()  # what was printed before goes first; from now on the thread writes the fd
+        self._fd = fd
+        self._queue = queue.Queue(maxsize=1)
+        self._thread = threading.Thread(target=self._writer, name=f"sink {self.name}", daemon=True)
+        self._thread.start()
+
+    def _writer(self) -> None:
+        """Write whole lines to the fd; a stalled reader blocks this thread, not the frame loop."""
+        assert self._queue is not None and self._fd is not None
+        while True:
+            data = self._queue.get()
+            if data is None:
+                return
+            try:
+                view = memoryview(data)
+                while view:
+                    view = view[os.write(self._fd, view):]
+            except BaseException as exc:  # noqa: BLE001 - handed to write() in the frame loop
+                self._error = exc
+            self._done.set()
 
     def write(self, frame: Frame, result: Result) -> None:
         """Write and flush one line.
@@ -79,6 +118,9 @@ class StdoutSink:
             raise SinkError(f"sink {self.name!r} is not open")
         line = self.format(frame, result)
         if line is None:
+            return
+        if self._queue is not None:
+            self._write_threaded(line)
             return
         try:
             print(line, file=self._stream, flush=True)
@@ -93,6 +135,39 @@ class StdoutSink:
             raise SinkError(f"writing to stdout failed: {exc}") from exc
         self.lines += 1
 
+    def _write_threaded(self, line: str) -> None:
+        assert self._queue is not None
+        if not self._done.is_set():  # the last line is still stuck in a pipe nobody reads
+            self._skipped.failed("stdout sink: the reader is not reading (stalled?); lines skipped")
+            return
+        self._raise_error()
+        self._done.clear()
+        self._queue.put_nowait((line + "\n").encode("utf-8"))
+        if self._done.wait(STALL_S):
+            self._raise_error()
+            self.lines += 1
+
+    def _raise_error(self) -> None:
+        exc, self._error = self._error, None
+        if exc is None:
+            return
+        if isinstance(exc, BrokenPipeError):
+            self._stop_thread()
+            self._detach_broken_stdout()
+            raise SinkError(
+                "stdout was closed by the reader (broken pipe)",
+                hint="keep the consumer of depthnav's stdout running, or drop --sink stdout",
+            ) from None
+        self._stop_thread()
+        self._stream = None
+        raise SinkError(f"writing to stdout failed: {exc}") from exc
+
+    def _stop_thread(self) -> None:
+        """Let the writer thread end (it is a daemon thread: one stuck in a write is left)."""
+        q, self._queue = self._queue, None
+        if q is not None and self._done.is_set():
+            q.put_nowait(None)
+
     def format(self, frame: Frame, result: Result) -> str | None:
         """The line to write for one frame (None: write nothing for it)."""
         return jsonmsg.dumps(jsonmsg.frame_message(frame, result, self._version, time.time()))
@@ -101,6 +176,15 @@ class StdoutSink:
         """Flush what is buffered. Safe to call twice; a broken pipe at this point is ignored."""
         stream, self._stream = self._stream, None
         if stream is None:
+            return
+        if self._queue is not None:
+            if self._done.wait(STALL_S):  # the last line gets its chance; a stalled reader not
+                with contextlib.suppress(SinkError):
+                    self._raise_error()
+            self._stop_thread()
+            if self._skipped.count:
+                log.warning("stdout sink: %d lines skipped while the reader was not reading",
+                            self._skipped.count)
             return
         try:
             stream.flush()

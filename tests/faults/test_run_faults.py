@@ -8,6 +8,7 @@ written is intact.
 from __future__ import annotations
 
 import contextlib
+import json
 import logging
 import os
 import resource
@@ -504,3 +505,25 @@ def test_stdout_closed_or_full() -> None:
     )
     assert "3 frames processed; dropped sinks: stdout" in p.stderr
     assert "Traceback" not in p.stderr
+
+
+def test_stdout_reader_that_stalls_does_not_freeze_the_other_outputs(tmp_path: Path) -> None:
+    """The consumer of stdout stops reading (hung, SIGSTOPped) without closing the pipe. Before the
+    fix the next full pipe blocked the frame loop: the UDP scan (and MAVLink) stopped too."""
+    rx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    rx.bind(("127.0.0.1", 0))
+    rx.settimeout(WAIT_S)
+    err = tmp_path / "err.txt"
+    proc = start("run", "--device", ENDLESS, "--sink", "stdout",
+                 "--sink", f"udp://127.0.0.1:{rx.getsockname()[1]}", stderr_path=err)
+    # nobody reads stdout: a 64 KiB pipe holds a handful of lines; the scan must keep coming
+    seqs = [json.loads(rx.recv(65535))["seq"] for _ in range(60)]
+    rx.close()
+    code, out, _ = finish(proc)  # now the reader drains what is there
+    text = err.read_text()
+    assert code == 0, text
+    assert seqs == list(range(60))
+    assert "stdout sink: the reader is not reading (stalled?); lines skipped" in text
+    lines = json_lines(out)  # whole lines only, in order, with a gap where lines were skipped
+    got = [m["seq"] for m in lines]
+    assert got == sorted(got) and len(got) < 60
