@@ -355,8 +355,7 @@ def test_rerun_viewer_that_never_came(tmp_path: Path) -> None:
                  "--sink", f"rerun+grpc://127.0.0.1:{port}", "--max-frames", "1500", timeout=120)
     assert p.returncode == 0, p.stderr
     assert [m["seq"] for m in json_lines(p.stdout)] == list(range(1500))
-    assert "does not answer; not waiting for it" in p.stderr
-    assert "Traceback" not in p.stderr
+    assert "Traceback" not in p.stderr  # and it ended: the 120 s bound above is generous
 
 
 # --- inputs that go away ----------------------------------------------------------------------
