@@ -336,7 +336,7 @@ def test_rerun_viewer_that_is_closed(tmp_path: Path) -> None:
         read_lines(proc, 3)
         os.killpg(viewer.pid, signal.SIGKILL)  # the user closes the viewer (or it crashes)
         viewer.wait(timeout=WAIT_S)
-        seen = read_lines(proc, 1500)  # ~0.9 GB of depth images later, the frame loop goes on
+        seen = read_lines(proc, 1000)  # ~0.6 GB of depth images later, the frame loop goes on
         code, rest, _ = finish(proc, timeout=WAIT_S)  # and the daemon still stops
         text = err.read_text()
         assert code == 0, text
@@ -352,9 +352,9 @@ def test_rerun_viewer_that_is_closed(tmp_path: Path) -> None:
 def test_rerun_viewer_that_never_came(tmp_path: Path) -> None:
     port = free_tcp_port()  # nothing listens there
     p = depthnav("run", "--device", f"{FAST}&loop=1", "--sink", "stdout",
-                 "--sink", f"rerun+grpc://127.0.0.1:{port}", "--max-frames", "1500", timeout=120)
+                 "--sink", f"rerun+grpc://127.0.0.1:{port}", "--max-frames", "800", timeout=120)
     assert p.returncode == 0, p.stderr
-    assert [m["seq"] for m in json_lines(p.stdout)] == list(range(1500))
+    assert [m["seq"] for m in json_lines(p.stdout)] == list(range(800))
     assert "Traceback" not in p.stderr  # and it ended: the 120 s bound above is generous
 
 
@@ -390,17 +390,17 @@ class ReplayWithMotor:
 def test_usb_unplug_errno_19_reconnects_with_backoff(caplog: pytest.LogCaptureFixture) -> None:
     model = KinectMotorModel(counts=(0, 790, -212))
     model.unplug_after_reads = 4
-    attempts: list[float] = []
+    attempts: list[int] = []
 
     def factory(_spec: str) -> ReplayWithMotor:
-        attempts.append(time.monotonic())
+        attempts.append(len(attempts))
         if len(attempts) == 4:  # plugged back in after three failed attempts
             model.unplugged, model.unplug_after_reads = False, None
         return ReplayWithMotor(model)
 
     cfg = build_config(
         [],
-        ["daemon.reconnect_backoff_s=0.02", "daemon.reconnect_backoff_max_s=0.2"],
+        ["daemon.reconnect_backoff_s=0.1", "daemon.reconnect_backoff_max_s=1.0"],
         {"device": "kinect-on-a-bench", "sinks": ["null"]},
     )
     sink = NullSink()
@@ -417,9 +417,10 @@ def test_usb_unplug_errno_19_reconnects_with_backoff(caplog: pytest.LogCaptureFi
     assert (
         "device kinect-on-a-bench lost (the Kinect motor (045e:02b0) went away: unplugged?)" in text
     )
-    assert "reconnect attempt 3" in text and "device kinect-on-a-bench reconnected" in text
-    gaps = np.diff(attempts[1:])
-    assert gaps[-1] > gaps[0]  # the wait grew between attempts (backoff), whatever the clock
+    # the wait doubles after each failed attempt (the daemon's own figures, not a clock)
+    assert "reconnect attempt 1 in 0.1 s" in text
+    assert "(no Kinect found (045e:02ae/02b0)" in text and "reconnect attempt 2 in 0.2 s" in text
+    assert "reconnect attempt 3 in 0.4 s" in text and "device kinect-on-a-bench reconnected" in text
 
 
 def test_fakenect_recording_that_ends(tmp_path: Path) -> None:
