@@ -17,6 +17,15 @@ def pytest_addoption(parser: pytest.Parser) -> None:
     )
 
 
+def pytest_configure(config: pytest.Config) -> None:
+    # the fuzz tests read the environment when imported, after this
+    try:
+        if config.getoption("--soak"):
+            os.environ["DEPTHNAV_SOAK"] = "1"
+    except ValueError:
+        pass
+
+
 @pytest.fixture
 def soak_long(request: pytest.FixtureRequest) -> bool:
     """True when the long soak was asked for."""

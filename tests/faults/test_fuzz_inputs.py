@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import io
 import math
+import os
 import string
 import tempfile
 from collections.abc import Callable
@@ -42,9 +43,13 @@ BASE = settings(
 )
 
 
+LONG = os.environ.get("DEPTHNAV_SOAK") == "1"  # --soak (tests/faults/conftest.py) or the env
+LONG_FACTOR = 5
+
+
 def fuzz(cases: int) -> settings:
-    """Deterministic (derandomized) hypothesis settings running ``cases`` examples."""
-    return settings(BASE, max_examples=cases)
+    """Deterministic (derandomized) hypothesis settings: ``cases`` examples, 5x with --soak."""
+    return settings(BASE, max_examples=cases * LONG_FACTOR if LONG else cases)
 
 
 SMALL = Intrinsics(64, 48, 61.5, 57.25, 30.25, 22.75)  # asymmetric on purpose
@@ -125,7 +130,7 @@ def _npz_bytes() -> bytes:
 NPZ = _npz_bytes()
 
 
-@fuzz(300)
+@fuzz(200)
 @given(edits=EDITS, cut=CUTS)
 def test_fuzz_npz_bytes(tmp_path_factory: pytest.TempPathFactory, edits, cut) -> None:
     path = tmp_path_factory.mktemp("npz") / "x.npz"
@@ -144,7 +149,7 @@ ARRAYS = st.dictionaries(
 )
 
 
-@fuzz(300)
+@fuzz(200)
 @given(arrays=ARRAYS)
 def test_fuzz_npz_arrays(tmp_path_factory: pytest.TempPathFactory, arrays) -> None:
     """Wrong dtypes, shapes and values (NaN, inf, negative, saturated) in every array."""
@@ -168,7 +173,7 @@ META_VALUES = st.one_of(
 )
 
 
-@fuzz(300)
+@fuzz(200)
 @given(
     text=st.one_of(
         st.text(max_size=200),
@@ -207,7 +212,7 @@ def _png(depth: np.ndarray) -> bytes:
 PNG = _png(frames(1)[0].depth_mm)
 
 
-@fuzz(300)
+@fuzz(200)
 @given(
     edits=EDITS,
     cut=CUTS,
@@ -261,7 +266,7 @@ write_fakenect(
 BASE_NAMES = (FAKENECT_DIR / "base" / "INDEX.txt").read_text().split()
 
 
-@fuzz(200)
+@fuzz(150)
 @given(
     lines=st.lists(
         st.one_of(st.sampled_from(BASE_NAMES), st.text(string.printable, max_size=30)), max_size=6
@@ -297,7 +302,7 @@ def _oni_bytes() -> bytes:
 ONI = _oni_bytes()
 
 
-@fuzz(500)
+@fuzz(300)
 @given(edits=EDITS, cut=st.one_of(st.none(), st.integers(0, len(ONI))))
 def test_fuzz_oni_structure(tmp_path_factory: pytest.TempPathFactory, edits, cut) -> None:
     """The .oni checker that runs before libOniFile: headers, record headers, truncation.
@@ -338,7 +343,7 @@ CONFIG_VALUES = st.one_of(
 )
 
 
-@fuzz(400)
+@fuzz(250)
 @given(
     doc=st.one_of(
         st.text(max_size=300),
@@ -392,7 +397,7 @@ ROS_VALUES = st.one_of(
 )
 
 
-@fuzz(400)
+@fuzz(250)
 @given(
     doc=st.one_of(
         st.text(max_size=200),
@@ -461,20 +466,20 @@ SINK_PREFIX = st.sampled_from(
 )
 
 
-@fuzz(600)
+@fuzz(400)
 @given(prefix=DEVICE_PREFIX, rest=SPEC_TEXT)
 def test_fuzz_device_specs(prefix: str, rest: str) -> None:
     """Building a driver from a spec does no I/O and fails with one DriverError line."""
     clean(lambda: create_driver(prefix + rest), (DriverError,))
 
 
-@fuzz(600)
+@fuzz(400)
 @given(prefix=SINK_PREFIX, rest=SPEC_TEXT)
 def test_fuzz_sink_specs(prefix: str, rest: str) -> None:
     clean(lambda: create_sink(prefix + rest), (ConfigError,))
 
 
-@fuzz(300)
+@fuzz(200)
 @given(rest=SPEC_TEXT)
 def test_fuzz_serial_tilt_specs(rest: str) -> None:
     clean(lambda: SerialTiltSource.from_spec("serialtilt:" + rest), (DriverError,))
@@ -492,7 +497,7 @@ LINE_BYTES = st.one_of(
 )
 
 
-@fuzz(1000)
+@fuzz(600)
 @given(
     chunks=st.lists(LINE_BYTES, max_size=8), newline=st.sampled_from([b"\n", b"\r\n", b"", b"\r"])
 )
@@ -511,7 +516,7 @@ def test_fuzz_serial_line_protocol(chunks: list[bytes], newline: bytes) -> None:
         assert math.isfinite(reading.roll_deg) and abs(reading.roll_deg) <= 180
 
 
-@fuzz(600)
+@fuzz(400)
 @given(
     pitch=st.floats(width=32),
     roll=st.floats(width=32),
@@ -595,7 +600,7 @@ ARG_WORDS = st.sampled_from(
 )
 
 
-@fuzz(300)
+@fuzz(200)
 @given(argv=st.lists(st.one_of(ARG_WORDS, st.text(max_size=12)), max_size=7))
 def test_fuzz_command_line(argv: list[str]) -> None:
     """Random argument lists through cli.main(): exit 0, 1, 2 or 130, never an internal error.
