@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
 import signal
 import sys
 import threading
@@ -366,4 +367,23 @@ def entry_point() -> None:
         code = EXIT_OK
     except KeyboardInterrupt:
         code = EXIT_INTERRUPTED
+    _exit_now_if_a_viewer_is_stuck(code)
     sys.exit(code)
+
+
+def _exit_now_if_a_viewer_is_stuck(code: int) -> None:
+    """End the process at once when a rerun viewer thread is stuck (see abandoned_viewers()).
+
+    Every sink is closed by now; only the interpreter's teardown is skipped, which would wait 5 s
+    for the gone viewer and could abort (SIGABRT, 'terminate called without an active exception').
+    """
+    rerun_sink = sys.modules.get("depthnav_daemon.sinks.rerun")
+    if rerun_sink is None or not rerun_sink.abandoned_viewers():
+        return
+    logging.shutdown()
+    for stream in (sys.stdout, sys.stderr):
+        try:
+            stream.flush()
+        except (OSError, ValueError):
+            pass
+    os._exit(code)

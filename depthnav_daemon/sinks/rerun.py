@@ -169,6 +169,18 @@ def trim_partial_message(path: str) -> int | None:
         return None
 
 
+_abandoned: list[str] = []  # viewer sinks whose thread was left blocked inside rerun
+
+
+def abandoned_viewers() -> list[str]:
+    """Sinks whose viewer thread is still blocked inside rerun after close() (the viewer is gone).
+
+    The CLI then ends the process without the interpreter's teardown: rerun's exit hook waits 5 s
+    for the viewer, and tearing down under a thread blocked in native code can abort (SIGABRT).
+    """
+    return list(_abandoned)
+
+
 def _discard(rec: Any) -> None:
     """Disconnect a recording whose sink could not be set up."""
     try:
@@ -511,6 +523,7 @@ class RerunSink:
                     self._queue.get_nowait()
         thread.join(VIEWER_JOIN_S)
         if thread.is_alive():
+            _abandoned.append(self.name)
             log.warning("rerun sink: the viewer at %s does not answer; not waiting for it "
                         "(%d frames logged)", self.target or "(spawned)", self.logged)
 
