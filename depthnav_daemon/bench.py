@@ -180,7 +180,9 @@ def time_work(
 
 def _stats(name: str, per_round: list[list[float]], copies: list[list[float]]) -> Timing:
     xs = np.concatenate(per_round)
-    ratios = [float(np.median(r)) / float(np.median(c)) for r, c in zip(per_round, copies, strict=True)]
+    ratios = [
+        float(np.median(r)) / float(np.median(c)) for r, c in zip(per_round, copies, strict=True)
+    ]
     med = float(np.median(xs))
     return Timing(
         name,

@@ -135,8 +135,10 @@ def write_mount(path: Path, c: Calibration) -> None:
         mode = path.stat().st_mode & 0o7777 if path.exists() else 0o666 & ~_umask()
         fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=folder)
     except OSError as exc:
-        raise DepthnavError(f"cannot write {path}: {exc.strerror or exc}",
-                            hint="check the folder exists and is writable") from None
+        raise DepthnavError(
+            f"cannot write {path}: {exc.strerror or exc}",
+            hint="check the folder exists and is writable",
+        ) from None
     try:
         with os.fdopen(fd, "wb") as fh:
             tomli_w.dump(data, fh)

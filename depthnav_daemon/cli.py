@@ -29,14 +29,29 @@ class _Parser(argparse.ArgumentParser):
     """argparse that reports usage errors as one line plus a hint, with exit code 2."""
 
     def error(self, message: str) -> None:  # type: ignore[override]
-        self.exit(EXIT_USAGE, f"depthnav: error: {message}\ndepthnav: hint: {self.prog} --help shows the options\n")
+        self.exit(
+            EXIT_USAGE,
+            f"depthnav: error: {message}\ndepthnav: hint: {self.prog} --help shows the options\n",
+        )
 
 
 def _add_config_args(p: argparse.ArgumentParser) -> None:
-    p.add_argument("-c", "--config", action="append", default=[], metavar="FILE", type=Path,
-                   help="config file (TOML, or a depth_nav_tools ROS .yaml); repeat, later files win")
-    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
-                   help="override one config key, e.g. --set scan.range_max_m=4 (wins over files)")
+    p.add_argument(
+        "-c",
+        "--config",
+        action="append",
+        default=[],
+        metavar="FILE",
+        type=Path,
+        help="config file (TOML, or a depth_nav_tools ROS .yaml); repeat, later files win",
+    )
+    p.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="override one config key, e.g. --set scan.range_max_m=4 (wins over files)",
+    )
     p.add_argument("--height-m", type=float, help="sensor height above the floor, metres")
     p.add_argument("--tilt-deg", type=float, help="sensor tilt, degrees, positive = pitched down")
     p.add_argument("--roll-deg", type=float, help="sensor roll, degrees, positive = left side up")
@@ -45,23 +60,41 @@ def _add_config_args(p: argparse.ArgumentParser) -> None:
 
 def _add_run_args(p: argparse.ArgumentParser, device_required: bool) -> None:
     if device_required:
-        p.add_argument("--device", help="device spec: kinect, openni://, replay:PATH, ... (see: depthnav devices)")
-    p.add_argument("--sink", action="append", default=None, metavar="SPEC",
-                   help="output: stdout, udp://HOST:PORT, rerun, rerun:FILE.rrd, rerun+grpc://HOST:PORT, "
-                   "mavlink:PORT?baud=N, mavlink+udp://HOST:PORT, null; repeat for several")
+        p.add_argument(
+            "--device",
+            help="device spec: kinect, openni://, replay:PATH, ... (see: depthnav devices)",
+        )
+    p.add_argument(
+        "--sink",
+        action="append",
+        default=None,
+        metavar="SPEC",
+        help="output: stdout, udp://HOST:PORT, rerun, rerun:FILE.rrd, rerun+grpc://HOST:PORT, "
+        "mavlink:PORT?baud=N, mavlink+udp://HOST:PORT, null; repeat for several",
+    )
     p.add_argument("--max-frames", type=int, metavar="N", help="stop after N frames")
     _add_config_args(p)
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = _Parser(prog="depthnav", description="Depth sensor to laser scan, cliffs and mount pose for robots.")
+    parser = _Parser(
+        prog="depthnav", description="Depth sensor to laser scan, cliffs and mount pose for robots."
+    )
     parser.add_argument("--version", action="version", version=f"depthnav {__version__}")
-    parser.add_argument("-v", "--verbose", action="count", default=0, help="-v debug logs, -vv with tracebacks")
-    parser.add_argument("-q", "--quiet", action="store_true", default=False, help="warnings and errors only")
+    parser.add_argument(
+        "-v", "--verbose", action="count", default=0, help="-v debug logs, -vv with tracebacks"
+    )
+    parser.add_argument(
+        "-q", "--quiet", action="store_true", default=False, help="warnings and errors only"
+    )
     # the same flags after the subcommand; SUPPRESS keeps the values given before it
     common = argparse.ArgumentParser(add_help=False)
-    common.add_argument("-v", "--verbose", action="count", default=argparse.SUPPRESS, help=argparse.SUPPRESS)
-    common.add_argument("-q", "--quiet", action="store_true", default=argparse.SUPPRESS, help=argparse.SUPPRESS)
+    common.add_argument(
+        "-v", "--verbose", action="count", default=argparse.SUPPRESS, help=argparse.SUPPRESS
+    )
+    common.add_argument(
+        "-q", "--quiet", action="store_true", default=argparse.SUPPRESS, help=argparse.SUPPRESS
+    )
     sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
     _add = sub.add_parser
     sub.add_parser = lambda *a, **k: _add(*a, parents=[common], **k)  # type: ignore[method-assign]
@@ -72,7 +105,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("replay", help="process a recording (alias of run --device replay:PATH)")
     p.add_argument("path", help="recording folder, .npz, PNG folder, fakenect folder or .oni file")
-    p.add_argument("--rate", choices=("realtime", "max"), default="max", help="pacing (default max)")
+    p.add_argument(
+        "--rate", choices=("realtime", "max"), default="max", help="pacing (default max)"
+    )
     p.add_argument("--loop", action="store_true", help="start again at the end")
     _add_run_args(p, device_required=False)
     p.set_defaults(handler=cmd_replay)
@@ -81,21 +116,31 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--device", required=True, help="device spec")
     p.add_argument("--frames", type=int, default=30, metavar="N", help="frames to use (default 30)")
     p.add_argument("--json", action="store_true", help="print one JSON object instead of text")
-    p.add_argument("--write", type=Path, metavar="FILE", help="write the [mount] section into this TOML file")
+    p.add_argument(
+        "--write", type=Path, metavar="FILE", help="write the [mount] section into this TOML file"
+    )
     _add_config_args(p)
     p.set_defaults(handler=cmd_calibrate)
 
-    p = sub.add_parser("record", help="record a device's frames as a depthnav recording (a fixture)")
+    p = sub.add_parser(
+        "record", help="record a device's frames as a depthnav recording (a fixture)"
+    )
     p.add_argument("--device", required=True, help="device spec")
-    p.add_argument("--frames", type=int, default=30, metavar="N", help="frames to record (default 30)")
+    p.add_argument(
+        "--frames", type=int, default=30, metavar="N", help="frames to record (default 30)"
+    )
     p.add_argument("--description", default="", help="one line about the scene")
     p.add_argument("out", type=Path, help="new folder to write")
     p.set_defaults(handler=cmd_record)
 
-    p = sub.add_parser("mount", help="dead zones and highest visible obstacle for a mount (eq. 15-16)")
+    p = sub.add_parser(
+        "mount", help="dead zones and highest visible obstacle for a mount (eq. 15-16)"
+    )
     p.add_argument("--height-m", type=float, required=True, help="sensor height, metres")
     p.add_argument("--tilt-deg", type=float, required=True, help="tilt, degrees, positive = down")
-    p.add_argument("--sensor", default="kinect", help="kinect, xtion, kinect2, realsense-d435 (field of view)")
+    p.add_argument(
+        "--sensor", default="kinect", help="kinect, xtion, kinect2, realsense-d435 (field of view)"
+    )
     p.add_argument("--vfov-deg", type=float, help="vertical field of view, overrides --sensor")
     p.add_argument("--distances-m", default="0.5,1,1.5,2,3,4,5", help="comma-separated distances")
     p.add_argument("--plot", type=Path, metavar="PNG", help="also draw the side view to this PNG")
@@ -107,16 +152,36 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(handler=cmd_info)
 
     p = sub.add_parser("bench", help="time every stage and the whole pipeline")
-    p.add_argument("--device", help="recording or device to time on (default: the bundled fixtures/corridor_step)")
+    p.add_argument(
+        "--device",
+        help="recording or device to time on (default: the bundled fixtures/corridor_step)",
+    )
     p.add_argument("--json", action="store_true", help="print JSON")
-    p.add_argument("--rounds", type=int, default=7, metavar="N", help="interleaved timing rounds (default 7)")
-    p.add_argument("--resolutions", action="store_true",
-                   help="also time synthetic frames at 640x480, 512x424, 848x480 and 1280x720")
-    p.add_argument("--cpu-30fps", type=float, default=0.0, metavar="SECONDS", nargs="?", const=20.0,
-                   help="also run depthnav run at 30 frames/s to UDP and report its CPU share (default 20 s)")
-    p.add_argument("--startup", action="store_true",
-                   help="also time depthnav run to its first output (5 runs, warm kernel cache)")
-    p.add_argument("--quick", action="store_true", help="one short round (a smoke test, not a measurement)")
+    p.add_argument(
+        "--rounds", type=int, default=7, metavar="N", help="interleaved timing rounds (default 7)"
+    )
+    p.add_argument(
+        "--resolutions",
+        action="store_true",
+        help="also time synthetic frames at 640x480, 512x424, 848x480 and 1280x720",
+    )
+    p.add_argument(
+        "--cpu-30fps",
+        type=float,
+        default=0.0,
+        metavar="SECONDS",
+        nargs="?",
+        const=20.0,
+        help="also run depthnav run at 30 frames/s to UDP and report its CPU share (default 20 s)",
+    )
+    p.add_argument(
+        "--startup",
+        action="store_true",
+        help="also time depthnav run to its first output (5 runs, warm kernel cache)",
+    )
+    p.add_argument(
+        "--quick", action="store_true", help="one short round (a smoke test, not a measurement)"
+    )
     p.set_defaults(handler=cmd_bench)
     return parser
 
@@ -134,8 +199,15 @@ def configure_logging(verbose: int, quiet: bool) -> None:
 
 def _overrides(args: argparse.Namespace, device: str | None = None) -> dict[str, Any]:
     out: dict[str, Any] = {}
-    mount = {k: v for k, v in (("height_m", args.height_m), ("tilt_deg", args.tilt_deg),
-                               ("roll_deg", args.roll_deg)) if v is not None}
+    mount = {
+        k: v
+        for k, v in (
+            ("height_m", args.height_m),
+            ("tilt_deg", args.tilt_deg),
+            ("roll_deg", args.roll_deg),
+        )
+        if v is not None
+    }
     if mount:
         out["mount"] = mount
     if args.method:
@@ -147,7 +219,7 @@ def _overrides(args: argparse.Namespace, device: str | None = None) -> dict[str,
     return out
 
 
-def load_config(args: argparse.Namespace, device: str | None):  # noqa: ANN201 - Config, imported lazily
+def load_config(args: argparse.Namespace, device: str | None):
     from depthnav_daemon.config import build_config
 
     return build_config(args.config, args.set, _overrides(args, device))
@@ -171,7 +243,9 @@ def _run(args: argparse.Namespace, device: str | None) -> int:
 
     cfg = load_config(args, device)
     if not cfg.device:
-        raise ConfigError("no device given", hint="use --device SPEC or set device in a config file")
+        raise ConfigError(
+            "no device given", hint="use --device SPEC or set device in a config file"
+        )
     if args.max_frames is not None and args.max_frames < 1:
         raise ConfigError(f"--max-frames={args.max_frames} is out of range (accepted: 1 or more)")
     stop = threading.Event()
@@ -187,8 +261,11 @@ def _run(args: argparse.Namespace, device: str | None) -> int:
     finally:
         if serial is not None:
             serial.stop()
-    log.info("%d frames processed%s", report.frames,
-             f"; dropped sinks: {', '.join(report.dropped_sinks)}" if report.dropped_sinks else "")
+    log.info(
+        "%d frames processed%s",
+        report.frames,
+        f"; dropped sinks: {', '.join(report.dropped_sinks)}" if report.dropped_sinks else "",
+    )
     if got.get("signal") == signal.SIGINT:
         return EXIT_INTERRUPTED
     return EXIT_OK
@@ -196,7 +273,9 @@ def _run(args: argparse.Namespace, device: str | None) -> int:
 
 def cmd_run(args: argparse.Namespace) -> int:
     if not args.device and not args.config:
-        raise ConfigError("no device given", hint="depthnav run --device kinect (or replay:PATH, openni://)")
+        raise ConfigError(
+            "no device given", hint="depthnav run --device kinect (or replay:PATH, openni://)"
+        )
     return _run(args, args.device)
 
 
@@ -213,7 +292,9 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
         raise ConfigError(f"--frames={args.frames} is out of range (accepted: 1 or more)")
     stop = threading.Event()
     got = _install_stop_handlers(stop)
-    result = calibrate(cfg, args.frames, stop, progress=_progress_bar("calibrating") if not args.json else None)
+    result = calibrate(
+        cfg, args.frames, stop, progress=_progress_bar("calibrating") if not args.json else None
+    )
     if got.get("signal") == signal.SIGINT:
         return EXIT_INTERRUPTED
     if args.json:
@@ -228,7 +309,7 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
-def _progress_bar(label: str):  # noqa: ANN202 - Callable[[int, int], None]
+def _progress_bar(label: str):
     """A one-line progress bar on stderr when it is a terminal; log lines otherwise."""
     tty = sys.stderr.isatty()
 
@@ -237,7 +318,9 @@ def _progress_bar(label: str):  # noqa: ANN202 - Callable[[int, int], None]
             width = 30
             filled = int(width * done / max(total, 1))
             end = "\n" if done >= total else ""
-            sys.stderr.write(f"\r{label} [{'#' * filled}{'.' * (width - filled)}] {done}/{total}{end}")
+            sys.stderr.write(
+                f"\r{label} [{'#' * filled}{'.' * (width - filled)}] {done}/{total}{end}"
+            )
             sys.stderr.flush()
         elif done == total or done % max(total // 4, 1) == 0:
             log.info("%s: %d/%d frames", label, done, total)
@@ -256,15 +339,20 @@ def cmd_record(args: argparse.Namespace) -> int:
     driver = create_driver(args.device)
     bar = _progress_bar("recording")
 
-    def frames():  # noqa: ANN202
+    def frames():
         for i, frame in enumerate(iter_frames(driver, stop)):
             if i >= args.frames:
                 break
             yield frame
 
     with opened(driver):
-        n = write_recording(args.out, frames(), description=args.description, device=args.device,
-                            progress=lambda k: bar(k, args.frames))
+        n = write_recording(
+            args.out,
+            frames(),
+            description=args.description,
+            device=args.device,
+            progress=lambda k: bar(k, args.frames),
+        )
     log.info("recorded %d frames into %s", n, args.out)
     return EXIT_INTERRUPTED if got.get("signal") == signal.SIGINT else EXIT_OK
 
@@ -272,7 +360,9 @@ def cmd_record(args: argparse.Namespace) -> int:
 def cmd_mount(args: argparse.Namespace) -> int:
     from depthnav_daemon.mount_cli import mount_report
 
-    text = mount_report(args.height_m, args.tilt_deg, args.sensor, args.vfov_deg, args.distances_m, args.plot)
+    text = mount_report(
+        args.height_m, args.tilt_deg, args.sensor, args.vfov_deg, args.distances_m, args.plot
+    )
     print(text)  # noqa: T201
     return EXIT_OK
 
@@ -295,8 +385,11 @@ def cmd_info(_args: argparse.Namespace) -> int:
 
     from drivers import describe_backends
 
-    lines = [f"depthnav {__version__}", f"python {platform.python_version()} ({sys.executable})",
-             f"numpy {np.__version__}"]
+    lines = [
+        f"depthnav {__version__}",
+        f"python {platform.python_version()} ({sys.executable})",
+        f"numpy {np.__version__}",
+    ]
     for mod in ("numba", "rerun", "pymavlink", "serial", "usb", "openni", "PIL"):
         try:
             m = __import__(mod)
@@ -315,8 +408,15 @@ def cmd_bench(args: argparse.Namespace) -> int:
         raise ConfigError(f"--rounds={args.rounds} is out of range (accepted: 1 or more)")
     if args.cpu_30fps < 0:
         raise ConfigError(f"--cpu-30fps={args.cpu_30fps} is out of range (accepted: seconds > 0)")
-    return bench_main(device=args.device, as_json=args.json, resolutions=args.resolutions,
-                      cpu_seconds=args.cpu_30fps, startup=args.startup, rounds=args.rounds, quick=args.quick)
+    return bench_main(
+        device=args.device,
+        as_json=args.json,
+        resolutions=args.resolutions,
+        cpu_seconds=args.cpu_30fps,
+        startup=args.startup,
+        rounds=args.rounds,
+        quick=args.quick,
+    )
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -328,7 +428,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         return int(args.handler(args))
     except (DepthnavError, DriverError) as exc:
         log.debug("traceback", exc_info=args.verbose >= 2)
-        sys.stderr.write(f"depthnav: error: {str(exc).splitlines()[0] if str(exc) else type(exc).__name__}\n")
+        sys.stderr.write(
+            f"depthnav: error: {str(exc).splitlines()[0] if str(exc) else type(exc).__name__}\n"
+        )
         if getattr(exc, "hint", None):
             sys.stderr.write(f"depthnav: hint: {exc.hint}\n")
         if isinstance(exc, DeviceSpecError):
@@ -338,10 +440,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         return EXIT_INTERRUPTED
     except BrokenPipeError:
         return EXIT_OK  # the reader went away (e.g. `| head`); nothing left to say
-    except Exception as exc:  # noqa: BLE001 - the last line of defence: one line, not a traceback
+    except Exception as exc:
         log.debug("traceback", exc_info=True)
-        sys.stderr.write(f"depthnav: internal error: {type(exc).__name__}: {exc}\n"
-                         "depthnav: hint: run again with -vv for the traceback and report it\n")
+        sys.stderr.write(
+            f"depthnav: internal error: {type(exc).__name__}: {exc}\n"
+            "depthnav: hint: run again with -vv for the traceback and report it\n"
+        )
         return EXIT_FAIL
 
 

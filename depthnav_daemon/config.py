@@ -81,7 +81,9 @@ class DaemonParams:
         check_int("daemon.max_consecutive_timeouts", self.max_consecutive_timeouts, 1, 10_000)
         check_int("daemon.reconnect_attempts", self.reconnect_attempts, 0, 1_000_000)
         check_range("daemon.reconnect_backoff_s", self.reconnect_backoff_s, 0.0, 60.0, " s")
-        check_range("daemon.reconnect_backoff_max_s", self.reconnect_backoff_max_s, 0.0, 3600.0, " s")
+        check_range(
+            "daemon.reconnect_backoff_max_s", self.reconnect_backoff_max_s, 0.0, 3600.0, " s"
+        )
         check_int("daemon.seed", self.seed, 0, 2**63 - 1)
 
 
@@ -165,7 +167,9 @@ def _merge(base: dict[str, Any], overlay: Mapping[str, Any], origin: str) -> Non
 def read_config_file(path: Path) -> dict[str, Any]:
     """One config file as a nested dict: TOML, or a depth_nav_tools ROS parameter file (.yaml)."""
     if not path.is_file():
-        raise ConfigError(f"config file {path} does not exist", hint="check the path given to --config")
+        raise ConfigError(
+            f"config file {path} does not exist", hint="check the path given to --config"
+        )
     if path.suffix in (".yaml", ".yml"):
         from depthnav_daemon.ros_params import load_ros_params
 
@@ -187,7 +191,9 @@ def parse_set(item: str) -> dict[str, Any]:
     key, sep, text = item.partition("=")
     key = key.strip()
     if not sep or not key:
-        raise ConfigError(f"--set {item!r} is not key=value", hint="e.g. --set scan.range_max_m=4.0")
+        raise ConfigError(
+            f"--set {item!r} is not key=value", hint="e.g. --set scan.range_max_m=4.0"
+        )
     try:
         value = tomllib.loads(f"v = {text.strip()}")["v"]
     except tomllib.TOMLDecodeError:
@@ -196,7 +202,9 @@ def parse_set(item: str) -> dict[str, Any]:
         return {key: value}
     section, dot, sub = key.partition(".")
     if not dot or section not in SECTIONS:
-        raise ConfigError(f"--set {key!r}: unknown key", hint=f"valid keys: {', '.join(valid_keys())}")
+        raise ConfigError(
+            f"--set {key!r}: unknown key", hint=f"valid keys: {', '.join(valid_keys())}"
+        )
     return {section: {sub: value}}
 
 

@@ -43,13 +43,15 @@ class RunReport:
     dropped_sinks: list[str] = field(default_factory=list)
     rejected_pose_jumps: int = 0
     last_result: Result | None = None
-    stopped: bool = False   # ended by the stop event rather than by the source
+    stopped: bool = False  # ended by the stop event rather than by the source
 
 
 class _Source:
     """The driver plus reconnect-with-backoff when it is lost."""
 
-    def __init__(self, spec: str, cfg: Config, stop: threading.Event, factory: Callable[[str], Driver]) -> None:
+    def __init__(
+        self, spec: str, cfg: Config, stop: threading.Event, factory: Callable[[str], Driver]
+    ) -> None:
         self.spec = spec
         self._cfg = cfg.daemon
         self._stop = stop
@@ -81,7 +83,13 @@ class _Source:
                     f"device {self.spec} lost ({why}) and {limit} reconnect attempts failed",
                     hint="check the cable and power; depthnav devices lists what can be opened",
                 )
-            log.warning("device %s lost (%s); reconnect attempt %d in %.1f s", self.spec, why, attempt, backoff)
+            log.warning(
+                "device %s lost (%s); reconnect attempt %d in %.1f s",
+                self.spec,
+                why,
+                attempt,
+                backoff,
+            )
             if self._stop.wait(backoff):
                 return False
             try:
@@ -97,7 +105,9 @@ class _Source:
         return False
 
 
-def _open_sinks(specs: tuple[str, ...], context: SinkContext, factory: Callable[[str], Sink]) -> list[Sink]:
+def _open_sinks(
+    specs: tuple[str, ...], context: SinkContext, factory: Callable[[str], Sink]
+) -> list[Sink]:
     sinks: list[Sink] = []
     for spec in specs:
         sink = factory(spec)
@@ -108,7 +118,9 @@ def _open_sinks(specs: tuple[str, ...], context: SinkContext, factory: Callable[
             continue
         sinks.append(sink)
     if not sinks:
-        raise DepthnavError("no output sink could start", hint="check the --sink specs (depthnav run --help)")
+        raise DepthnavError(
+            "no output sink could start", hint="check the --sink specs (depthnav run --help)"
+        )
     return sinks
 
 
@@ -116,14 +128,14 @@ def _fan_out(sinks: list[Sink], frame: Frame, result: Result, report: RunReport)
     for sink in list(sinks):
         try:
             sink.write(frame, result)
-        except Exception as exc:  # noqa: BLE001 - one sink's failure must never stop the others
+        except Exception as exc:
             msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
             log.error("sink %s failed: %s; dropped, the others go on", sink.name, msg)
             report.dropped_sinks.append(sink.name)
             sinks.remove(sink)
             try:
                 sink.close()
-            except Exception:  # noqa: BLE001
+            except Exception:
                 log.debug("closing failed sink %s", sink.name, exc_info=True)
     if not sinks:
         raise DepthnavError("every output sink failed", hint="see the errors above")
@@ -152,7 +164,8 @@ def run(
     report = RunReport()
     d = cfg.daemon
     tracker = MountTracker(
-        cfg.mount, TrackerParams(d.pose_smoothing, d.max_jump_m, d.max_jump_deg, d.jump_confirmations)
+        cfg.mount,
+        TrackerParams(d.pose_smoothing, d.max_jump_m, d.max_jump_deg, d.jump_confirmations),
     )
     source = _Source(cfg.device, cfg, stop, driver_factory)
     info = source.open()
@@ -195,17 +208,26 @@ def run(
                 log.error("%s; going on without the serial tilt source", exc)
                 serial_tilt = None
             want_pose = d.pose_every_frames > 0 and since_pose >= d.pose_every_frames
-            if d.pose_every_s > 0 and (last_pose_t is None or frame.timestamp_s - last_pose_t >= d.pose_every_s):
+            if d.pose_every_s > 0 and (
+                last_pose_t is None or frame.timestamp_s - last_pose_t >= d.pose_every_s
+            ):
                 want_pose = True
+
             def on_pose(est: PoseEstimate) -> tuple[Mount, str]:
                 _apply_pose(tracker, est, d.tilt_source)
                 return tracker.mount, tracker.source
 
             try:
                 result = process(
-                    frame, tracker.mount, cfg.scan, cfg.cliff if d.cliff else None,
-                    pose_prior(cfg.pose, tracker) if want_pose else None, rng, tracker.source,
-                    time.perf_counter, on_pose,
+                    frame,
+                    tracker.mount,
+                    cfg.scan,
+                    cfg.cliff if d.cliff else None,
+                    pose_prior(cfg.pose, tracker) if want_pose else None,
+                    rng,
+                    tracker.source,
+                    time.perf_counter,
+                    on_pose,
                 )
             except FrameError as exc:
                 log.warning("frame %d skipped: %s", frame.seq, exc)
@@ -225,7 +247,7 @@ def run(
         for sink in sinks:
             try:
                 sink.close()
-            except Exception as exc:  # noqa: BLE001 - close every sink whatever one does
+            except Exception as exc:
                 log.error("sink %s did not close cleanly: %s", sink.name, exc)
         source.close()
         report.reconnects = source.reconnects
@@ -251,7 +273,9 @@ def pose_prior(params: PoseParams, tracker: MountTracker) -> PoseParams:
     return dataclasses.replace(params, tilt_min_deg=lo, tilt_max_deg=hi)
 
 
-def _update_tilt_prior(tracker: MountTracker, frame: Frame, tilt_source: str, serial_tilt: object | None) -> None:
+def _update_tilt_prior(
+    tracker: MountTracker, frame: Frame, tilt_source: str, serial_tilt: object | None
+) -> None:
     if tilt_source in ("auto", "accel") and frame.accel_mps2 is not None:
         try:
             tilt, roll = tilt_roll_from_accel(frame.accel_mps2)

@@ -1,9 +1,9 @@
 """Errors of the daemon and the pipeline. Every message says what failed; ``hint`` what to do.
 
-    DepthnavError(Exception)     .hint, .exit_code = 1
-     ├─ ConfigError              bad parameter, config file or command line (exit_code = 2)
-     ├─ FrameError               a depth frame the pipeline cannot use (wrong dtype or shape)
-     └─ SinkError                an output failed; the daemon drops that sink and goes on
+DepthnavError(Exception)     .hint, .exit_code = 1
+ ├─ ConfigError              bad parameter, config file or command line (exit_code = 2)
+ ├─ FrameError               a depth frame the pipeline cannot use (wrong dtype or shape)
+ └─ SinkError                an output failed; the daemon drops that sink and goes on
 """
 
 from __future__ import annotations

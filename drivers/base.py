@@ -33,7 +33,9 @@ class Intrinsics:
 
     def __post_init__(self) -> None:
         if not (isinstance(self.width, int) and isinstance(self.height, int)):
-            raise ValueError(f"intrinsics width/height must be integers, got {self.width!r}x{self.height!r}")
+            raise ValueError(
+                f"intrinsics width/height must be integers, got {self.width!r}x{self.height!r}"
+            )
         if not (1 <= self.width <= 8192 and 1 <= self.height <= 8192):
             raise ValueError(
                 f"intrinsics size {self.width}x{self.height} is out of range (1..8192 pixels each way)"
@@ -50,7 +52,9 @@ class Intrinsics:
                 )
 
     @classmethod
-    def from_fov(cls, width: int, height: int, hfov_deg: float, vfov_deg: float | None = None) -> Intrinsics:
+    def from_fov(
+        cls, width: int, height: int, hfov_deg: float, vfov_deg: float | None = None
+    ) -> Intrinsics:
         """Ideal intrinsics from a field of view, principal point at the image centre.
 
         Args:
@@ -66,8 +70,12 @@ class Intrinsics:
         """The same camera at another resolution (pixel-centre convention kept)."""
         sx, sy = width / self.width, height / self.height
         return Intrinsics(
-            width, height, self.fx * sx, self.fy * sy,
-            (self.cx + 0.5) * sx - 0.5, (self.cy + 0.5) * sy - 0.5,
+            width,
+            height,
+            self.fx * sx,
+            self.fy * sy,
+            (self.cx + 0.5) * sx - 0.5,
+            (self.cy + 0.5) * sy - 0.5,
         )
 
     def as_array(self) -> npt.NDArray[np.float64]:
@@ -84,7 +92,7 @@ class TiltState:
     """State of a motorised tilt mount (the Kinect 360 motor)."""
 
     angle_deg: float | None  # motor angle reported by the device, positive = up (device's own sign)
-    status: str              # "stopped", "at_limit", "moving", or "unknown"
+    status: str  # "stopped", "at_limit", "moving", or "unknown"
 
 
 @dataclass(frozen=True, slots=True)
@@ -120,9 +128,9 @@ class Frame:
 class DeviceInfo:
     """What an opened driver says about its device."""
 
-    name: str                 # "Kinect 360 (1414)", "replay: corridor_step"
+    name: str  # "Kinect 360 (1414)", "replay: corridor_step"
     serial: str | None
-    spec: str                 # the canonical spec it was opened with
+    spec: str  # the canonical spec it was opened with
     intrinsics: Intrinsics | None = None
     has_accel: bool = False
 

@@ -164,8 +164,11 @@ def _name(fields: bytes, path: Path, pos: int) -> tuple[str, int]:
         raise RecordingError(f"{path}: corrupt record at byte {pos} (no name)")
     (length,) = struct.unpack_from("<I", fields)
     raw = fields[4 : 4 + length]
-    if not 2 <= length <= MAX_NAME or len(raw) != length or raw[-1:] != b"\0" or not all(
-        0x20 <= c < 0x7F for c in raw[:-1]
+    if (
+        not 2 <= length <= MAX_NAME
+        or len(raw) != length
+        or raw[-1:] != b"\0"
+        or not all(0x20 <= c < 0x7F for c in raw[:-1])
     ):
         raise RecordingError(f"{path}: corrupt record at byte {pos} (bad name)")
     return raw[:-1].decode("ascii"), 4 + length

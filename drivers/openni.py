@@ -73,6 +73,7 @@ STOP_SETTLE_S = 0.1  # > 33 ms: stream threads outlive stop() by up to one frame
 _init_lock = threading.Lock()
 _state: dict[str, str] = {}  # "library": path once initialised in this process
 
+
 def find_library() -> tuple[Path, Path] | None:
     """(libOpenNI2 path, its OpenNI2 folder with Drivers/), or None if not installed."""
     redist = os.environ.get("DEPTHNAV_OPENNI2_REDIST")
@@ -84,6 +85,7 @@ def find_library() -> tuple[Path, Path] | None:
         if lib.exists() and (Path(folder) / "OpenNI2" / "Drivers").is_dir():
             return lib, Path(folder) / "OpenNI2"
     return None
+
 
 def _private_dir(lib: Path, drivers_dir: Path) -> str:
     """A folder where ``libOpenNI2.so`` and ``OpenNI2`` point at the system copies."""
@@ -98,6 +100,7 @@ def _private_dir(lib: Path, drivers_dir: Path) -> str:
         os.symlink(target, tmp)
         os.replace(tmp, link)  # atomic, so two processes starting at once both succeed
     return str(folder)
+
 
 def initialize() -> Any:
     """Load libOpenNI2 once per process and return the ``openni2`` module.
@@ -137,11 +140,13 @@ def initialize() -> Any:
         log.debug("OpenNI2 initialised from %s", lib)
     return openni2
 
+
 def _message(exc: Exception) -> str:
     """The text of an ``OpenNIError`` (args: code, message bytes, logfile)."""
     args = getattr(exc, "args", ())
     text = args[1] if len(args) > 1 else exc
     return text.decode(errors="replace") if isinstance(text, bytes) else str(text)
+
 
 def _format_value(fmt: Any) -> int:
     """A pixel format as an int: the ``openni`` package's enum repr fails on unknown values."""
@@ -169,6 +174,7 @@ def _parse_mode(spec: Spec) -> tuple[int, int, int] | None:
         raise DeviceSpecError(
             f"mode={text!r} in {spec.text!r} is not WxH@FPS, e.g. 640x480@30"
         ) from None
+
 
 class OpenNIDriver:
     """OpenNI2 depth stream from a live device or an ``.oni`` file."""

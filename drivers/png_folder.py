@@ -103,8 +103,10 @@ def sidecar_scale(folder: Path, side: dict[str, Any]) -> float:
         RecordingError: not a number in 1..1e6 (0 would divide by zero, text would not parse).
     """
     value = side.get("depth_scale", 5000.0)
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not (
-        math.isfinite(value) and 1.0 <= value <= 1e6
+    if (
+        isinstance(value, bool)
+        or not isinstance(value, (int, float))
+        or not (math.isfinite(value) and 1.0 <= value <= 1e6)
     ):
         raise RecordingError(
             f"{folder / SIDECAR}: depth_scale = {value!r} is not a number in 1..1000000",

@@ -214,8 +214,12 @@ class SerialTiltSource:
                 if msg.get_msgId() == MAVLINK_ATTITUDE:
                     # the same bounds as the line protocol: a pitch beyond +-90 deg or a roll
                     # beyond +-180 deg is a corrupt or misconfigured message, not an attitude
-                    if (math.isfinite(msg.pitch) and math.isfinite(msg.roll)
-                            and abs(msg.pitch) <= math.pi / 2 and abs(msg.roll) <= math.pi):
+                    if (
+                        math.isfinite(msg.pitch)
+                        and math.isfinite(msg.roll)
+                        and abs(msg.pitch) <= math.pi / 2
+                        and abs(msg.roll) <= math.pi
+                    ):
                         self._publish(*attitude_to_tilt_roll(msg.pitch, msg.roll))
                     else:
                         self.bad_messages += 1

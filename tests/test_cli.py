@@ -113,10 +113,19 @@ def _start_endless_run() -> tuple[subprocess.Popen[str], list[str], threading.Th
     """An endless real-time replay; a thread drains its stdout so a full pipe never blocks it."""
     proc = subprocess.Popen(
         [
-            sys.executable, "-m", "depthnav_daemon", "run", "--device",
-            f"replay:{FIXTURE}?rate=realtime&loop=1", "--sink", "stdout",
+            sys.executable,
+            "-m",
+            "depthnav_daemon",
+            "run",
+            "--device",
+            f"replay:{FIXTURE}?rate=realtime&loop=1",
+            "--sink",
+            "stdout",
         ],
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        cwd=ROOT,
     )
     lines: list[str] = []
     first = threading.Event()

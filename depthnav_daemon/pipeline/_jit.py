@@ -16,7 +16,7 @@ os.environ.setdefault(
     str(Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "depthnav" / "numba"),
 )
 
-from numba import njit  # noqa: E402 - must follow the cache folder setting
+from numba import njit
 
 # Every kernel: compiled once, cached on disk, releases the GIL, no bounds checks in the hot loops.
 kernel = njit(cache=True, nogil=True, boundscheck=False, error_model="numpy")

@@ -126,7 +126,9 @@ class CliffResult:
 class _CliffTable:
     """Sample grid and thresholds for one (intrinsics, mount, params, layout); read-only arrays."""
 
-    rows: npt.NDArray[np.intp]  # (nbr * nj,) image row of every sample row, ascending (top block first)
+    rows: npt.NDArray[
+        np.intp
+    ]  # (nbr * nj,) image row of every sample row, ascending (top block first)
     cols: npt.NDArray[np.intp]  # (nbc * ni,) image column of every sample column
     shape4: tuple[int, int, int, int]  # (nbr, nj, nbc, ni)
     lo_mm: npt.NDArray[np.uint16]  # (nbr * nj, nbc * ni) sample counts iff lo < d < hi
@@ -134,14 +136,20 @@ class _CliffTable:
     range_m: F32  # (nbr * nj, nbc * ni) horizontal range of the floor point, +inf none
     block_xy_m: F32  # (nbr, nbc, 2) floor point of each block's centre ray, NaN none
     col_step: int  # sample columns are col0 + k * col_step (0: unevenly spaced, gather them)
-    ev_block: npt.NDArray[np.int64]  # (R, nbc + 1) run ends of the cliff scan per sample row and block column
+    ev_block: npt.NDArray[
+        np.int64
+    ]  # (R, nbc + 1) run ends of the cliff scan per sample row and block column
     ev_col: npt.NDArray[np.int32]
     ev_lo: npt.NDArray[np.int32]
     ev_hi: npt.NDArray[np.int32]
-    cov_start: npt.NDArray[np.int64]  # (N + 1,) samples covering bin b: cov_start[b]:cov_start[b + 1]
+    cov_start: npt.NDArray[
+        np.int64
+    ]  # (N + 1,) samples covering bin b: cov_start[b]:cov_start[b + 1]
     cov_row: npt.NDArray[np.int32]  # (M,) their sample rows (top first) ..
     cov_col: npt.NDArray[np.int32]  # .. and sample columns
-    probe_start: npt.NDArray[np.int64]  # (R + 1,) probes (a bin's lowest covering sample) by sample row
+    probe_start: npt.NDArray[
+        np.int64
+    ]  # (R + 1,) probes (a bin's lowest covering sample) by sample row
     probe_bin: npt.NDArray[np.int32]
     probe_col: npt.NDArray[np.int32]
 
@@ -202,7 +210,10 @@ def _covering_samples(
 
 
 def _probes(
-    cov_start: npt.NDArray[np.int64], cov_row: npt.NDArray[np.int32], cov_col: npt.NDArray[np.int32], n_rows: int
+    cov_start: npt.NDArray[np.int64],
+    cov_row: npt.NDArray[np.int32],
+    cov_col: npt.NDArray[np.int32],
+    n_rows: int,
 ) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.int32], npt.NDArray[np.int32]]:
     """Every covered bin's last covering sample (the lowest in the image), grouped by sample row.
 
@@ -282,7 +293,9 @@ def _cliff_table(
     # index of each row's first run end in each block column (a row's ends are sorted by column)
     ev_row = np.repeat(np.arange(first.shape[0]), np.diff(ev_start))
     key = ev_row * (nbc + 1) + ev_col // i.size
-    ev_block = np.searchsorted(key, np.arange(first.shape[0])[:, None] * (nbc + 1) + np.arange(nbc + 1)[None, :])
+    ev_block = np.searchsorted(
+        key, np.arange(first.shape[0])[:, None] * (nbc + 1) + np.arange(nbc + 1)[None, :]
+    )
     events = (ev_block.astype(np.int64), ev_col, ev_lo, ev_hi)
     cover = _covering_samples(first, last, n_bins)
     cover += _probes(*cover, first.shape[0])
@@ -293,7 +306,16 @@ def _cliff_table(
     for arr in (rows, cols, lo_mm, hi_mm, range32, block_xy, *events, *cover):
         arr.setflags(write=False)
     return _CliffTable(
-        rows, cols, (nbr, j.size, nbc, i.size), lo_mm, hi_mm, range32, block_xy, col_step, *events, *cover,
+        rows,
+        cols,
+        (nbr, j.size, nbc, i.size),
+        lo_mm,
+        hi_mm,
+        range32,
+        block_xy,
+        col_step,
+        *events,
+        *cover,
     )
 
 
@@ -347,11 +369,33 @@ def detect_cliffs(
     ranges = np.empty(n_bins, dtype=np.float32)
     n_cols = nbc * ni
     k = cliff_kernel(
-        src, rows, nj, ni, t.lo_mm, t.hi_mm, t.range_m, t.block_xy_m, params.block_points_thresh,
-        t.ev_block, t.ev_col, t.ev_lo, t.ev_hi, t.cov_start, t.cov_row, t.cov_col, t.probe_start, t.probe_bin,
-        t.probe_col, np.empty(n_cols, dtype=np.uint16), np.empty(n_cols, dtype=np.bool_),
-        np.empty(n_cols, dtype=np.float32), np.empty(n_bins, dtype=np.bool_), np.empty((nbr, nbc), dtype=np.bool_),
-        blocks, points, ranges,
+        src,
+        rows,
+        nj,
+        ni,
+        t.lo_mm,
+        t.hi_mm,
+        t.range_m,
+        t.block_xy_m,
+        params.block_points_thresh,
+        t.ev_block,
+        t.ev_col,
+        t.ev_lo,
+        t.ev_hi,
+        t.cov_start,
+        t.cov_row,
+        t.cov_col,
+        t.probe_start,
+        t.probe_bin,
+        t.probe_col,
+        np.empty(n_cols, dtype=np.uint16),
+        np.empty(n_cols, dtype=np.bool_),
+        np.empty(n_cols, dtype=np.float32),
+        np.empty(n_bins, dtype=np.bool_),
+        np.empty((nbr, nbc), dtype=np.bool_),
+        blocks,
+        points,
+        ranges,
     )
     bs = params.block_size
     blocks = blocks[:k].copy()  # (row, col) of the top-left pixel

@@ -299,16 +299,31 @@ def ransac_plane(
     n = np.empty((iterations, 3))
     d = np.empty(iterations)
     good = np.empty(iterations, dtype=np.bool_)
-    hypotheses_kernel(pts32, idx, np.zeros((3, 2)) if accept is None else np.asarray(accept, dtype=np.float64),
-                      accept is not None, n, d, good)
+    hypotheses_kernel(
+        pts32,
+        idx,
+        np.zeros((3, 2)) if accept is None else np.asarray(accept, dtype=np.float64),
+        accept is not None,
+        n,
+        d,
+        good,
+    )
     counts = np.zeros(iterations, dtype=np.int64)
     cand = np.flatnonzero(good)
     px, py, pz = (np.ascontiguousarray(pts32[:, i]) for i in range(3))
     # adaptive stop (as PCL): enough hypotheses that an all-inlier sample was drawn with
     # probability RANSAC_CONFIDENCE, given the best inlier share so far
     scored = ransac_count_kernel(
-        px, py, pz, n.astype(np.float32), d.astype(np.float32), cand, np.float32(inlier_dist_m),
-        RANSAC_CONFIDENCE if adaptive else 1.0, SCORE_CHUNK, counts,
+        px,
+        py,
+        pz,
+        n.astype(np.float32),
+        d.astype(np.float32),
+        cand,
+        np.float32(inlier_dist_m),
+        RANSAC_CONFIDENCE if adaptive else 1.0,
+        SCORE_CHUNK,
+        counts,
     )
     cand = cand[:scored]
     if cand.size == 0:
@@ -317,7 +332,9 @@ def ransac_plane(
     return np.concatenate([n[best], [d[best]]]), int(counts[best])
 
 
-def refine_plane(pts: F32, plane: F64, inlier_dist_m: float, rounds: int = 3) -> tuple[F64, int, float]:
+def refine_plane(
+    pts: F32, plane: F64, inlier_dist_m: float, rounds: int = 3
+) -> tuple[F64, int, float]:
     """Least-squares plane (smallest eigenvector of the inliers' scatter), re-selecting inliers.
 
     Args:
@@ -334,7 +351,9 @@ def refine_plane(pts: F32, plane: F64, inlier_dist_m: float, rounds: int = 3) ->
     mean = np.empty(3)
     scatter = np.empty((3, 3))
     dist = float(inlier_dist_m)
-    n_in, ssd = plane_moments_kernel(pts, np.asarray(plane[:3], dtype=np.float64), float(plane[3]), dist, mean, scatter)
+    n_in, ssd = plane_moments_kernel(
+        pts, np.asarray(plane[:3], dtype=np.float64), float(plane[3]), dist, mean, scatter
+    )
     for _ in range(rounds):
         if n_in < 3:
             break

@@ -43,7 +43,9 @@ from depthnav_daemon.pipeline.scan_kernels import (
 from drivers.base import Intrinsics
 
 METHODS = ("exact", "paper")
-MAX_SPAN_BINS = 64  # a pixel that looks almost straight down covers many bearings; cap its footprint
+MAX_SPAN_BINS = (
+    64  # a pixel that looks almost straight down covers many bearings; cap its footprint
+)
 
 
 @dataclass(frozen=True, slots=True)
@@ -86,7 +88,9 @@ class ScanParams:
 
     def __post_init__(self) -> None:
         if self.method not in METHODS:
-            raise ConfigError(f"scan.method={self.method!r} is not known (accepted: {', '.join(METHODS)})")
+            raise ConfigError(
+                f"scan.method={self.method!r} is not known (accepted: {', '.join(METHODS)})"
+            )
         check_range("scan.range_min_m", self.range_min_m, 0.0, 100.0, " m")
         check_range("scan.range_max_m", self.range_max_m, 0.01, 100.0, " m")
         if self.range_min_m >= self.range_max_m:
@@ -103,7 +107,9 @@ class ScanParams:
         check_int("scan.row_start", self.row_start, 0, 8191)
         check_int("scan.row_stop", self.row_stop, -1, 8192)
         if self.row_stop != -1 and self.row_stop <= self.row_start:
-            raise ConfigError(f"scan.row_stop ({self.row_stop}) must be above scan.row_start ({self.row_start}) or -1")
+            raise ConfigError(
+                f"scan.row_stop ({self.row_stop}) must be above scan.row_start ({self.row_start}) or -1"
+            )
         check_int("scan.row_step", self.row_step, 1, 64)
         check_int("scan.col_step", self.col_step, 1, 64)
         check_range("scan.angle_increment_deg", self.angle_increment_deg, 0.0, 10.0, " deg")
@@ -136,7 +142,9 @@ class LaserScan:
         return self.angle_min + self.angle_increment * np.arange(self.ranges.size)
 
 
-def depth_to_scan(depth: np.ndarray, intr: Intrinsics, mount: Mount, params: ScanParams) -> LaserScan:
+def depth_to_scan(
+    depth: np.ndarray, intr: Intrinsics, mount: Mount, params: ScanParams
+) -> LaserScan:
     """Turn one depth image into a planar scan.
 
     Args:
@@ -172,22 +180,24 @@ class _ExactTable:
     same bins (a "run"); the flush lists say where each run's minimum goes when it ends.
     """
 
-    rows: npt.NDArray[np.int32]         # (Hs,) image rows
+    rows: npt.NDArray[np.int32]  # (Hs,) image rows
     col0: int
     col_step: int
-    zlo_mm: npt.NDArray[np.uint16]      # (Hs, Ws) obstacle iff zlo <= d <= zhi (empty: zlo > zhi)
+    zlo_mm: npt.NDArray[np.uint16]  # (Hs, Ws) obstacle iff zlo <= d <= zhi (empty: zlo > zhi)
     zhi_mm: npt.NDArray[np.uint16]
     near_lo_mm: npt.NDArray[np.uint16]  # (Hs, Ws) obstacle height but closer than range_min iff
     near_hi_mm: npt.NDArray[np.uint16]  # near_lo <= d <= near_hi
-    k_lo: npt.NDArray[np.uint16]        # (Hs, Ws) the kernel's form: close iff k_lo <= d <= k_mid,
-    k_mid: npt.NDArray[np.uint16]       # obstacle iff k_mid < d <= k_hi (2 bytes a pixel less to read)
+    k_lo: npt.NDArray[np.uint16]  # (Hs, Ws) the kernel's form: close iff k_lo <= d <= k_mid,
+    k_mid: npt.NDArray[np.uint16]  # obstacle iff k_mid < d <= k_hi (2 bytes a pixel less to read)
     k_hi: npt.NDArray[np.uint16]
-    kr_m_per_mm: F32                    # (Hs, Ws) horizontal range per millimetre of depth
-    fl_start: npt.NDArray[np.int32]     # (Hs + 1,) flushes after row i: fl_start[i]:fl_start[i + 1]
-    fl_col: npt.NDArray[np.int32]       # (F,) column whose run minimum is flushed ..
-    fl_bin: npt.NDArray[np.int32]       # (F,) .. into this bin
-    rs_start: npt.NDArray[np.int32]     # (Hs + 1,) runs ending after row i: rs_start[i]:rs_start[i + 1]
-    rs_col: npt.NDArray[np.int32]       # (R,) their columns
+    kr_m_per_mm: F32  # (Hs, Ws) horizontal range per millimetre of depth
+    fl_start: npt.NDArray[np.int32]  # (Hs + 1,) flushes after row i: fl_start[i]:fl_start[i + 1]
+    fl_col: npt.NDArray[np.int32]  # (F,) column whose run minimum is flushed ..
+    fl_bin: npt.NDArray[np.int32]  # (F,) .. into this bin
+    rs_start: npt.NDArray[
+        np.int32
+    ]  # (Hs + 1,) runs ending after row i: rs_start[i]:rs_start[i + 1]
+    rs_col: npt.NDArray[np.int32]  # (R,) their columns
     n_bins: int
     angle_min: float
     angle_increment: float
@@ -223,8 +233,16 @@ def _depth_bounds_mm(k: F64, lo: float, hi: float) -> tuple[F64, F64]:
 
 
 def _bin_map(
-    centre: F64, lo_b: F64, hi_b: F64, sane: npt.NDArray[np.bool_], angle_min: float, inc: float, n: int
-) -> tuple[npt.NDArray[np.int16], npt.NDArray[np.int16], npt.NDArray[np.int16], npt.NDArray[np.int16]]:
+    centre: F64,
+    lo_b: F64,
+    hi_b: F64,
+    sane: npt.NDArray[np.bool_],
+    angle_min: float,
+    inc: float,
+    n: int,
+) -> tuple[
+    npt.NDArray[np.int16], npt.NDArray[np.int16], npt.NDArray[np.int16], npt.NDArray[np.int16]
+]:
     """Per row and bin, the interval of columns feeding the bin; per column, the bins it feeds.
 
     Args:
@@ -243,12 +261,24 @@ def _bin_map(
     cb_hi = np.empty((hs, ws), dtype=np.int64)
     # compiled: a mount change rebuilds this table on the frame path (numpy took ~40 ms a frame)
     bin_map_kernel(
-        np.ascontiguousarray(centre, dtype=np.float64), np.ascontiguousarray(lo_b, dtype=np.float64),
-        np.ascontiguousarray(hi_b, dtype=np.float64), np.ascontiguousarray(sane), float(angle_min), float(inc),
-        g_lo, g_hi, cb_lo, cb_hi,
+        np.ascontiguousarray(centre, dtype=np.float64),
+        np.ascontiguousarray(lo_b, dtype=np.float64),
+        np.ascontiguousarray(hi_b, dtype=np.float64),
+        np.ascontiguousarray(sane),
+        float(angle_min),
+        float(inc),
+        g_lo,
+        g_hi,
+        cb_lo,
+        cb_hi,
     )
     g_hi = np.where(g_hi < 0, ws, g_hi)
-    return g_lo.astype(np.int16), g_hi.astype(np.int16), cb_lo.astype(np.int16), cb_hi.astype(np.int16)
+    return (
+        g_lo.astype(np.int16),
+        g_hi.astype(np.int16),
+        cb_lo.astype(np.int16),
+        cb_hi.astype(np.int16),
+    )
 
 
 @functools.lru_cache(maxsize=16)
@@ -260,11 +290,15 @@ def _exact_table(intr: Intrinsics, mount: Mount, params: ScanParams) -> _ExactTa
     rot = cam_to_level(mount.tilt_rad, mount.roll_rad)
     x = (u - intr.cx) / intr.fx
     y = (v - intr.cy) / intr.fy
-    d = np.stack(np.broadcast_arrays(x, y, np.ones_like(x)), axis=-1) @ rot.T  # (Hs, Ws, 3) per metre
+    d = (
+        np.stack(np.broadcast_arrays(x, y, np.ones_like(x)), axis=-1) @ rot.T
+    )  # (Hs, Ws, 3) per metre
     kr = np.hypot(d[..., 0], d[..., 1])
     kh = d[..., 2]
     h = mount.height_m
-    hlo, hhi = _depth_bounds_mm(kh, params.min_obstacle_height_m - h, params.max_obstacle_height_m - h)
+    hlo, hhi = _depth_bounds_mm(
+        kh, params.min_obstacle_height_m - h, params.max_obstacle_height_m - h
+    )
     rlo, rhi = _depth_bounds_mm(kr, params.range_min_m, params.range_max_m)
     zlo = np.maximum(np.maximum(hlo, rlo), 1.0)
     zhi = np.minimum(hhi, rhi)
@@ -287,8 +321,12 @@ def _exact_table(intr: Intrinsics, mount: Mount, params: ScanParams) -> _ExactTa
     b_right = _bearing(intr, rot, u + half, v)
     lo_b = np.minimum(b_left, b_right)
     hi_b = np.maximum(b_left, b_right)
-    sane = (hi_b - lo_b) < math.pi  # footprints across the +-pi seam (looking backwards) are dropped
-    principal = _bearing(intr, rot, np.array([intr.cx - half, intr.cx + half]), np.array([intr.cy, intr.cy]))
+    sane = (
+        hi_b - lo_b
+    ) < math.pi  # footprints across the +-pi seam (looking backwards) are dropped
+    principal = _bearing(
+        intr, rot, np.array([intr.cx - half, intr.cx + half]), np.array([intr.cy, intr.cy])
+    )
     inc = (
         math.radians(params.angle_increment_deg)
         if params.angle_increment_deg > 0
@@ -306,12 +344,43 @@ def _exact_table(intr: Intrinsics, mount: Mount, params: ScanParams) -> _ExactTa
     fl_start, fl_col, fl_bin, rs_start, rs_col = run_flushes(cb_lo, cb_hi)
     kr32 = (kr / 1000.0).astype(np.float32)
     row_idx = np.arange(intr.height, dtype=np.int32)[rows]
-    for arr in (zlo_mm, zhi_mm, near_lo_mm, near_hi_mm, k_lo, k_mid, k_hi, kr32, fl_start, fl_col, fl_bin,
-                rs_start, rs_col, row_idx):
+    for arr in (
+        zlo_mm,
+        zhi_mm,
+        near_lo_mm,
+        near_hi_mm,
+        k_lo,
+        k_mid,
+        k_hi,
+        kr32,
+        fl_start,
+        fl_col,
+        fl_bin,
+        rs_start,
+        rs_col,
+        row_idx,
+    ):
         arr.setflags(write=False)
     return _ExactTable(
-        row_idx, 0, params.col_step, zlo_mm, zhi_mm, near_lo_mm, near_hi_mm, k_lo, k_mid, k_hi, kr32,
-        fl_start, fl_col, fl_bin, rs_start, rs_col, n, angle_min, inc,
+        row_idx,
+        0,
+        params.col_step,
+        zlo_mm,
+        zhi_mm,
+        near_lo_mm,
+        near_hi_mm,
+        k_lo,
+        k_mid,
+        k_hi,
+        kr32,
+        fl_start,
+        fl_col,
+        fl_bin,
+        rs_start,
+        rs_col,
+        n,
+        angle_min,
+        inc,
     )
 
 
@@ -321,7 +390,9 @@ def scan_layout(intr: Intrinsics, mount: Mount, params: ScanParams) -> tuple[flo
     return t.angle_min, t.angle_increment, t.n_bins
 
 
-def obstacle_pixels(depth: np.ndarray, intr: Intrinsics, mount: Mount, params: ScanParams) -> npt.NDArray[np.bool_]:
+def obstacle_pixels(
+    depth: np.ndarray, intr: Intrinsics, mount: Mount, params: ScanParams
+) -> npt.NDArray[np.bool_]:
     """(H, W) mask of the pixels the exact scan counts as obstacles (for display)."""
     mm = depth_to_mm(depth, intr)
     t = _exact_table(intr, mount, params)
@@ -332,18 +403,35 @@ def obstacle_pixels(depth: np.ndarray, intr: Intrinsics, mount: Mount, params: S
     return out
 
 
-def _exact_scan(depth_mm: npt.NDArray[np.uint16], intr: Intrinsics, mount: Mount, params: ScanParams) -> LaserScan:
+def _exact_scan(
+    depth_mm: npt.NDArray[np.uint16], intr: Intrinsics, mount: Mount, params: ScanParams
+) -> LaserScan:
     t = _exact_table(intr, mount, params)
     ranges = np.empty(t.n_bins, dtype=np.float32)
     acc = np.empty(t.zlo_mm.shape[1], dtype=np.float32)
     exact_scan_kernel(
-        depth_mm[:, t.col0 :: t.col_step], t.rows, t.k_lo, t.k_mid, t.k_hi, t.kr_m_per_mm,
-        t.fl_start, t.fl_col, t.fl_bin, t.rs_start, t.rs_col, acc, ranges,
+        depth_mm[:, t.col0 :: t.col_step],
+        t.rows,
+        t.k_lo,
+        t.k_mid,
+        t.k_hi,
+        t.kr_m_per_mm,
+        t.fl_start,
+        t.fl_col,
+        t.fl_bin,
+        t.rs_start,
+        t.rs_col,
+        acc,
+        ranges,
     )
     n = ranges.size
     return LaserScan(
-        t.angle_min, t.angle_min + (n - 1) * t.angle_increment, t.angle_increment,
-        params.range_min_m, params.range_max_m, ranges,
+        t.angle_min,
+        t.angle_min + (n - 1) * t.angle_increment,
+        t.angle_increment,
+        params.range_min_m,
+        params.range_max_m,
+        ranges,
     )
 
 
@@ -356,9 +444,9 @@ class _PaperTable:
     row_step: int
     lo_mm: npt.NDArray[np.uint16]  # (B,) a reading counts iff lo <= d <= hi: range_min ..
     hi_mm: npt.NDArray[np.uint16]  # (B,) .. min(range_max, eq. 5 ground threshold minus e_g)
-    factor: F32                    # (B,) metres per mm times eq. 4's tilt factor
-    range_per_z: F32               # (W,) sqrt(1 + ((u - cx)/fx)^2): eq. 2's x folded into the range
-    index: npt.NDArray[np.int64]   # (W,) column -> bin, the original's truncating map
+    factor: F32  # (B,) metres per mm times eq. 4's tilt factor
+    range_per_z: F32  # (W,) sqrt(1 + ((u - cx)/fx)^2): eq. 2's x folded into the range
+    index: npt.NDArray[np.int64]  # (W,) column -> bin, the original's truncating map
     angle_min: float
     angle_max: float
     angle_increment: float
@@ -395,11 +483,16 @@ def _paper_table(intr: Intrinsics, mount: Mount, params: ScanParams) -> _PaperTa
     theta = -np.arctan((u - intr.cx) / intr.fx)
     index = np.clip(((theta - angle_min) / inc).astype(np.int64), 0, intr.width - 1)
     return _PaperTable(
-        offset, params.depth_img_row_step,
-        np.full(b, lo, dtype=np.uint16), np.clip(hi, 0, 65535).astype(np.uint16),
+        offset,
+        params.depth_img_row_step,
+        np.full(b, lo, dtype=np.uint16),
+        np.clip(hi, 0, 65535).astype(np.uint16),
         factor.astype(np.float32),
         np.sqrt(1.0 + ((u - intr.cx) / intr.fx) ** 2).astype(np.float32),
-        index, angle_min, angle_max, inc,
+        index,
+        angle_min,
+        angle_max,
+        inc,
     )
 
 
@@ -408,7 +501,17 @@ def _paper_scan(depth: np.ndarray, intr: Intrinsics, mount: Mount, params: ScanP
     ranges = np.empty(intr.width, dtype=np.float32)
     scratch = np.empty((2, intr.width), dtype=np.float32)
     paper_scan_kernel(
-        depth_to_mm(depth, intr), t.row0, t.row_step, t.lo_mm, t.hi_mm, t.factor, t.range_per_z, t.index,
-        scratch, ranges,
+        depth_to_mm(depth, intr),
+        t.row0,
+        t.row_step,
+        t.lo_mm,
+        t.hi_mm,
+        t.factor,
+        t.range_per_z,
+        t.index,
+        scratch,
+        ranges,
     )
-    return LaserScan(t.angle_min, t.angle_max, t.angle_increment, params.range_min_m, params.range_max_m, ranges)
+    return LaserScan(
+        t.angle_min, t.angle_max, t.angle_increment, params.range_min_m, params.range_max_m, ranges
+    )

@@ -40,7 +40,12 @@ def run_ends(
     ii, jj = np.nonzero(ends)  # row-major: grouped by row
     ev_start = np.zeros(hs + 1, dtype=np.int32)
     np.cumsum(np.bincount(ii, minlength=hs), out=ev_start[1:])
-    return ev_start, jj.astype(np.int32), cb_lo[ii, jj].astype(np.int32), cb_hi[ii, jj].astype(np.int32)
+    return (
+        ev_start,
+        jj.astype(np.int32),
+        cb_lo[ii, jj].astype(np.int32),
+        cb_hi[ii, jj].astype(np.int32),
+    )
 
 
 I32 = NDArray[np.int32]
@@ -67,7 +72,9 @@ def run_flushes(
 
 
 @kernel
-def exact_scan_kernel(depth, rows, near_lo, near_hi, obst_hi, kr, fl_start, fl_col, fl_bin, rs_start, rs_col, acc, out):
+def exact_scan_kernel(
+    depth, rows, near_lo, near_hi, obst_hi, kr, fl_start, fl_col, fl_bin, rs_start, rs_col, acc, out
+):
     """Exact scan of one frame into ``out`` (n,) float32, REP 117 values.
 
     One row-major pass keeps a running minimum per column (``acc``) for as long as the column
@@ -122,7 +129,7 @@ def exact_scan_kernel(depth, rows, near_lo, near_hi, obst_hi, kr, fl_start, fl_c
 
 
 @kernel
-def bin_map_kernel(centre, lo_b, hi_b, sane, angle_min, inc, g_lo, g_hi, cb_lo, cb_hi):  # noqa: ANN001, ANN201
+def bin_map_kernel(centre, lo_b, hi_b, sane, angle_min, inc, g_lo, g_hi, cb_lo, cb_hi):
     """The exact scan's bin map (table building, once per mount; see scan._bin_map).
 
     Args:
@@ -184,7 +191,9 @@ def bin_map_kernel(centre, lo_b, hi_b, sane, angle_min, inc, g_lo, g_hi, cb_lo, 
 
 
 @kernel
-def paper_scan_kernel(depth, row0, row_step, lo_mm, hi_mm, factor, range_per_z, index, scratch, out):
+def paper_scan_kernel(
+    depth, row0, row_step, lo_mm, hi_mm, factor, range_per_z, index, scratch, out
+):
     """Eq. 1, 2 and 4 over a band of rows, then the original's column-to-bin map.
 
     Args:

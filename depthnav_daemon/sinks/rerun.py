@@ -288,8 +288,9 @@ class RerunSink:
         self._log_static()
         if self.mode != "save":  # a file is written in the frame loop: it must not skip frames
             self._queue = queue.Queue(maxsize=VIEWER_QUEUE_FRAMES)
-            self._thread = threading.Thread(target=self._pump, args=(rec,), name=f"sink {self.name}",
-                                            daemon=True)
+            self._thread = threading.Thread(
+                target=self._pump, args=(rec,), name=f"sink {self.name}", daemon=True
+            )
             self._thread.start()
         log.info("rerun sink: %s %s", self.mode, self.target or "viewer")
 
@@ -524,8 +525,12 @@ class RerunSink:
         thread.join(VIEWER_JOIN_S)
         if thread.is_alive():
             _abandoned.append(self.name)
-            log.warning("rerun sink: the viewer at %s does not answer; not waiting for it "
-                        "(%d frames logged)", self.target or "(spawned)", self.logged)
+            log.warning(
+                "rerun sink: the viewer at %s does not answer; not waiting for it "
+                "(%d frames logged)",
+                self.target or "(spawned)",
+                self.logged,
+            )
 
     def _finish(self, rec: Any) -> None:
         try:
@@ -534,8 +539,11 @@ class RerunSink:
             rec.flush(timeout_sec=30.0 if self.mode == "save" else 1.0)
         except Exception as exc:  # one line; the traceback only with -v
             self._file_failed = self.mode == "save"
-            log.warning("rerun sink: flushing %s failed: %s", self.target or "viewer",
-                        self._file_problem(exc) if self.mode == "save" else exc)
+            log.warning(
+                "rerun sink: flushing %s failed: %s",
+                self.target or "viewer",
+                self._file_problem(exc) if self.mode == "save" else exc,
+            )
             log.debug("flush failure", exc_info=True)
         try:
             rec.disconnect()
@@ -545,6 +553,10 @@ class RerunSink:
         if self._file_failed:
             size = trim_partial_message(self.target)
             if size is not None:
-                log.warning("rerun sink: %s cut back to its last complete message (%d bytes), "
-                            "readable without a footer", self.target, size)
+                log.warning(
+                    "rerun sink: %s cut back to its last complete message (%d bytes), "
+                    "readable without a footer",
+                    self.target,
+                    size,
+                )
         log.info("rerun sink: %d frames logged to %s", self.logged, self.target or "viewer")

@@ -103,8 +103,8 @@ class StdoutSink:
             try:
                 view = memoryview(data)
                 while view:
-                    view = view[os.write(self._fd, view):]
-            except BaseException as exc:  # noqa: BLE001 - handed to write() in the frame loop
+                    view = view[os.write(self._fd, view) :]
+            except BaseException as exc:
                 self._error = exc
             self._done.set()
 
@@ -183,8 +183,10 @@ class StdoutSink:
                     self._raise_error()
             self._stop_thread()
             if self._skipped.count:
-                log.warning("stdout sink: %d lines skipped while the reader was not reading",
-                            self._skipped.count)
+                log.warning(
+                    "stdout sink: %d lines skipped while the reader was not reading",
+                    self._skipped.count,
+                )
             return
         try:
             stream.flush()

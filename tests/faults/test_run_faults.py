@@ -321,9 +321,18 @@ def test_rerun_viewer_that_is_closed(tmp_path: Path) -> None:
     log_path = tmp_path / "viewer.log"
     with open(log_path, "wb") as log_file:
         viewer = subprocess.Popen(
-            [str(binary), "--bind", "127.0.0.1", "--port", str(port), "--save",
-             str(tmp_path / "v.rrd")],
-            stdout=log_file, stderr=subprocess.STDOUT, start_new_session=True,
+            [
+                str(binary),
+                "--bind",
+                "127.0.0.1",
+                "--port",
+                str(port),
+                "--save",
+                str(tmp_path / "v.rrd"),
+            ],
+            stdout=log_file,
+            stderr=subprocess.STDOUT,
+            start_new_session=True,
         )
     try:
         deadline = time.monotonic() + WAIT_S
@@ -331,8 +340,16 @@ def test_rerun_viewer_that_is_closed(tmp_path: Path) -> None:
             assert viewer.poll() is None and time.monotonic() < deadline, log_path.read_text()
             time.sleep(0.1)
         err = tmp_path / "err.txt"
-        proc = start("run", "--device", f"{FAST}&loop=1", "--sink", "stdout",
-                     "--sink", f"rerun+grpc://127.0.0.1:{port}", stderr_path=err)
+        proc = start(
+            "run",
+            "--device",
+            f"{FAST}&loop=1",
+            "--sink",
+            "stdout",
+            "--sink",
+            f"rerun+grpc://127.0.0.1:{port}",
+            stderr_path=err,
+        )
         read_lines(proc, 3)
         os.killpg(viewer.pid, signal.SIGKILL)  # the user closes the viewer (or it crashes)
         viewer.wait(timeout=WAIT_S)
@@ -351,8 +368,18 @@ def test_rerun_viewer_that_is_closed(tmp_path: Path) -> None:
 
 def test_rerun_viewer_that_never_came(tmp_path: Path) -> None:
     port = free_tcp_port()  # nothing listens there
-    p = depthnav("run", "--device", f"{FAST}&loop=1", "--sink", "stdout",
-                 "--sink", f"rerun+grpc://127.0.0.1:{port}", "--max-frames", "800", timeout=120)
+    p = depthnav(
+        "run",
+        "--device",
+        f"{FAST}&loop=1",
+        "--sink",
+        "stdout",
+        "--sink",
+        f"rerun+grpc://127.0.0.1:{port}",
+        "--max-frames",
+        "800",
+        timeout=120,
+    )
     assert p.returncode == 0, p.stderr
     assert [m["seq"] for m in json_lines(p.stdout)] == list(range(800))
     assert "Traceback" not in p.stderr  # and it ended: the 120 s bound above is generous
@@ -514,8 +541,16 @@ def test_stdout_reader_that_stalls_does_not_freeze_the_other_outputs(tmp_path: P
     rx.bind(("127.0.0.1", 0))
     rx.settimeout(WAIT_S)
     err = tmp_path / "err.txt"
-    proc = start("run", "--device", ENDLESS, "--sink", "stdout",
-                 "--sink", f"udp://127.0.0.1:{rx.getsockname()[1]}", stderr_path=err)
+    proc = start(
+        "run",
+        "--device",
+        ENDLESS,
+        "--sink",
+        "stdout",
+        "--sink",
+        f"udp://127.0.0.1:{rx.getsockname()[1]}",
+        stderr_path=err,
+    )
     # nobody reads stdout: a 64 KiB pipe holds a handful of lines; the scan must keep coming
     seqs = [json.loads(rx.recv(65535))["seq"] for _ in range(60)]
     rx.close()

@@ -110,12 +110,20 @@ def test_exact_scan_kernel_equals_per_row_binning(mount: Mount, params: ScanPara
 
 
 @pytest.mark.parametrize("mount", MOUNTS, ids=lambda m: f"t{m.tilt_deg:g}_r{m.roll_deg:g}")
-@pytest.mark.parametrize("params", [
-    ScanParams(),
-    ScanParams(range_min_m=0.0, min_obstacle_height_m=-0.2, max_obstacle_height_m=0.3),
-    ScanParams(range_min_m=3.0, range_max_m=60.0, min_obstacle_height_m=-9.0, max_obstacle_height_m=9.0),
-], ids=["defaults", "low_band", "far"])
-def test_three_kernel_thresholds_classify_every_depth_as_the_four(mount: Mount, params: ScanParams) -> None:
+@pytest.mark.parametrize(
+    "params",
+    [
+        ScanParams(),
+        ScanParams(range_min_m=0.0, min_obstacle_height_m=-0.2, max_obstacle_height_m=0.3),
+        ScanParams(
+            range_min_m=3.0, range_max_m=60.0, min_obstacle_height_m=-9.0, max_obstacle_height_m=9.0
+        ),
+    ],
+    ids=["defaults", "low_band", "far"],
+)
+def test_three_kernel_thresholds_classify_every_depth_as_the_four(
+    mount: Mount, params: ScanParams
+) -> None:
     t = scan_mod._exact_table(SMALL, mount, params)
     # every depth at and around every threshold, and the ends of the uint16 range
     edges = np.stack([t.zlo_mm, t.zhi_mm, t.near_lo_mm, t.near_hi_mm]).astype(np.int64)
@@ -128,8 +136,15 @@ def test_three_kernel_thresholds_classify_every_depth_as_the_four(mount: Mount, 
             assert np.array_equal((t.k_mid < d) & (d <= t.k_hi), obstacle)
 
 
-def numpy_bin_map(centre: np.ndarray, lo_b: np.ndarray, hi_b: np.ndarray, sane: np.ndarray, angle_min: float,
-                  inc: float, n: int) -> tuple[np.ndarray, ...]:
+def numpy_bin_map(
+    centre: np.ndarray,
+    lo_b: np.ndarray,
+    hi_b: np.ndarray,
+    sane: np.ndarray,
+    angle_min: float,
+    inc: float,
+    n: int,
+) -> tuple[np.ndarray, ...]:
     """The bin map as numpy computed it before it was compiled (the reference for bin_map_kernel)."""
     hs, ws = centre.shape
     bidx = np.floor((centre - angle_min) / inc + 0.5).astype(np.int64)
@@ -163,10 +178,17 @@ def numpy_bin_map(centre: np.ndarray, lo_b: np.ndarray, hi_b: np.ndarray, sane: 
         np.minimum.at(cb_lo[i], c_hit, b_hit)
         np.maximum.at(cb_hi[i], c_hit, b_hit)
     g_hi = np.where(g_hi < 0, ws, g_hi)
-    return g_lo.astype(np.int16), g_hi.astype(np.int16), cb_lo.astype(np.int16), cb_hi.astype(np.int16)
+    return (
+        g_lo.astype(np.int16),
+        g_hi.astype(np.int16),
+        cb_lo.astype(np.int16),
+        cb_hi.astype(np.int16),
+    )
 
 
-@pytest.mark.parametrize("mount", [*MOUNTS, Mount(1.2, 85.0, 30.0)], ids=lambda m: f"t{m.tilt_deg:g}_r{m.roll_deg:g}")
+@pytest.mark.parametrize(
+    "mount", [*MOUNTS, Mount(1.2, 85.0, 30.0)], ids=lambda m: f"t{m.tilt_deg:g}_r{m.roll_deg:g}"
+)
 @pytest.mark.parametrize("col_step", [1, 3])
 def test_bin_map_kernel_equals_numpy(mount: Mount, col_step: int) -> None:
     intr = SMALL
