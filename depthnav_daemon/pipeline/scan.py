@@ -15,6 +15,7 @@ obstacle within range_max; -inf = an obstacle closer than range_min; NaN = no va
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import math
 from dataclasses import dataclass
@@ -344,24 +345,7 @@ def _exact_table(intr: Intrinsics, mount: Mount, params: ScanParams) -> _ExactTa
     fl_start, fl_col, fl_bin, rs_start, rs_col = run_flushes(cb_lo, cb_hi)
     kr32 = (kr / 1000.0).astype(np.float32)
     row_idx = np.arange(intr.height, dtype=np.int32)[rows]
-    for arr in (
-        zlo_mm,
-        zhi_mm,
-        near_lo_mm,
-        near_hi_mm,
-        k_lo,
-        k_mid,
-        k_hi,
-        kr32,
-        fl_start,
-        fl_col,
-        fl_bin,
-        rs_start,
-        rs_col,
-        row_idx,
-    ):
-        arr.setflags(write=False)
-    return _ExactTable(
+    table = _ExactTable(
         row_idx,
         0,
         params.col_step,
@@ -382,6 +366,11 @@ def _exact_table(intr: Intrinsics, mount: Mount, params: ScanParams) -> _ExactTa
         angle_min,
         inc,
     )
+    for f in dataclasses.fields(table):  # cached and shared between calls: read-only
+        value = getattr(table, f.name)
+        if isinstance(value, np.ndarray):
+            value.setflags(write=False)
+    return table
 
 
 def scan_layout(intr: Intrinsics, mount: Mount, params: ScanParams) -> tuple[float, float, int]:
