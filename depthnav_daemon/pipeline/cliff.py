@@ -40,6 +40,7 @@ from depthnav_daemon.pipeline.geometry import (
     Mount,
     cam_to_level,
     check_int,
+    check_order,
     check_range,
     depth_to_mm,
     paper_floor_depth_m,
@@ -86,11 +87,7 @@ class CliffParams:
             )
         check_range("cliff.range_min_m", self.range_min_m, 0.0, 100.0, " m")
         check_range("cliff.range_max_m", self.range_max_m, 0.01, 100.0, " m")
-        if self.range_min_m >= self.range_max_m:
-            raise ConfigError(
-                f"cliff.range_min_m ({self.range_min_m}) must be below cliff.range_max_m "
-                f"({self.range_max_m})"
-            )
+        check_order("cliff.range_min_m", self.range_min_m, "cliff.range_max_m", self.range_max_m)
         check_int("cliff.used_depth_height", self.used_depth_height, 1, 8192)
         check_int("cliff.block_size", self.block_size, 1, 256)
         check_int("cliff.row_step", self.row_step, 1, self.block_size)

@@ -44,6 +44,17 @@ def check_range(name: str, value: float, lo: float, hi: float, unit: str = "") -
     return v
 
 
+def check_order(
+    lo_name: str, lo: float, hi_name: str, hi: float, *, strict: bool = True, why: str = ""
+) -> None:
+    """Raise ConfigError unless ``lo`` < ``hi`` (``lo`` <= ``hi`` when not strict), naming both."""
+    if lo >= hi if strict else lo > hi:
+        rule = "be below" if strict else "not exceed"
+        raise ConfigError(
+            f"{lo_name} ({lo}) must {rule} {hi_name} ({hi}){': ' + why if why else ''}"
+        )
+
+
 def check_int(name: str, value: int, lo: int, hi: int) -> int:
     """Return ``value`` as int, or raise ConfigError naming it and the accepted range."""
     if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or not lo <= value <= hi:

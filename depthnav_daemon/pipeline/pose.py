@@ -35,6 +35,7 @@ from depthnav_daemon.pipeline.geometry import (
     MAX_TILT_DEG,
     cam_to_level,
     check_int,
+    check_order,
     check_range,
     depth_to_mm,
     pixel_rays,
@@ -93,26 +94,26 @@ class PoseParams:
     def __post_init__(self) -> None:
         check_range("pose.height_min_m", self.height_min_m, 0.01, MAX_MOUNT_HEIGHT_M, " m")
         check_range("pose.height_max_m", self.height_max_m, 0.01, MAX_MOUNT_HEIGHT_M, " m")
-        if self.height_min_m > self.height_max_m:
-            raise ConfigError(
-                f"pose.height_min_m ({self.height_min_m}) must not exceed pose.height_max_m "
-                f"({self.height_max_m})"
-            )
+        check_order(
+            "pose.height_min_m",
+            self.height_min_m,
+            "pose.height_max_m",
+            self.height_max_m,
+            strict=False,
+        )
         check_range("pose.tilt_min_deg", self.tilt_min_deg, -MAX_TILT_DEG, MAX_TILT_DEG, " deg")
         check_range("pose.tilt_max_deg", self.tilt_max_deg, -MAX_TILT_DEG, MAX_TILT_DEG, " deg")
-        if self.tilt_min_deg > self.tilt_max_deg:
-            raise ConfigError(
-                f"pose.tilt_min_deg ({self.tilt_min_deg}) must not exceed pose.tilt_max_deg "
-                f"({self.tilt_max_deg})"
-            )
+        check_order(
+            "pose.tilt_min_deg",
+            self.tilt_min_deg,
+            "pose.tilt_max_deg",
+            self.tilt_max_deg,
+            strict=False,
+        )
         check_range("pose.roll_max_deg", self.roll_max_deg, 0.0, MAX_ROLL_DEG, " deg")
         check_range("pose.range_min_m", self.range_min_m, 0.0, 100.0, " m")
         check_range("pose.range_max_m", self.range_max_m, 0.01, 100.0, " m")
-        if self.range_min_m >= self.range_max_m:
-            raise ConfigError(
-                f"pose.range_min_m ({self.range_min_m}) must be below pose.range_max_m "
-                f"({self.range_max_m})"
-            )
+        check_order("pose.range_min_m", self.range_min_m, "pose.range_max_m", self.range_max_m)
         check_int("pose.used_depth_height", self.used_depth_height, 1, 8192)
         check_int("pose.row_step", self.row_step, 1, 256)
         check_int("pose.col_step", self.col_step, 1, 256)
@@ -120,11 +121,14 @@ class PoseParams:
         check_int("pose.ransac_iterations", self.ransac_iterations, 1, 100_000)
         check_range("pose.inlier_dist_m", self.inlier_dist_m, 1e-4, 1.0, " m")
         check_int("pose.min_inliers", self.min_inliers, 3, 1_000_000)
-        if self.min_inliers > self.max_points:
-            raise ConfigError(
-                f"pose.min_inliers ({self.min_inliers}) must not exceed pose.max_points "
-                f"({self.max_points}): the estimate could never be confident"
-            )
+        check_order(
+            "pose.min_inliers",
+            self.min_inliers,
+            "pose.max_points",
+            self.max_points,
+            strict=False,
+            why="the estimate could never be confident",
+        )
         check_range("pose.min_inlier_ratio", self.min_inlier_ratio, 0.0, 1.0)
 
 

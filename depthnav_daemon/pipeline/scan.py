@@ -30,6 +30,7 @@ from depthnav_daemon.pipeline.geometry import (
     Mount,
     cam_to_level,
     check_int,
+    check_order,
     check_range,
     depth_to_mm,
     paper_floor_depth_m,
@@ -94,17 +95,15 @@ class ScanParams:
             )
         check_range("scan.range_min_m", self.range_min_m, 0.0, 100.0, " m")
         check_range("scan.range_max_m", self.range_max_m, 0.01, 100.0, " m")
-        if self.range_min_m >= self.range_max_m:
-            raise ConfigError(
-                f"scan.range_min_m ({self.range_min_m}) must be below scan.range_max_m ({self.range_max_m})"
-            )
+        check_order("scan.range_min_m", self.range_min_m, "scan.range_max_m", self.range_max_m)
         check_range("scan.min_obstacle_height_m", self.min_obstacle_height_m, -10.0, 10.0, " m")
         check_range("scan.max_obstacle_height_m", self.max_obstacle_height_m, -10.0, 10.0, " m")
-        if self.min_obstacle_height_m >= self.max_obstacle_height_m:
-            raise ConfigError(
-                f"scan.min_obstacle_height_m ({self.min_obstacle_height_m}) must be below "
-                f"scan.max_obstacle_height_m ({self.max_obstacle_height_m})"
-            )
+        check_order(
+            "scan.min_obstacle_height_m",
+            self.min_obstacle_height_m,
+            "scan.max_obstacle_height_m",
+            self.max_obstacle_height_m,
+        )
         check_int("scan.row_start", self.row_start, 0, 8191)
         check_int("scan.row_stop", self.row_stop, -1, 8192)
         if self.row_stop != -1 and self.row_stop <= self.row_start:
