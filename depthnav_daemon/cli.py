@@ -465,6 +465,7 @@ def entry_point() -> None:
     traceback: nothing has been opened or written yet at that point.
     """
     signal.signal(signal.SIGTERM, _stop_early)
+    signal.signal(signal.SIGINT, signal.default_int_handler)  # KeyboardInterrupt from here on
     try:
         code = main()
     except _EarlyStop:
