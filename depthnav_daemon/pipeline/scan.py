@@ -40,7 +40,8 @@ from depthnav_daemon.pipeline.scan_kernels import (
     bin_map_kernel,
     exact_scan_kernel,
     paper_scan_kernel,
-    run_flushes,
+    MAX_CODE_INDEX,
+    run_flush_codes,
 )
 from drivers.base import Intrinsics
 
@@ -192,12 +193,7 @@ class _ExactTable:
     k_hi: npt.NDArray[np.uint16]
     kr_m_per_mm: F32  # (Hs, Ws) horizontal range per millimetre of depth
     fl_start: npt.NDArray[np.int32]  # (Hs + 1,) flushes after row i: fl_start[i]:fl_start[i + 1]
-    fl_col: npt.NDArray[np.int32]  # (F,) column whose run minimum is flushed ..
-    fl_bin: npt.NDArray[np.int32]  # (F,) .. into this bin
-    rs_start: npt.NDArray[
-        np.int32
-    ]  # (Hs + 1,) runs ending after row i: rs_start[i]:rs_start[i + 1]
-    rs_col: npt.NDArray[np.int32]  # (R,) their columns
+    fl_code: npt.NDArray[np.int32]  # (F,) column | run ends << 15 | bin << 16 (run_flush_codes)
     n_bins: int
     angle_min: float
     angle_increment: float
@@ -287,6 +283,11 @@ def _exact_table(intr: Intrinsics, mount: Mount, params: ScanParams) -> _ExactTa
     cols = slice(0, intr.width, params.col_step)
     v = np.arange(intr.height, dtype=np.float64)[rows][:, None]
     u = np.arange(intr.width, dtype=np.float64)[cols][None, :]
+    if u.size > MAX_CODE_INDEX:
+        raise ConfigError(
+            f"the exact scan uses {u.size} columns of this {intr.width}-pixel-wide image "
+            f"(accepted: up to {MAX_CODE_INDEX}); raise scan.col_step"
+        )
     rot = cam_to_level(mount.tilt_rad, mount.roll_rad)
     x = (u - intr.cx) / intr.fx
     y = (v - intr.cy) / intr.fy
@@ -341,7 +342,7 @@ def _exact_table(intr: Intrinsics, mount: Mount, params: ScanParams) -> _ExactTa
     angle_min = edge_min + inc / 2.0
     centre = _bearing(intr, rot, u + 0.0 * v, v + 0.0 * u)
     _, _, cb_lo, cb_hi = _bin_map(centre, lo_b, hi_b, sane, angle_min, inc, n)
-    fl_start, fl_col, fl_bin, rs_start, rs_col = run_flushes(cb_lo, cb_hi)
+    fl_start, fl_code = run_flush_codes(cb_lo, cb_hi, n)
     kr32 = (kr / 1000.0).astype(np.float32)
     row_idx = np.arange(intr.height, dtype=np.int32)[rows]
     table = _ExactTable(
@@ -357,10 +358,7 @@ def _exact_table(intr: Intrinsics, mount: Mount, params: ScanParams) -> _ExactTa
         k_hi,
         kr32,
         fl_start,
-        fl_col,
-        fl_bin,
-        rs_start,
-        rs_col,
+        fl_code,
         n,
         angle_min,
         inc,
@@ -395,7 +393,7 @@ def _exact_scan(
     depth_mm: npt.NDArray[np.uint16], intr: Intrinsics, mount: Mount, params: ScanParams
 ) -> LaserScan:
     t = _exact_table(intr, mount, params)
-    ranges = np.empty(t.n_bins, dtype=np.float32)
+    out = np.empty(t.n_bins + 1, dtype=np.float32)  # + a scratch slot for runs feeding no bin
     acc = np.empty(t.zlo_mm.shape[1], dtype=np.float32)
     exact_scan_kernel(
         depth_mm[:, t.col0 :: t.col_step],
@@ -405,13 +403,11 @@ def _exact_scan(
         t.k_hi,
         t.kr_m_per_mm,
         t.fl_start,
-        t.fl_col,
-        t.fl_bin,
-        t.rs_start,
-        t.rs_col,
+        t.fl_code,
         acc,
-        ranges,
+        out,
     )
+    ranges = out[:-1]
     n = ranges.size
     return LaserScan(
         t.angle_min,

@@ -210,6 +210,23 @@ def test_bin_map_kernel_equals_numpy(mount: Mount, col_step: int) -> None:
         np.testing.assert_array_equal(g, w)
 
 
+@pytest.mark.parametrize("mount", [Mount(0.5, 85.0, -10.0), Mount(0.5, 80.0, 3.0)])
+def test_exact_scan_pixels_feeding_no_bin_leak_into_no_run(mount: Mount) -> None:
+    # looking down past the vertical, footprints that straddle the +-pi seam feed no bin; their
+    # readings must not reach the next run of their column
+    t = scan_mod._exact_table(SMALL, mount, ScanParams())
+    assert ((t.fl_code >> 16) == t.n_bins).any()  # the case exists for these mounts
+    rng = np.random.default_rng(7)
+    for depth in (
+        noisy_frame(SMALL, mount, seed=11),
+        rng.integers(0, 4000, size=(SMALL.height, SMALL.width)).astype(np.uint16),
+    ):
+        got = depth_to_scan(depth, SMALL, mount, ScanParams()).ranges
+        assert np.array_equal(
+            got, reference_exact_scan(depth, SMALL, mount, ScanParams()), equal_nan=True
+        )
+
+
 def test_exact_scan_kernel_full_resolution_bit_exact() -> None:
     mount = MOUNTS[0]
     depth = noisy_frame(KINECT_V1, mount, seed=3)
