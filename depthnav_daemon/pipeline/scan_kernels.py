@@ -86,8 +86,10 @@ def run_flush_codes(
     fl_start = np.zeros(hs + 1, dtype=np.int32)
     np.cumsum(np.bincount(row[k], minlength=hs), out=fl_start[1:])
     last = within == span[k] - 1
-    code = rs_col[k].astype(np.int64) | (last.astype(np.int64) << COL_BITS) | (
-        (lo[k] + within) << (COL_BITS + 1)
+    code = (
+        rs_col[k].astype(np.int64)
+        | (last.astype(np.int64) << COL_BITS)
+        | ((lo[k] + within) << (COL_BITS + 1))
     )
     return fl_start, code.astype(np.int32)
 
