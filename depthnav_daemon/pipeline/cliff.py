@@ -25,6 +25,7 @@ nearest horizontal range of the floor point of a drop-off sample inside a detect
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import math
 from dataclasses import dataclass
@@ -33,7 +34,7 @@ import numpy as np
 import numpy.typing as npt
 
 from depthnav_daemon.errors import ConfigError
-from depthnav_daemon.pipeline.cliff_kernels import cliff_kernel
+from depthnav_daemon.pipeline.cliff_kernels import CODE_BITS, CODE_MASK, cliff_kernel
 from depthnav_daemon.pipeline.geometry import (
     F32,
     F64,
@@ -47,7 +48,7 @@ from depthnav_daemon.pipeline.geometry import (
     paper_row_angles_rad,
 )
 from depthnav_daemon.pipeline.scan import LaserScan
-from depthnav_daemon.pipeline.scan_kernels import run_ends
+from depthnav_daemon.pipeline.scan_kernels import MAX_CODE_INDEX, run_flush_codes
 from drivers.base import Intrinsics
 
 METHODS = ("exact", "paper")
@@ -121,34 +122,27 @@ class CliffResult:
 
 @dataclass(frozen=True, slots=True)
 class _CliffTable:
-    """Sample grid and thresholds for one (intrinsics, mount, params, layout); read-only arrays."""
+    """Sample grid and thresholds for one (intrinsics, mount, params, layout); read-only arrays.
 
-    rows: npt.NDArray[
-        np.intp
-    ]  # (nbr * nj,) image row of every sample row, ascending (top block first)
+    Index lists are packed into int32 codes (``cliff_kernels.cliff_kernel`` says how): one load
+    per entry in the kernel's loops instead of two or three.
+    """
+
+    rows: npt.NDArray[np.intp]  # (nbr * nj,) image row of every sample row, ascending (top first)
     cols: npt.NDArray[np.intp]  # (nbc * ni,) image column of every sample column
     shape4: tuple[int, int, int, int]  # (nbr, nj, nbc, ni)
     lo_mm: npt.NDArray[np.uint16]  # (nbr * nj, nbc * ni) sample counts iff lo < d < hi
-    hi_mm: npt.NDArray[np.uint16]
+    hi_mm: int  # the same upper bound for every sample (the range limit or none)
     range_m: F32  # (nbr * nj, nbc * ni) horizontal range of the floor point, +inf none
     block_xy_m: F32  # (nbr, nbc, 2) floor point of each block's centre ray, NaN none
+    block_ok: npt.NDArray[np.bool_]  # (nbr, nbc) the block's centre ray meets the floor
     col_step: int  # sample columns are col0 + k * col_step (0: unevenly spaced, gather them)
-    ev_block: npt.NDArray[
-        np.int64
-    ]  # (R, nbc + 1) run ends of the cliff scan per sample row and block column
-    ev_col: npt.NDArray[np.int32]
-    ev_lo: npt.NDArray[np.int32]
-    ev_hi: npt.NDArray[np.int32]
-    cov_start: npt.NDArray[
-        np.int64
-    ]  # (N + 1,) samples covering bin b: cov_start[b]:cov_start[b + 1]
-    cov_row: npt.NDArray[np.int32]  # (M,) their sample rows (top first) ..
-    cov_col: npt.NDArray[np.int32]  # .. and sample columns
-    probe_start: npt.NDArray[
-        np.int64
-    ]  # (R + 1,) probes (a bin's lowest covering sample) by sample row
-    probe_bin: npt.NDArray[np.int32]
-    probe_col: npt.NDArray[np.int32]
+    ev_block: npt.NDArray[np.int64]  # (R, nbc + 1) flushes per sample row and block column ..
+    ev_code: npt.NDArray[np.int32]  # (E,) .. col | run ends << 15 | bin << 16
+    cov_start: npt.NDArray[np.int64]  # (N + 1,) samples covering bin b: cov_start[b]:cov_start[b+1]
+    cov_code: npt.NDArray[np.int32]  # (M,) col | sample row << 15, top rows first
+    probe_start: npt.NDArray[np.int64]  # (R + 1,) probes (a bin's lowest sample) by sample row
+    probe_code: npt.NDArray[np.int32]  # (P,) col | bin << 15
 
 
 def _floor_hits(intr: Intrinsics, rot: F64, u: F64, v: F64) -> tuple[F64, F64, F64]:
@@ -240,6 +234,11 @@ def _cliff_table(
         )
     j = np.arange(0, bs, params.row_step)
     i = np.arange(0, bs, params.col_step)
+    if nbc * i.size > MAX_CODE_INDEX:
+        raise ConfigError(
+            f"cliff samples {nbc * i.size} columns of this {intr.width}-pixel-wide image "
+            f"(accepted: up to {MAX_CODE_INDEX}); raise cliff.col_step"
+        )
     # blocks counted from the image bottom, as the original (block row 0 is the lowest), but the
     # sample rows stored top to bottom: the kernel then walks memory upwards, which the hardware
     # prefetcher follows better (~1.5-2x on a frame that is not in cache)
@@ -258,17 +257,16 @@ def _cliff_table(
         in_range = down & (range_m >= params.range_min_m) & (range_m <= params.range_max_m)
         with np.errstate(divide="ignore", invalid="ignore"):
             lo = np.where(in_range, (h + params.ground_margin_m) / np.where(down, -kz, 1.0), np.inf)
-        hi = np.full(lo.shape, float(NEVER_MM))
+        hi_mm = NEVER_MM
     else:
         delta = paper_row_angles_rad(intr)[rows][:, None]
         ground = paper_floor_depth_m(h, mount.tilt_rad, delta) + params.ground_margin_m  # eq. 6
         lo = np.broadcast_to(np.maximum(ground, params.range_min_m), range_m.shape)
-        hi = np.full(lo.shape, math.ceil(params.range_max_m * 1000.0))
+        hi_mm = min(math.ceil(params.range_max_m * 1000.0), NEVER_MM)
     # integer readings: d > lo_m * 1000 <=> d > floor(lo_m * 1000)
     with np.errstate(invalid="ignore"):
         lo_mm = np.where(np.isfinite(lo), np.clip(np.floor(lo * 1000.0), 0, NEVER_MM), NEVER_MM)
     lo_mm = lo_mm.astype(np.uint16)
-    hi_mm = np.clip(hi, 0, NEVER_MM).astype(np.uint16)
 
     # floor point of every block's centre ray (sub-pixel centre)
     half = (bs - 1) / 2.0
@@ -286,23 +284,23 @@ def _cliff_table(
     b_l = np.arctan2(ly, lx)
     b_r = np.arctan2(ry, rx)
     first, last = _sample_bins(np.minimum(b_l, b_r), np.maximum(b_l, b_r), angle_min, inc, n_bins)
-    ev_start, ev_col, ev_lo, ev_hi = run_ends(first, last, row_block=j.size)
-    # index of each row's first run end in each block column (a row's ends are sorted by column)
+    ev_start, ev_code = run_flush_codes(first, last, n_bins, row_block=j.size)
+    # index of each row's first flush in each block column (a row's flushes are sorted by column)
     ev_row = np.repeat(np.arange(first.shape[0]), np.diff(ev_start))
-    key = ev_row * (nbc + 1) + ev_col // i.size
+    key = ev_row * (nbc + 1) + (ev_code & CODE_MASK) // i.size
     ev_block = np.searchsorted(
         key, np.arange(first.shape[0])[:, None] * (nbc + 1) + np.arange(nbc + 1)[None, :]
-    )
-    events = (ev_block.astype(np.int64), ev_col, ev_lo, ev_hi)
-    cover = _covering_samples(first, last, n_bins)
-    cover += _probes(*cover, first.shape[0])
+    ).astype(np.int64)
+    cov_start, cov_row, cov_col = _covering_samples(first, last, n_bins)
+    probe_start, probe_bin, probe_col = _probes(cov_start, cov_row, cov_col, first.shape[0])
+    cov_code = (cov_col | (cov_row << CODE_BITS)).astype(np.int32)
+    probe_code = (probe_col | (probe_bin << CODE_BITS)).astype(np.int32)
+    block_ok = np.isfinite(block_xy[..., 0])
 
     range32 = range_m.astype(np.float32)
     col_sel = _selector(cols)
     col_step = col_sel.step if isinstance(col_sel, slice) else 0
-    for arr in (rows, cols, lo_mm, hi_mm, range32, block_xy, *events, *cover):
-        arr.setflags(write=False)
-    return _CliffTable(
+    table = _CliffTable(
         rows,
         cols,
         (nbr, j.size, nbc, i.size),
@@ -310,10 +308,20 @@ def _cliff_table(
         hi_mm,
         range32,
         block_xy,
+        block_ok,
         col_step,
-        *events,
-        *cover,
+        ev_block,
+        ev_code,
+        cov_start,
+        cov_code,
+        probe_start,
+        probe_code,
     )
+    for f in dataclasses.fields(table):  # cached and shared between calls: read-only
+        value = getattr(table, f.name)
+        if isinstance(value, np.ndarray):
+            value.setflags(write=False)
+    return table
 
 
 def _selector(idx: npt.NDArray[np.intp]) -> slice | npt.NDArray[np.intp]:
@@ -353,7 +361,7 @@ def detect_cliffs(
     """
     check_range("cliff angle_min", angle_min, -math.pi - 1e-9, math.pi, " rad")
     check_range("cliff angle_increment", angle_increment, 1e-6, math.pi, " rad")
-    check_int("cliff n_bins", n_bins, 1, 1_000_000)
+    check_int("cliff n_bins", n_bins, 1, MAX_CODE_INDEX)
     mm = depth_to_mm(depth, intr)
     t = _cliff_table(intr, mount, params, float(angle_min), float(angle_increment), int(n_bins))
     if t.col_step:  # a view: sample column k is image column cols[0] + k * col_step
@@ -361,44 +369,29 @@ def detect_cliffs(
     else:  # unevenly spaced sample columns: gather the samples once
         src, rows = mm[np.ix_(t.rows, t.cols)], np.arange(t.rows.size, dtype=np.intp)
     nbr, nj, nbc, ni = t.shape4
-    blocks = np.empty((nbr * nbc, 2), dtype=np.int64)
-    points = np.empty((nbr * nbc, 2), dtype=np.float32)
-    ranges = np.empty(n_bins, dtype=np.float32)
-    n_cols = nbc * ni
-    k = cliff_kernel(
+    out = np.empty(n_bins + 1, dtype=np.float32)  # + a scratch slot for runs covering no bin
+    blocks, points = cliff_kernel(
         src,
         rows,
         nj,
         ni,
         t.lo_mm,
-        t.hi_mm,
+        np.uint16(t.hi_mm),
         t.range_m,
-        t.block_xy_m,
+        t.block_ok,
         params.block_points_thresh,
         t.ev_block,
-        t.ev_col,
-        t.ev_lo,
-        t.ev_hi,
+        t.ev_code,
         t.cov_start,
-        t.cov_row,
-        t.cov_col,
+        t.cov_code,
         t.probe_start,
-        t.probe_bin,
-        t.probe_col,
-        np.empty(n_cols, dtype=np.uint16),
-        np.empty(n_cols, dtype=np.bool_),
-        np.empty(n_cols, dtype=np.float32),
-        np.empty(n_bins, dtype=np.bool_),
-        np.empty((nbr, nbc), dtype=np.bool_),
-        blocks,
-        points,
-        ranges,
+        t.probe_code,
+        t.block_xy_m,
+        intr.height,
+        params.block_size,
+        out,
     )
-    bs = params.block_size
-    blocks = blocks[:k].copy()  # (row, col) of the top-left pixel
-    blocks[:, 0] = intr.height - (blocks[:, 0] + 1) * bs
-    blocks[:, 1] *= bs
-    points = points[:k].copy()
+    ranges = out[:-1]
     scan = LaserScan(
         float(angle_min),
         float(angle_min + (n_bins - 1) * angle_increment),
@@ -407,4 +400,4 @@ def detect_cliffs(
         params.range_max_m,
         ranges,
     )
-    return CliffResult(points, blocks, bs, scan)
+    return CliffResult(points, blocks, params.block_size, scan)

@@ -56,7 +56,7 @@ MAX_CODE_INDEX = (1 << COL_BITS) - 1
 
 
 def run_flush_codes(
-    cb_lo: NDArray[np.integer], cb_hi: NDArray[np.integer], n_bins: int
+    cb_lo: NDArray[np.integer], cb_hi: NDArray[np.integer], n_bins: int, row_block: int = 0
 ) -> tuple[I32, I32]:
     """``run_ends`` as one packed code per (run, bin): what the exact scan kernel reads.
 
@@ -68,6 +68,7 @@ def run_flush_codes(
             Ws and the bins below 32768.
         n_bins: bins of the scan; a run feeding none is flushed into bin n_bins (a scratch slot
             the kernel's output has beyond the scan), so that its column starts again too.
+        row_block: as in ``run_ends``.
 
     Returns:
         fl_start: (Hs + 1,) the flushes after row i are fl_start[i]:fl_start[i + 1];
@@ -75,7 +76,7 @@ def run_flush_codes(
         run's bins are consecutive, and its last carries ``last`` (the column starts a new run).
     """
     hs = cb_lo.shape[0]
-    rs_start, rs_col, lo, hi = run_ends(cb_lo, cb_hi)
+    rs_start, rs_col, lo, hi = run_ends(cb_lo, cb_hi, row_block)
     row = np.repeat(np.arange(hs), np.diff(rs_start))
     lo = lo.astype(np.int64)
     none = hi < lo

@@ -266,7 +266,7 @@ def reference_cliffs(
     rows = np.sort(t.rows)[::-1]  # bottom-up: block row 0 (the lowest) first, as the original
     assert np.array_equal(np.sort(t.rows), np.unique(t.rows))
     bottom_up = np.argsort(-t.rows, kind="stable")
-    lo_mm, hi_mm, range_m = t.lo_mm[bottom_up], t.hi_mm[bottom_up], t.range_m[bottom_up]
+    lo_mm, hi_mm, range_m = t.lo_mm[bottom_up], t.hi_mm, t.range_m[bottom_up]
     d = depth[np.ix_(rows, t.cols)]
     mask = (d > lo_mm) & (d < hi_mm)
     counts = mask.reshape(t.shape4).sum(axis=(1, 3))
@@ -441,3 +441,19 @@ def test_warm_up_compiles_every_kernel_the_daemon_path_calls() -> None:
         )
     depth_to_scan(depth.astype(np.float32) / 1000, SMALL, mount, ScanParams())  # float metres input
     assert [len(k.signatures) for k in kernels] == before
+
+
+@pytest.mark.parametrize("mount", [Mount(0.5, 30.0, 12.0), Mount(0.8, 50.0, -15.0)])
+def test_cliff_scan_samples_outside_the_layout_leak_into_no_run(mount: Mount) -> None:
+    # a layout narrower than the image, with roll: sample columns leave and enter the layout
+    # inside a block row, so a run covering no bin is followed by one that covers bins
+    params = CliffParams(block_size=8, row_step=1, col_step=1, block_points_thresh=2)
+    layout = (-0.15, 0.004, 76)
+    t = cliff_mod._cliff_table(SMALL, mount, params, *layout)
+    assert ((t.ev_code >> 16) == layout[2]).any()  # runs covering no bin exist
+    rng = np.random.default_rng(3)
+    depth = rng.integers(0, 9000, size=(SMALL.height, SMALL.width)).astype(np.uint16)
+    res = detect_cliffs(depth, SMALL, mount, params, *layout)
+    found, want = reference_cliffs(depth, SMALL, mount, params, layout)
+    assert found.any()
+    assert np.array_equal(res.scan.ranges, want, equal_nan=True)
