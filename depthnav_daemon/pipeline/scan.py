@@ -37,10 +37,10 @@ from depthnav_daemon.pipeline.geometry import (
     paper_row_angles_rad,
 )
 from depthnav_daemon.pipeline.scan_kernels import (
+    MAX_CODE_INDEX,
     bin_map_kernel,
     exact_scan_kernel,
     paper_scan_kernel,
-    MAX_CODE_INDEX,
     run_flush_codes,
 )
 from drivers.base import Intrinsics
