@@ -309,23 +309,35 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
-def _progress_bar(label: str):
-    """A one-line progress bar on stderr when it is a terminal; log lines otherwise."""
+def _progress_bar(label: str, unit: str = "frames"):
+    """A one-line progress bar on stderr when it is a terminal; log lines otherwise.
+
+    The log lines come at every quarter of ``total`` crossed and at the end, also for callers
+    that skip values (compression reports every few MiB).
+    """
     tty = sys.stderr.isatty()
+    last = [0]
 
     def show(done: int, total: int) -> None:
+        step = max(total // 4, 1)
         if tty:
             width = 30
             filled = int(width * done / max(total, 1))
             end = "\n" if done >= total else ""
             sys.stderr.write(
-                f"\r{label} [{'#' * filled}{'.' * (width - filled)}] {done}/{total}{end}"
+                f"\r{label} [{'#' * filled}{'.' * (width - filled)}] {done}/{total} {unit}{end}"
             )
             sys.stderr.flush()
-        elif done == total or done % max(total // 4, 1) == 0:
-            log.info("%s: %d/%d frames", label, done, total)
+        elif done == total or done // step > last[0] // step:
+            log.info("%s: %d/%d %s", label, done, total, unit)
+        last[0] = done
 
     return show
+
+
+def _mib(n_bytes: int) -> int:
+    """Bytes in whole MiB, rounded up (so a finished count equals its total)."""
+    return -(-n_bytes // (1 << 20))
 
 
 def cmd_record(args: argparse.Namespace) -> int:
@@ -337,13 +349,26 @@ def cmd_record(args: argparse.Namespace) -> int:
     stop = threading.Event()
     got = _install_stop_handlers(stop)
     driver = create_driver(args.device)
-    bar = _progress_bar("recording")
+    recording = _progress_bar("recording")
+    compressing = _progress_bar("compressing", unit="MiB")
+    taken = [0]
+
+    def took(k: int) -> None:
+        taken[0] = k
+        recording(k, args.frames)
+
+    def compressed(done: int, total: int) -> None:
+        if taken[0] < args.frames and sys.stderr.isatty():
+            sys.stderr.write("\n")  # a stop left the recording bar's line open
+        taken[0] = args.frames
+        compressing(_mib(done), _mib(total))
 
     def frames():
         for i, frame in enumerate(iter_frames(driver, stop)):
             if i >= args.frames:
                 break
             yield frame
+        driver.close()  # the device is not needed while the frames are compressed
 
     with opened(driver):
         n = write_recording(
@@ -351,7 +376,8 @@ def cmd_record(args: argparse.Namespace) -> int:
             frames(),
             description=args.description,
             device=args.device,
-            progress=lambda k: bar(k, args.frames),
+            progress=took,
+            progress_compress=compressed,
         )
     log.info("recorded %d frames into %s", n, args.out)
     return EXIT_INTERRUPTED if got.get("signal") == signal.SIGINT else EXIT_OK

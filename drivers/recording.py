@@ -4,19 +4,27 @@
 ``timestamp_s`` (N,) float64 and, when every frame had one, ``accel_mps2`` (N, 3) float64.
 ``recording.toml`` holds ``format_version``, ``description``, ``device``, an ``[intrinsics]``
 table and an optional ``[truth]`` table. A bare ``.npz`` with the same arrays is also readable.
+
+Memory: ``write_recording`` holds one frame at a time (the frames wait in a temporary file in
+the target folder, so recording needs free disk for them uncompressed until ``frames.npz`` is
+written); ``read_recording`` decompresses every frame into memory, ``open_recording_stream``
+one frame at a time.
 """
 
 from __future__ import annotations
 
 import contextlib
+import errno
 import logging
 import math
 import os
 import tomllib
-from collections.abc import Callable, Iterable, Mapping
+import zipfile
+from array import array
+from collections.abc import Callable, Iterable, Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, BinaryIO
+from typing import IO, Any, BinaryIO
 
 import numpy as np
 import numpy.typing as npt
@@ -31,6 +39,10 @@ FORMAT_VERSION = 1
 FRAMES_FILE = "frames.npz"
 META_FILE = "recording.toml"
 _PARTIAL = ".partial"
+DEPTH_MEMBER = "depth_mm.npy"
+_RAW_FILE = "depth_mm.raw"  # the frames' bytes while recording, under its .partial name
+_COPY_CHUNK_BYTES = 1 << 20  # memory of the final compression, bytes
+_MAX_HEADER_SIZE = 10_000  # np.load's limit on a .npy header, bytes
 
 
 @dataclass(frozen=True, slots=True)
@@ -105,11 +117,14 @@ def write_recording(
     truth: dict[str, Any] | None = None,
     device: str = "",
     progress: Callable[[int], None] | None = None,
+    progress_compress: Callable[[int, int], None] | None = None,
 ) -> int:
-    """Write frames as a depthnav recording folder.
+    """Write frames as a depthnav recording folder, holding one frame in memory at a time.
 
-    Every file is written under a ``.partial`` name inside ``path`` and renamed when complete;
-    ``recording.toml`` comes last, so an interrupted write never looks like a recording.
+    Each frame's bytes go to a temporary file in ``path`` as it arrives; ``frames.npz`` is
+    compressed from that file at the end. Every file is written under a ``.partial`` name and
+    renamed when complete; ``recording.toml`` comes last, so an interrupted write never looks
+    like a recording. When ``frames`` ends early (a stop), the frames it gave are written.
 
     Args:
         path: the folder to create; it must not exist or must be empty.
@@ -117,54 +132,138 @@ def write_recording(
         description: one line of free text.
         truth: optional ground truth, a flat table of numbers, text, booleans or lists.
         device: the device spec or name recorded from.
-        progress: called with the number of frames collected so far.
+        progress: called with the number of frames taken so far, after each frame.
+        progress_compress: called with (bytes compressed, total bytes) of the depth frames
+            while ``frames.npz`` is written.
 
     Returns:
         The number of frames written.
 
     Raises:
-        RecordingError: folder not empty, no frames, frames that differ in size or intrinsics.
+        RecordingError: folder not empty, no frames, frames that differ in size or intrinsics,
+            a write that fails (full disk).
     """
     folder = Path(path)
+    _check_target(folder)
+    if truth is not None and not isinstance(truth, Mapping):
+        raise RecordingError(f"{folder}: truth must be a table (dict), got {type(truth).__name__}")
+    # checked before any file exists (and before the frames come), so bad truth writes nothing
+    _toml_document({"description": description, "device": device}, {"truth": dict(truth or {})})
+    created = not folder.exists()
+    raw_tmp = folder / (_RAW_FILE + _PARTIAL)
+    try:
+        try:
+            folder.mkdir(parents=True, exist_ok=True)
+            raw = _create_new(raw_tmp, readable=True)
+        except OSError as exc:
+            raise _write_failed(folder, exc) from exc
+        with raw:
+            kept = _spool_frames(raw, frames, folder, progress)
+            document = _meta_document(kept.intrinsics, description, device, truth)
+            try:
+                raw.seek(0)
+                _write_new(
+                    folder / FRAMES_FILE, lambda fh: _write_npz(fh, raw, kept, progress_compress)
+                )
+                raw_tmp.unlink()  # its disk space is free before the metadata needs any
+                _write_new(folder / META_FILE, lambda fh: fh.write(document.encode("utf-8")))
+            except OSError as exc:
+                # a full disk (ENOSPC), a file-size limit (EFBIG), a read-only mount: one line,
+                # and no half-written recording left behind (.partial files go in the finally)
+                (folder / FRAMES_FILE).unlink(missing_ok=True)
+                raise _write_failed(folder, exc) from exc
+    finally:
+        for name in (_RAW_FILE, FRAMES_FILE, META_FILE):
+            with contextlib.suppress(OSError):
+                (folder / (name + _PARTIAL)).unlink(missing_ok=True)
+        if created and folder.is_dir() and not (folder / META_FILE).exists():
+            with contextlib.suppress(OSError):
+                folder.rmdir()  # only if empty: never remove anything that was there before
+    log.info("wrote %d frames to %s", kept.count, folder)
+    return kept.count
+
+
+def _check_target(folder: Path) -> None:
+    """Refuse a target that is a file or a folder with something in it."""
     if folder.exists() and not folder.is_dir():
         raise RecordingError(f"{folder}: exists and is not a folder", hint="name a new folder")
     if folder.is_dir() and any(folder.iterdir()):
         raise RecordingError(
             f"{folder}: folder is not empty; refusing to overwrite", hint="name a new folder"
         )
-    if truth is not None and not isinstance(truth, Mapping):
-        raise RecordingError(f"{folder}: truth must be a table (dict), got {type(truth).__name__}")
-    depth: list[npt.NDArray[np.uint16]] = []
-    stamps: list[float] = []
-    accels: list[tuple[float, float, float] | None] = []
+
+
+def _write_failed(folder: Path, exc: OSError) -> RecordingError:
+    return RecordingError(
+        f"{folder}: writing the recording failed: {exc.strerror or exc}",
+        hint="free some disk space or record to another folder",
+    )
+
+
+@dataclass(slots=True)
+class _Kept:
+    """What write_recording holds in memory: everything but the depth frames.
+
+    Attributes:
+        intrinsics: the first frame's intrinsics (None before the first frame).
+        stamps: timestamp of each frame, seconds.
+        accel: 3 values a frame, m/s^2 (zeros where a frame had none).
+        with_accel: how many frames had accelerometer data.
+    """
+
     intrinsics: Intrinsics | None = None
+    stamps: array = field(default_factory=lambda: array("d"))
+    accel: array = field(default_factory=lambda: array("d"))
+    with_accel: int = 0
+
+    @property
+    def count(self) -> int:
+        return len(self.stamps)
+
+
+def _spool_frames(
+    raw: BinaryIO, frames: Iterable[Frame], folder: Path, progress: Callable[[int], None] | None
+) -> _Kept:
+    """Append each frame's depth to ``raw`` as little-endian uint16, C order; keep the rest."""
+    kept = _Kept()
     for frame in frames:
-        if intrinsics is None:
-            intrinsics = frame.intrinsics
-        elif frame.intrinsics != intrinsics:
+        if kept.intrinsics is None:
+            kept.intrinsics = frame.intrinsics
+        elif frame.intrinsics != kept.intrinsics:
             raise RecordingError(
                 f"{folder}: frame {frame.seq} has intrinsics {frame.intrinsics}, "
-                f"the first frame had {intrinsics}",
+                f"the first frame had {kept.intrinsics}",
                 hint="a recording holds one camera setting; record each mode separately",
             )
-        depth.append(np.array(frame.depth_mm, dtype=np.uint16, copy=True))
-        stamps.append(float(frame.timestamp_s))
-        accels.append(frame.accel_mps2)
+        depth = np.ascontiguousarray(frame.depth_mm, dtype="<u2")
+        if depth.shape != (kept.intrinsics.height, kept.intrinsics.width):
+            raise RecordingError(
+                f"{folder}: frame {frame.seq} is {depth.shape} but its intrinsics say "
+                f"{kept.intrinsics.width}x{kept.intrinsics.height}"
+            )
+        try:
+            raw.write(depth.data)
+        except OSError as exc:
+            raise _write_failed(folder, exc) from exc
+        kept.stamps.append(float(frame.timestamp_s))
+        kept.accel.extend(frame.accel_mps2 or (0.0, 0.0, 0.0))
+        kept.with_accel += frame.accel_mps2 is not None
         if progress is not None:
-            progress(len(depth))
-    if intrinsics is None:
+            progress(kept.count)
+    if kept.intrinsics is None:
         raise RecordingError(
             f"{folder}: no frames to write", hint="check that the device delivers frames"
         )
-    arrays: dict[str, npt.NDArray[Any]] = {
-        "depth_mm": np.stack(depth),
-        "intrinsics": intrinsics.as_array(),
-        "timestamp_s": np.asarray(stamps, dtype=np.float64),
-    }
-    if all(a is not None for a in accels):
-        arrays["accel_mps2"] = np.asarray(accels, dtype=np.float64)
-    elif any(a is not None for a in accels):
+    if 0 < kept.with_accel < kept.count:
         log.warning("%s: only some frames had accelerometer data; not storing it", folder)
+    return kept
+
+
+def _meta_document(
+    intrinsics: Intrinsics | None, description: str, device: str, truth: Mapping[str, Any] | None
+) -> str:
+    """The recording.toml text."""
+    assert intrinsics is not None
     meta = {"format_version": FORMAT_VERSION, "description": description, "device": device}
     tables: dict[str, Mapping[str, Any]] = {
         "intrinsics": {
@@ -178,56 +277,87 @@ def write_recording(
     }
     if truth:
         tables["truth"] = dict(truth)
-    document = _toml_document(meta, tables)  # before any file exists, so bad truth writes nothing
-
-    created = not folder.exists()
-    npz_tmp = folder / (FRAMES_FILE + _PARTIAL)
-    meta_tmp = folder / (META_FILE + _PARTIAL)
-    try:
-        folder.mkdir(parents=True, exist_ok=True)
-        with _create_new(npz_tmp) as fh:
-            np.savez_compressed(fh, **arrays)
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(npz_tmp, folder / FRAMES_FILE)
-        with _create_new(meta_tmp) as fh:
-            fh.write(document.encode("utf-8"))
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(meta_tmp, folder / META_FILE)
-    except OSError as exc:
-        # a full disk (ENOSPC), a file-size limit (EFBIG), a read-only mount: one line, and no
-        # half-written recording left behind (the .partial files go in the finally below)
-        (folder / FRAMES_FILE).unlink(missing_ok=True)
-        raise RecordingError(
-            f"{folder}: writing the recording failed: {exc.strerror or exc}",
-            hint="free some disk space or record to another folder",
-        ) from exc
-    finally:
-        for tmp in (npz_tmp, meta_tmp):
-            with contextlib.suppress(OSError):
-                tmp.unlink(missing_ok=True)
-        if created and folder.is_dir() and not (folder / META_FILE).exists():
-            with contextlib.suppress(OSError):
-                folder.rmdir()  # only if empty: never remove anything that was there before
-    log.info("wrote %d frames to %s", len(depth), folder)
-    return len(depth)
+    return _toml_document(meta, tables)
 
 
-def _create_new(path: Path) -> BinaryIO:
-    """Open ``path`` for writing only if nothing (not even a symlink) is there yet.
+def _write_new(final: Path, write: Callable[[BinaryIO], object]) -> None:
+    """Write ``final`` under its ``.partial`` name, fsync it, then rename it into place."""
+    tmp = final.with_name(final.name + _PARTIAL)
+    with _create_new(tmp) as fh:
+        write(fh)
+        fh.flush()
+        os.fsync(fh.fileno())
+    os.replace(tmp, final)
+
+
+def _write_npz(
+    fh: BinaryIO,
+    raw: BinaryIO,
+    kept: _Kept,
+    progress_compress: Callable[[int, int], None] | None,
+) -> None:
+    """``frames.npz`` as np.savez_compressed writes it, its depth copied from ``raw`` in chunks."""
+    intr = kept.intrinsics
+    assert intr is not None
+    small: dict[str, npt.NDArray[np.float64]] = {
+        "intrinsics": intr.as_array(),
+        "timestamp_s": np.frombuffer(kept.stamps, dtype=np.float64),
+    }
+    if kept.with_accel == kept.count:
+        small["accel_mps2"] = np.frombuffer(kept.accel, dtype=np.float64).reshape(-1, 3)
+    header = {
+        "descr": np.lib.format.dtype_to_descr(np.dtype("<u2")),
+        "fortran_order": False,
+        "shape": (kept.count, intr.height, intr.width),
+    }
+    with zipfile.ZipFile(fh, mode="w", compression=zipfile.ZIP_DEFLATED) as npz:
+        # force_zip64 as numpy does (gh-10776): the size is not known when the member starts
+        with npz.open(DEPTH_MEMBER, "w", force_zip64=True) as member:
+            np.lib.format.write_array_header_1_0(member, header)
+            _copy_depth(raw, member, kept.count * intr.height * intr.width * 2, progress_compress)
+        for name, values in small.items():
+            with npz.open(name + ".npy", "w", force_zip64=True) as member:
+                np.lib.format.write_array(member, values, allow_pickle=False)
+
+
+def _copy_depth(
+    src: BinaryIO,
+    dst: IO[bytes],
+    total: int,
+    progress_compress: Callable[[int, int], None] | None,
+) -> None:
+    """Copy ``total`` bytes in chunks of _COPY_CHUNK_BYTES, reporting (done, total) after each."""
+    buffer = memoryview(bytearray(max(min(_COPY_CHUNK_BYTES, total), 1)))
+    done = 0
+    while done < total:
+        got = src.readinto(buffer[: min(len(buffer), total - done)])
+        if not got:
+            raise OSError(errno.EIO, "the temporary frame file ended early")
+        dst.write(buffer[:got])
+        done += got
+        if progress_compress is not None:
+            progress_compress(done, total)
+
+
+def _create_new(path: Path, *, readable: bool = False) -> BinaryIO:
+    """Open ``path`` for writing (and reading) only if nothing, not even a symlink, is there yet.
 
     O_EXCL keeps a write inside the folder it names: a planted ``frames.npz.partial`` symlink
     pointing elsewhere makes the write fail instead of following the link.
     """
-    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_NOFOLLOW", 0), 0o644)
-    return os.fdopen(fd, "wb")
+    access = os.O_RDWR if readable else os.O_WRONLY
+    flags = access | os.O_CREAT | os.O_EXCL | getattr(os, "O_NOFOLLOW", 0)
+    fd = os.open(path, flags, 0o644)
+    return os.fdopen(fd, "w+b" if readable else "wb")
 
 
-def _load_npz(path: Path) -> dict[str, npt.NDArray[Any]]:
+@contextlib.contextmanager
+def _reading(path: Path) -> Iterator[None]:
+    """Turn whatever a damaged or missing archive raises into one RecordingError line."""
     try:
-        with np.load(path, allow_pickle=False) as npz:
-            return {name: npz[name] for name in npz.files}
+        yield
+    except RecordingError:
+        raise
     except FileNotFoundError:
         raise RecordingError(f"{path}: no such file", hint="check the path") from None
     except Exception as exc:
@@ -239,6 +369,12 @@ def _load_npz(path: Path) -> dict[str, npt.NDArray[Any]]:
             f"{type(exc).__name__}{': ' + reason[:120] if reason else ''})",
             hint="re-record it or restore it from git",
         ) from exc
+
+
+def _load_npz(path: Path, skip: str | None = None) -> dict[str, npt.NDArray[Any]]:
+    """Every array of an .npz but ``skip``, which is never decompressed (np.load is lazy)."""
+    with _reading(path), np.load(path, allow_pickle=False) as npz:
+        return {name: npz[name] for name in npz.files if name != skip}
 
 
 def _intrinsics_from_meta(table: Any, shape: tuple[int, int], where: Path) -> Intrinsics:
@@ -304,17 +440,20 @@ def _read_meta(folder: Path) -> dict[str, Any]:
     return meta
 
 
+def _check_depth_layout(dtype: np.dtype[Any], shape: tuple[int, ...], npz_path: Path) -> None:
+    if dtype != np.uint16 or len(shape) != 3 or min(shape) < 1:  # noqa: PLR2004
+        raise RecordingError(
+            f"{npz_path}: 'depth_mm' must be uint16 (N, H, W) with N >= 1, got {dtype} {shape}"
+        )
+
+
 def _checked_depth(arrays: dict[str, npt.NDArray[Any]], npz_path: Path) -> npt.NDArray[np.uint16]:
     depth = arrays.get("depth_mm")
     if depth is None:
         raise RecordingError(
             f"{npz_path}: has no 'depth_mm' array (found: {', '.join(arrays) or 'none'})"
         )
-    if depth.dtype != np.uint16 or depth.ndim != 3 or depth.shape[0] < 1:  # noqa: PLR2004
-        raise RecordingError(
-            f"{npz_path}: 'depth_mm' must be uint16 (N, H, W) with N >= 1, "
-            f"got {depth.dtype} {depth.shape}"
-        )
+    _check_depth_layout(depth.dtype, depth.shape, npz_path)
     return depth
 
 
@@ -349,8 +488,45 @@ def _checked_accel(
     return accel
 
 
+def _locate(path: str | os.PathLike[str]) -> tuple[Path, dict[str, Any], Path]:
+    """(the path, its recording.toml or {} for a bare .npz, the .npz holding the frames)."""
+    where = Path(path)
+    if where.is_dir():
+        return where, _read_meta(where), where / FRAMES_FILE
+    if where.suffix.lower() == ".npz" or where.is_file():
+        return where, {}, where
+    raise RecordingError(f"{where}: no such file or folder", hint="check the path")
+
+
+def _described(
+    where: Path,
+    meta: dict[str, Any],
+    npz_path: Path,
+    arrays: dict[str, npt.NDArray[Any]],
+    shape: tuple[int, int, int],
+    default_fps: float,
+) -> dict[str, Any]:
+    """Everything of a recording but its depth, checked against the depth's (N, H, W)."""
+    n, image = shape[0], (shape[1], shape[2])
+    if "intrinsics" in meta:
+        intr = _intrinsics_from_meta(meta["intrinsics"], image, where / META_FILE)
+    elif "intrinsics" in arrays:
+        intr = intrinsics_from_array(arrays["intrinsics"], image, npz_path)
+    else:
+        raise RecordingError(f"{npz_path}: has no 'intrinsics' array [fx, fy, cx, cy]")
+    truth = meta.get("truth", {})
+    return {
+        "intrinsics": intr,
+        "timestamp_s": _checked_stamps(arrays.get("timestamp_s"), n, npz_path, default_fps),
+        "accel_mps2": _checked_accel(arrays.get("accel_mps2"), n, npz_path),
+        "description": str(meta.get("description", "")),
+        "device": str(meta.get("device", "")),
+        "truth": truth if isinstance(truth, dict) else {},
+    }
+
+
 def read_recording(path: str | os.PathLike[str], default_fps: float = 30.0) -> Recording:
-    """Load a recording folder or a bare ``.npz``.
+    """Load a recording folder or a bare ``.npz``, every frame decompressed into memory.
 
     Args:
         path: a recording folder (``recording.toml`` + ``frames.npz``) or an ``.npz`` file.
@@ -359,31 +535,158 @@ def read_recording(path: str | os.PathLike[str], default_fps: float = 30.0) -> R
     Raises:
         RecordingError: missing, corrupt, truncated or inconsistent; the message names the file.
     """
-    where = Path(path)
-    meta: dict[str, Any] = {}
-    if where.is_dir():
-        meta = _read_meta(where)
-        npz_path = where / FRAMES_FILE
-    elif where.suffix.lower() == ".npz" or where.is_file():
-        npz_path = where
-    else:
-        raise RecordingError(f"{where}: no such file or folder", hint="check the path")
+    where, meta, npz_path = _locate(path)
     arrays = _load_npz(npz_path)
     depth = _checked_depth(arrays, npz_path)
-    n, shape = depth.shape[0], (depth.shape[1], depth.shape[2])
-    if "intrinsics" in meta:
-        intr = _intrinsics_from_meta(meta["intrinsics"], shape, where / META_FILE)
-    elif "intrinsics" in arrays:
-        intr = intrinsics_from_array(arrays["intrinsics"], shape, npz_path)
-    else:
-        raise RecordingError(f"{npz_path}: has no 'intrinsics' array [fx, fy, cx, cy]")
-    truth = meta.get("truth", {})
     return Recording(
-        depth_mm=depth,
-        intrinsics=intr,
-        timestamp_s=_checked_stamps(arrays.get("timestamp_s"), n, npz_path, default_fps),
-        accel_mps2=_checked_accel(arrays.get("accel_mps2"), n, npz_path),
-        description=str(meta.get("description", "")),
-        device=str(meta.get("device", "")),
-        truth=truth if isinstance(truth, dict) else {},
+        depth_mm=depth, **_described(where, meta, npz_path, arrays, depth.shape, default_fps)
+    )
+
+
+# --- streaming: one frame in memory at a time -------------------------------------------------
+@dataclass(frozen=True, slots=True)
+class _DepthHeader:
+    """The .npy header of the ``depth_mm`` member: shape, dtype and memory order.
+
+    Attributes:
+        member: its name in the zip archive.
+        member_size: its size uncompressed (header and data) as the archive says, bytes.
+    """
+
+    member: str
+    member_size: int
+    shape: tuple[int, ...]
+    fortran_order: bool
+    dtype: np.dtype[Any]
+
+    @property
+    def nbytes(self) -> int:
+        """Decoded size of the array, bytes."""
+        return math.prod(self.shape) * self.dtype.itemsize
+
+
+def _depth_member(npz: zipfile.ZipFile, npz_path: Path) -> str:
+    """The member np.load would read as ``depth_mm``."""
+    names = npz.namelist()
+    for name in (DEPTH_MEMBER, "depth_mm"):
+        if name in names:
+            return name
+    found = ", ".join(n.removesuffix(".npy") for n in names) or "none"
+    raise RecordingError(f"{npz_path}: has no 'depth_mm' array (found: {found})")
+
+
+def _read_header(fid: IO[bytes]) -> tuple[tuple[int, ...], bool, np.dtype[Any]]:
+    """(shape, Fortran order, dtype) from the start of a .npy member; leaves fid after it."""
+    version = np.lib.format.read_magic(fid)
+    if version == (1, 0):
+        shape, fortran, dtype = np.lib.format.read_array_header_1_0(fid, _MAX_HEADER_SIZE)
+    elif version == (2, 0):
+        shape, fortran, dtype = np.lib.format.read_array_header_2_0(fid, _MAX_HEADER_SIZE)
+    else:
+        raise ValueError(f"unsupported .npy format version {version[0]}.{version[1]}")
+    return tuple(shape), bool(fortran), dtype
+
+
+def _depth_header(npz_path: Path) -> _DepthHeader:
+    """The ``depth_mm`` header of an .npz, without decompressing the frames."""
+    with _reading(npz_path), zipfile.ZipFile(npz_path) as npz:
+        member = _depth_member(npz, npz_path)
+        with npz.open(member) as fid:
+            return _DepthHeader(member, npz.getinfo(member).file_size, *_read_header(fid))
+
+
+def recording_depth_nbytes(path: str | os.PathLike[str]) -> int:
+    """Decoded size of a recording's depth frames, bytes, from the .npy header alone.
+
+    Raises:
+        RecordingError: no such file, or not a readable .npz.
+    """
+    where = Path(path)
+    return _depth_header(where / FRAMES_FILE if where.is_dir() else where).nbytes
+
+
+@dataclass(frozen=True, slots=True)
+class RecordingStream:
+    """A recording whose depth frames stay on disk; ``iter_depth`` reads them one at a time.
+
+    Attributes:
+        npz_path: the ``.npz`` holding the frames.
+        shape: (N, H, W) of ``depth_mm``.
+        intrinsics, timestamp_s, accel_mps2, description, device, truth: as in Recording.
+    """
+
+    npz_path: Path
+    shape: tuple[int, int, int]
+    intrinsics: Intrinsics
+    timestamp_s: npt.NDArray[np.float64]
+    accel_mps2: npt.NDArray[np.float64] | None = None
+    description: str = ""
+    device: str = ""
+    truth: Mapping[str, Any] = field(default_factory=dict)
+
+    @property
+    def depth_nbytes(self) -> int:
+        """Decoded size of every depth frame together, bytes."""
+        return math.prod(self.shape) * 2
+
+    def iter_depth(self) -> Iterator[npt.NDArray[np.uint16]]:
+        """Each frame's (H, W) uint16 depth, mm, read-only; one frame decompressed at a time.
+
+        Every call reopens the file and starts at frame 0.
+
+        Raises:
+            RecordingError: the file is corrupt, truncated or changed since it was opened.
+        """
+        n, height, width = self.shape
+        frame_bytes = height * width * 2
+        with _reading(self.npz_path), zipfile.ZipFile(self.npz_path) as npz:
+            with npz.open(_depth_member(npz, self.npz_path)) as fid:
+                if _read_header(fid) != (self.shape, False, np.dtype(np.uint16)):
+                    raise RecordingError(f"{self.npz_path}: changed while being replayed")
+                for i in range(n):
+                    data = fid.read(frame_bytes)
+                    if len(data) != frame_bytes:
+                        raise EOFError(f"'depth_mm' ends in frame {i} of {n}")
+                    yield np.frombuffer(data, dtype=np.uint16).reshape(height, width)
+                fid.read(1)  # to the end of the member, where zipfile checks its CRC-32
+
+
+def open_recording_stream(
+    path: str | os.PathLike[str], default_fps: float = 30.0
+) -> RecordingStream:
+    """Open a recording folder or a bare ``.npz`` for reading frame by frame.
+
+    Only the metadata and the small arrays (timestamps, accelerometer, intrinsics) are loaded;
+    the depth frames are decompressed by ``RecordingStream.iter_depth``.
+
+    Args:
+        path: a recording folder (``recording.toml`` + ``frames.npz``) or an ``.npz`` file.
+        default_fps: frame rate assumed when the file has no timestamps, frames per second.
+
+    Raises:
+        RecordingError: missing, corrupt or inconsistent, or ``depth_mm`` not stored as uint16
+            in C order; the message names the file.
+    """
+    where, meta, npz_path = _locate(path)
+    header = _depth_header(npz_path)
+    _check_depth_layout(header.dtype, header.shape, npz_path)
+    if header.fortran_order:
+        raise RecordingError(
+            f"{npz_path}: 'depth_mm' must be uint16 (N, H, W) in C order, "
+            f"got {header.dtype} {header.shape} in Fortran order",
+            hint="save it again with np.ascontiguousarray(depth_mm)",
+        )
+    shape = (header.shape[0], header.shape[1], header.shape[2])
+    # the archive's own size record bounds N before anything is sized by it (a damaged header)
+    if header.member_size < header.nbytes:
+        raise RecordingError(
+            f"{npz_path}: 'depth_mm' holds {header.member_size} bytes, too few for "
+            f"{shape} uint16 (truncated)",
+            hint="re-record it or restore it from git",
+        )
+    arrays = _load_npz(npz_path, skip="depth_mm")
+    return RecordingStream(
+        npz_path=npz_path,
+        shape=shape,
+        **_described(where, meta, npz_path, arrays, shape, default_fps),
     )

@@ -15,6 +15,9 @@ Options: ``rate`` realtime (default; sleep to the recorded timestamps) or max (n
 without timestamps (default 30); ``fx, fy, cx, cy`` override the intrinsics (pixels); ``start``
 skips that many frames when opening (a seek done by reading, as OpenNI2's own seek hangs; a loop
 restarts at frame 0).
+
+A depthnav recording whose decoded frames fit in ``CACHE_MAX_BYTES`` is decompressed once and kept
+for looping; a larger one is decompressed one frame at a time, again on every loop pass.
 """
 
 from __future__ import annotations
@@ -33,7 +36,13 @@ from drivers import fakenect_format, png_folder
 from drivers.base import KINECT_V1, DeviceInfo, Driver, Frame, Intrinsics, TiltState
 from drivers.errors import DeviceSpecError, DriverError, RecordingError
 from drivers.kinect_axes import accel_counts_to_camera, tilt_status_name
-from drivers.recording import Recording, read_recording
+from drivers.recording import (
+    Recording,
+    RecordingStream,
+    open_recording_stream,
+    read_recording,
+    recording_depth_nbytes,
+)
 from drivers.spec import (
     Spec,
     bool_option,
@@ -50,6 +59,9 @@ GRAMMAR = (
     "replay:PATH[?rate=realtime|max&loop=0|1&fps=F&fx=..&fy=..&cx=..&cy=..&scale=S&const_shift=C]"
 )
 OPTIONS = ("rate", "loop", "fps", "fx", "fy", "cx", "cy", "scale", "const_shift", "start")
+# Decoded depth up to this size stays in memory for looping (decompressing the 12-frame fixture
+# on every pass cost 40 % of the daemon's CPU at 30 frames/s); above it frames are streamed.
+CACHE_MAX_BYTES = 256 << 20
 
 Item = tuple[float, npt.NDArray[np.uint16], tuple[float, float, float] | None, TiltState | None]
 
@@ -83,7 +95,7 @@ class ReplayDriver:
         self.start = start
         self.spec_text = spec_text or f"replay:{path}"
         self._items: Iterator[Item] | None = None
-        self._recording: Recording | None = None  # a depthnav recording, decompressed once
+        self._recording: Recording | RecordingStream | None = None  # opened once, kept to loop
         self._inner: Driver | None = None
         self._intrinsics: Intrinsics | None = None
         self._seq = 0
@@ -140,18 +152,25 @@ class ReplayDriver:
                 ) from None
             raise RecordingError(f"{self.path}: bad intrinsics: {exc}") from None
 
+    def _open_depthnav(self) -> Recording | RecordingStream:
+        """The recording decoded in memory when it fits CACHE_MAX_BYTES, else a frame stream."""
+        if recording_depth_nbytes(self.path) <= CACHE_MAX_BYTES:
+            return read_recording(self.path, default_fps=self.fps)
+        return open_recording_stream(self.path, default_fps=self.fps)
+
     def _depthnav_items(self) -> tuple[Iterator[Item], Intrinsics, str]:
-        # read_recording decompresses every frame: keep it for the next loop, not per pass
         rec = self._recording
         if rec is None:
-            rec = self._recording = read_recording(self.path, default_fps=self.fps)
+            rec = self._recording = self._open_depthnav()
         self._has_accel = rec.accel_mps2 is not None
         intr = self._intrinsics_with(rec.intrinsics, None)
+        # rows of the decoded array, or frames decompressed from the file anew on this pass
+        depth = rec.depth_mm if isinstance(rec, Recording) else rec.iter_depth()
 
         def items() -> Iterator[Item]:
-            for i in range(len(rec.depth_mm)):
+            for i, frame in enumerate(depth):
                 accel = None if rec.accel_mps2 is None else tuple(map(float, rec.accel_mps2[i]))
-                yield float(rec.timestamp_s[i]), rec.depth_mm[i], accel, None  # type: ignore[misc]
+                yield float(rec.timestamp_s[i]), frame, accel, None  # type: ignore[misc]
 
         return items(), intr, rec.description or self.path.name
 

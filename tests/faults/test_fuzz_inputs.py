@@ -35,7 +35,7 @@ from drivers.fakenect_format import ACCEL_DUMP, write_fakenect
 from drivers.kinect import check_fakenect_recording
 from drivers.oni_format import check_oni, write_oni
 from drivers.recording import write_recording
-from drivers.replay import ReplayDriver
+from drivers.replay import CACHE_MAX_BYTES, ReplayDriver
 from drivers.serial_tilt import SerialTiltSource, parse_line
 
 BASE = settings(
@@ -50,6 +50,10 @@ LONG_FACTOR = 5
 def fuzz(cases: int) -> settings:
     """Deterministic (derandomized) hypothesis settings: ``cases`` examples, 5x with --soak."""
     return settings(BASE, max_examples=cases * LONG_FACTOR if LONG else cases)
+
+
+# a depthnav recording replays decoded in memory up to the cache's cap and streamed above it
+REPLAY_PATHS = pytest.mark.parametrize("cap", [CACHE_MAX_BYTES, 0], ids=["cached", "streamed"])
 
 
 SMALL = Intrinsics(64, 48, 61.5, 57.25, 30.25, 22.75)  # asymmetric on purpose
@@ -130,9 +134,13 @@ def _npz_bytes() -> bytes:
 NPZ = _npz_bytes()
 
 
+@REPLAY_PATHS
 @fuzz(200)
 @given(edits=EDITS, cut=CUTS)
-def test_fuzz_npz_bytes(tmp_path_factory: pytest.TempPathFactory, edits, cut) -> None:
+def test_fuzz_npz_bytes(
+    tmp_path_factory: pytest.TempPathFactory, monkeypatch: pytest.MonkeyPatch, cap, edits, cut
+) -> None:
+    monkeypatch.setattr("drivers.replay.CACHE_MAX_BYTES", cap)
     path = tmp_path_factory.mktemp("npz") / "x.npz"
     path.write_bytes(mutate(NPZ, edits, cut))
     replay_all(f"replay:{path}?rate=max", str(path))
@@ -149,10 +157,14 @@ ARRAYS = st.dictionaries(
 )
 
 
+@REPLAY_PATHS
 @fuzz(200)
 @given(arrays=ARRAYS)
-def test_fuzz_npz_arrays(tmp_path_factory: pytest.TempPathFactory, arrays) -> None:
+def test_fuzz_npz_arrays(
+    tmp_path_factory: pytest.TempPathFactory, monkeypatch: pytest.MonkeyPatch, cap, arrays
+) -> None:
     """Wrong dtypes, shapes and values (NaN, inf, negative, saturated) in every array."""
+    monkeypatch.setattr("drivers.replay.CACHE_MAX_BYTES", cap)
     path = tmp_path_factory.mktemp("npz") / "x.npz"
     made = {}
     for name, (dtype, shape, fill) in arrays.items():
