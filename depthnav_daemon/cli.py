@@ -342,7 +342,7 @@ def _mib(n_bytes: int) -> int:
 
 def cmd_record(args: argparse.Namespace) -> int:
     from drivers import create_driver, iter_frames, opened
-    from drivers.recording import write_recording
+    from drivers.recording_writer import write_recording
 
     if args.frames < 1:
         raise ConfigError(f"--frames={args.frames} is out of range (accepted: 1 or more)")

@@ -16,7 +16,7 @@ import numpy as np
 from depthnav_daemon.pipeline.geometry import Mount
 from depthnav_daemon.synthetic import Box, Hole, KinectNoise, Scene, render, step_down
 from drivers.base import KINECT_V1, Frame, Intrinsics
-from drivers.recording import write_recording
+from drivers.recording_writer import write_recording
 
 G_MPS2 = 9.80665
 

@@ -18,7 +18,7 @@ import pytest
 from depthnav_daemon.pipeline.geometry import Mount
 from depthnav_daemon.synthetic import Scene, render, wall
 from drivers.base import KINECT_V1, Frame
-from drivers.recording import write_recording
+from drivers.recording_writer import write_recording
 
 ROOT = Path(__file__).resolve().parents[1]
 FIXTURE = ROOT / "fixtures" / "corridor_step"

@@ -19,7 +19,7 @@ from drivers.freenect_lib import find_library as find_freenect
 from drivers.oni_format import write_oni
 from drivers.openni import find_library as find_openni
 from drivers.png_folder import write_png_folder
-from drivers.recording import write_recording
+from drivers.recording_writer import write_recording
 
 N = 3
 

@@ -13,7 +13,7 @@ import drivers
 from drivers.errors import RecordingError
 from drivers.fakenect_format import write_fakenect
 from drivers.png_folder import write_png_folder
-from drivers.recording import write_recording
+from drivers.recording_writer import write_recording
 from drivers.replay import ReplayDriver
 
 

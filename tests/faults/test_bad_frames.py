@@ -20,7 +20,7 @@ from depthnav_daemon.config import build_config
 from depthnav_daemon.daemon import run
 from depthnav_daemon.pipeline import Result
 from drivers.base import DeviceInfo, Frame, Intrinsics
-from drivers.recording import write_recording
+from drivers.recording_writer import write_recording
 
 from .kit import depthnav, json_lines, one_error_line
 

@@ -34,7 +34,7 @@ from drivers.errors import DriverError, RecordingError
 from drivers.fakenect_format import ACCEL_DUMP, write_fakenect
 from drivers.kinect import check_fakenect_recording
 from drivers.oni_format import check_oni, write_oni
-from drivers.recording import write_recording
+from drivers.recording_writer import write_recording
 from drivers.replay import CACHE_MAX_BYTES, ReplayDriver
 from drivers.serial_tilt import SerialTiltSource, parse_line
 

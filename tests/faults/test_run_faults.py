@@ -31,7 +31,8 @@ from depthnav_daemon.sinks.null import NullSink
 from drivers import create_driver
 from drivers.base import DeviceInfo, Frame
 from drivers.kinect_motor import KinectMotor
-from drivers.recording import read_recording, write_recording
+from drivers.recording import read_recording
+from drivers.recording_writer import write_recording
 from drivers.serial_tilt import format_line
 from tests.drivers.fake_kinect_usb import FakeUsbBackend, KinectMotorModel
 

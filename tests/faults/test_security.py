@@ -17,7 +17,7 @@ from depthnav_daemon.sinks import create_sink
 from drivers import create_driver
 from drivers.base import Frame, Intrinsics
 from drivers.errors import RecordingError
-from drivers.recording import write_recording
+from drivers.recording_writer import write_recording
 
 from .kit import ENDLESS, ROOT, depthnav, finish, free_udp_port, one_error_line, read_lines, start
 
