@@ -369,12 +369,24 @@ def cmd_record(args: argparse.Namespace) -> int:
         taken[0] = args.frames
         compressing(_mib(done), _mib(total))
 
+    def while_compressing(signum: int, _frame: object) -> None:
+        if got.get("abandon"):
+            log.warning("recording abandoned: nothing is written to %s", args.out)
+            raise KeyboardInterrupt  # write_recording removes its partial files
+        got["abandon"] = signum
+        got.setdefault("signal", signum)
+        log.warning(
+            "finishing %s with the frames recorded; stop again to abandon the recording", args.out
+        )
+
     def frames():
         for i, frame in enumerate(iter_frames(driver, stop)):
             if i >= args.frames:
                 break
             yield frame
         driver.close()  # the device is not needed while the frames are compressed
+        signal.signal(signal.SIGINT, while_compressing)
+        signal.signal(signal.SIGTERM, while_compressing)
 
     with opened(driver):
         n = write_recording(

@@ -84,6 +84,55 @@ def test_sigkill_while_recording_leaves_no_recording_that_looks_complete(tmp_pat
             read_recording(out)
 
 
+def _record_until_compressing(tmp_path: Path, out: Path) -> subprocess.Popen[str]:
+    """``depthnav record`` of 400 VGA frames (~230 MiB to compress), returned once compressing."""
+    err_path = tmp_path / "err.txt"
+    proc = start(
+        "record",
+        "--device",
+        f"replay:{FIXTURE}?rate=max&loop=1",
+        "--frames",
+        "400",
+        str(out),
+        stderr_path=err_path,
+    )
+    wait_until_ours(proc)
+    deadline = time.monotonic() + 120
+    while "compressing:" not in err_path.read_text():
+        assert proc.poll() is None, err_path.read_text()
+        assert time.monotonic() < deadline, "never started compressing"
+        time.sleep(0.005)
+    return proc
+
+
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT], ids=["TERM", "INT"])
+def test_one_stop_while_compressing_finishes_the_recording(tmp_path: Path, sig: int) -> None:
+    out = tmp_path / "rec"
+    proc = _record_until_compressing(tmp_path, out)
+    code, _, err = finish(proc, sig, timeout=120)
+    assert code == CODES[sig], err
+    assert "stop again to abandon" in err and "Traceback" not in err
+    assert len(read_recording(out).depth_mm) == 400
+
+
+def test_a_second_stop_while_compressing_abandons_it_cleanly(tmp_path: Path) -> None:
+    out = tmp_path / "rec"
+    proc = _record_until_compressing(tmp_path, out)
+    proc.send_signal(signal.SIGINT)
+    err_path = Path(proc.stderr_path)  # type: ignore[attr-defined]
+    deadline = time.monotonic() + 30
+    while "stop again to abandon" not in err_path.read_text() and proc.poll() is None:
+        assert time.monotonic() < deadline
+        time.sleep(0.005)
+    code, _, err = finish(proc, signal.SIGINT, timeout=120)
+    if "wrote 400 frames" in err:  # compression won the race: then the recording is complete
+        assert len(read_recording(out).depth_mm) == 400
+        return
+    assert code == 130, err
+    assert "recording abandoned" in err and "Traceback" not in err
+    assert not out.exists()  # the folder was ours: nothing half-written is left
+
+
 def test_sigterm_leaves_a_readable_rrd(tmp_path: Path) -> None:
     rerun_bin = pytest.importorskip("rerun_cli")
     rrd = tmp_path / "run.rrd"
