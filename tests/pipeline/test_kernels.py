@@ -11,6 +11,8 @@ import math
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from depthnav_daemon.pipeline import cliff as cliff_mod
 from depthnav_daemon.pipeline import pose as pose_mod
@@ -456,4 +458,98 @@ def test_cliff_scan_samples_outside_the_layout_leak_into_no_run(mount: Mount) ->
     res = detect_cliffs(depth, SMALL, mount, params, *layout)
     found, want = reference_cliffs(depth, SMALL, mount, params, layout)
     assert found.any()
+    assert np.array_equal(res.scan.ranges, want, equal_nan=True)
+
+
+# --- random cameras, mounts and parameters ----------------------------------------------------
+
+
+@st.composite
+def camera_and_mount(draw: st.DrawFn) -> tuple[Intrinsics, Mount]:
+    w = draw(st.integers(16, 96))
+    h = draw(st.integers(12, 72))
+    f = draw(st.floats(0.6, 1.6)) * w
+    intr = Intrinsics(
+        w,
+        h,
+        f,
+        f * draw(st.floats(0.9, 1.1)),
+        draw(st.floats(0.3, 0.7)) * (w - 1),
+        draw(st.floats(0.3, 0.7)) * (h - 1),
+    )
+    mount = Mount(
+        draw(st.floats(0.15, 1.5)), draw(st.floats(-30.0, 88.9)), draw(st.floats(-30.0, 30.0))
+    )
+    return intr, mount
+
+
+def random_depth(intr: Intrinsics, mount: Mount, seed: int, rendered: bool) -> np.ndarray:
+    """A noisy rendered scene, or uniform noise with zeros (every threshold crossed anywhere)."""
+    if rendered:
+        return noisy_frame(intr, mount, seed)
+    rng = np.random.default_rng(seed)
+    depth = rng.integers(0, 7000, size=(intr.height, intr.width)).astype(np.uint16)
+    depth[rng.random(depth.shape) < 0.2] = 0
+    return depth
+
+
+@settings(max_examples=60, deadline=None)
+@given(cm=camera_and_mount(), data=st.data())
+def test_exact_scan_kernel_equals_per_row_binning_anywhere(
+    cm: tuple[Intrinsics, Mount], data: st.DataObject
+) -> None:
+    intr, mount = cm
+    row_start = data.draw(st.integers(0, intr.height - 1))
+    params = ScanParams(
+        range_min_m=data.draw(st.sampled_from([0.0, 0.2, 0.4, 1.0])),
+        range_max_m=data.draw(st.sampled_from([2.0, 5.0, 9.0])),
+        min_obstacle_height_m=data.draw(st.sampled_from([-0.3, 0.0, 0.05])),
+        max_obstacle_height_m=data.draw(st.sampled_from([0.3, 2.0])),
+        row_start=row_start,
+        row_stop=data.draw(st.sampled_from([-1, row_start + 1, intr.height])),
+        row_step=data.draw(st.integers(1, 4)),
+        col_step=data.draw(st.integers(1, 4)),
+        angle_increment_deg=data.draw(st.sampled_from([0.0, 0.05, 0.7, 3.0])),
+    )
+    depth = random_depth(intr, mount, data.draw(st.integers(0, 99)), data.draw(st.booleans()))
+    got = depth_to_scan(depth, intr, mount, params).ranges
+    assert np.array_equal(got, reference_exact_scan(depth, intr, mount, params), equal_nan=True)
+
+
+@settings(max_examples=60, deadline=None)
+@given(cm=camera_and_mount(), data=st.data())
+def test_cliff_kernel_equals_numpy_definition_anywhere(
+    cm: tuple[Intrinsics, Mount], data: st.DataObject
+) -> None:
+    intr, mount = cm
+    bs = data.draw(st.integers(2, min(12, intr.width, intr.height)))
+    row_step = data.draw(st.integers(1, bs))
+    col_step = data.draw(st.integers(1, bs))
+    per_block = -(-bs // row_step) * -(-bs // col_step)
+    params = CliffParams(
+        method=data.draw(st.sampled_from(["exact", "paper"])),
+        range_min_m=data.draw(st.sampled_from([0.0, 0.5])),
+        range_max_m=data.draw(st.sampled_from([3.0, 8.0])),
+        used_depth_height=data.draw(st.integers(bs, 8192)),
+        block_size=bs,
+        row_step=row_step,
+        col_step=col_step,
+        block_points_thresh=data.draw(st.integers(1, per_block)),
+        ground_margin_m=data.draw(st.sampled_from([0.0, 0.05])),
+    )
+    if data.draw(st.booleans()):
+        layout = scan_mod.scan_layout(intr, mount, ScanParams())
+    else:  # a layout narrower or coarser than the image's
+        layout = (
+            data.draw(st.floats(-0.6, 0.1)),
+            data.draw(st.floats(0.002, 0.05)),
+            data.draw(st.integers(1, 200)),
+        )
+    depth = random_depth(intr, mount, data.draw(st.integers(0, 99)), data.draw(st.booleans()))
+    res = detect_cliffs(depth, intr, mount, params, *layout)
+    found, want = reference_cliffs(depth, intr, mount, params, layout)
+    bj, bi = np.nonzero(found)
+    np.testing.assert_array_equal(
+        res.blocks, np.stack([intr.height - (bj + 1) * bs, bi * bs], axis=-1)
+    )
     assert np.array_equal(res.scan.ranges, want, equal_nan=True)
