@@ -20,13 +20,14 @@ from depthnav_daemon import __version__
 from depthnav_daemon.config import Config
 from depthnav_daemon.errors import DepthnavError, FrameError, SinkError
 from depthnav_daemon.mount_tracker import MountTracker, TrackerParams
-from depthnav_daemon.pipeline import Result, process
+from depthnav_daemon.pipeline import Result, prepare, process
 from depthnav_daemon.pipeline.geometry import Mount
 from depthnav_daemon.pipeline.pose import PoseEstimate, PoseParams, tilt_roll_from_accel
 from depthnav_daemon.sinks import create_sink
 from depthnav_daemon.sinks.base import Sink, SinkContext
+from depthnav_daemon.stage_tables import StageTables
 from drivers import create_driver
-from drivers.base import DeviceInfo, Driver, Frame
+from drivers.base import DeviceInfo, Driver, Frame, Intrinsics
 from drivers.errors import DriverError, FrameTimeout, RecordingError
 
 log = logging.getLogger(__name__)
@@ -167,6 +168,8 @@ def run(
         cfg.mount,
         TrackerParams(d.pose_smoothing, d.max_jump_m, d.max_jump_deg, d.jump_confirmations),
     )
+    cliff_params = cfg.cliff if d.cliff else None
+    tables = StageTables(lambda intr, mount: prepare(intr, mount, cfg.scan, cliff_params))
     source = _Source(cfg.device, cfg, stop, driver_factory)
     info = source.open()
     sinks: list[Sink] = []
@@ -213,16 +216,18 @@ def run(
             ):
                 want_pose = True
 
-            def on_pose(est: PoseEstimate) -> tuple[Mount, str]:
+            def on_pose(
+                est: PoseEstimate, intr: Intrinsics = frame.intrinsics
+            ) -> tuple[Mount, str]:
                 _apply_pose(tracker, est, d.tilt_source)
-                return tracker.mount, tracker.source
+                return tables.mount_for(intr, tracker.mount), tracker.source
 
             try:
                 result = process(
                     frame,
-                    tracker.mount,
+                    tables.mount_for(frame.intrinsics, tracker.mount),
                     cfg.scan,
-                    cfg.cliff if d.cliff else None,
+                    cliff_params,
                     pose_prior(cfg.pose, tracker) if want_pose else None,
                     rng,
                     tracker.source,
@@ -250,6 +255,7 @@ def run(
             except Exception as exc:
                 log.error("sink %s did not close cleanly: %s", sink.name, exc)
         source.close()
+        tables.close()
         report.reconnects = source.reconnects
         report.rejected_pose_jumps = tracker.rejected
     return report

@@ -122,3 +122,27 @@ def process(
         timings if clock else {},
         warning,
     )
+
+
+def prepare(
+    intr: Intrinsics,
+    mount: Mount,
+    scan_params: ScanParams,
+    cliff_params: CliffParams | None = None,
+) -> None:
+    """Build the scan's and cliff detector's tables for this camera and mount, and cache them.
+
+    What the first frame with this mount would build (tens of ms at 640x480): the stages run on
+    an empty frame, so the tables and their cache keys are exactly those ``process`` uses.
+
+    Raises:
+        ConfigError: parameters that do not fit this camera and mount (as ``process`` would).
+    """
+    from depthnav_daemon.pipeline.cliff import detect_cliffs
+
+    blank = np.zeros((intr.height, intr.width), dtype=np.uint16)
+    scan = depth_to_scan(blank, intr, mount, scan_params)
+    if cliff_params is not None:
+        detect_cliffs(
+            blank, intr, mount, cliff_params, scan.angle_min, scan.angle_increment, scan.ranges.size
+        )

@@ -1,0 +1,104 @@
+"""StageTables: small mount changes wait for their tables on a worker; large ones apply at once."""
+
+from __future__ import annotations
+
+import threading
+
+import numpy as np
+import pytest
+
+from depthnav_daemon.pipeline import prepare
+from depthnav_daemon.pipeline import scan as scan_mod
+from depthnav_daemon.pipeline.cliff import CliffParams, detect_cliffs
+from depthnav_daemon.pipeline.geometry import Mount
+from depthnav_daemon.pipeline.scan import ScanParams, depth_to_scan
+from depthnav_daemon.stage_tables import KEEP_READY, StageTables
+from drivers.base import Intrinsics
+
+INTR = Intrinsics(64, 48, 60.0, 60.0, 31.5, 23.5)
+OTHER = Intrinsics(80, 60, 75.0, 75.0, 39.5, 29.5)
+M0 = Mount(0.5, 15.0, 0.0)
+SMALL = Mount(0.503, 15.2, 0.1)  # within 1 cm / 0.5 deg
+LARGE = Mount(0.6, 15.0, 0.0)
+
+
+class Gate:
+    """A prepare() that records its calls and waits until released."""
+
+    def __init__(self) -> None:
+        self.calls: list[tuple[Intrinsics, Mount]] = []
+        self.release = threading.Event()
+        self.fail = False
+
+    def __call__(self, intr: Intrinsics, mount: Mount) -> None:
+        self.calls.append((intr, mount))
+        assert self.release.wait(10.0)
+        if self.fail:
+            raise ValueError("no table for this mount")
+
+
+def test_the_first_mount_and_large_changes_apply_at_once() -> None:
+    gate = Gate()
+    tables = StageTables(gate)
+    assert tables.mount_for(INTR, M0) == M0
+    assert tables.mount_for(INTR, LARGE) == LARGE
+    assert tables.mount_for(OTHER, LARGE) == LARGE  # a new camera: nothing to go on with
+    assert gate.calls == []  # the stages build these on the frame itself
+
+
+def test_a_small_change_goes_on_with_the_old_mount_until_its_tables_exist() -> None:
+    gate = Gate()
+    tables = StageTables(gate)
+    tables.mount_for(INTR, M0)
+    assert tables.mount_for(INTR, SMALL) == M0  # building: frames go on with M0
+    assert tables.mount_for(INTR, SMALL) == M0
+    gate.release.set()
+    tables.close()
+    assert gate.calls == [(INTR, SMALL)]  # one build, however many frames asked
+    assert tables.mount_for(INTR, SMALL) == SMALL
+    assert tables.mount_for(INTR, M0) == M0  # back to a mount whose tables exist: at once
+    assert len(gate.calls) == 1
+
+
+def test_a_failed_build_leaves_the_error_to_the_frame_loop() -> None:
+    gate = Gate()
+    gate.fail = True
+    gate.release.set()
+    tables = StageTables(gate)
+    tables.mount_for(INTR, M0)
+    assert tables.mount_for(INTR, SMALL) == M0
+    tables.close()
+    assert tables.mount_for(INTR, SMALL) == SMALL  # process() then raises the error itself
+
+
+def test_ready_mounts_are_bounded() -> None:
+    gate = Gate()
+    gate.release.set()
+    tables = StageTables(gate)
+    tables.mount_for(INTR, M0)
+    for k in range(3 * KEEP_READY):
+        tables.mount_for(INTR, Mount(0.5, 15.0 + 0.001 * k, 0.0))
+        tables.close()
+    assert len(tables._ready) <= KEEP_READY
+
+
+def test_prepare_builds_exactly_the_tables_a_frame_uses() -> None:
+    mount = Mount(0.55, 14.31, 0.7)  # a mount no other test builds
+    scan, cliff = ScanParams(), CliffParams(block_size=8, row_step=2, col_step=2)
+    prepare(INTR, mount, scan, cliff)
+    before = scan_mod._exact_table.cache_info()
+    depth = np.full((INTR.height, INTR.width), 1500, dtype=np.uint16)
+    s = depth_to_scan(depth, INTR, mount, scan)
+    detect_cliffs(depth, INTR, mount, cliff, s.angle_min, s.angle_increment, s.ranges.size)
+    after = scan_mod._exact_table.cache_info()
+    assert after.misses == before.misses and after.hits > before.hits
+
+
+@pytest.mark.parametrize("method", ["exact", "paper"])
+def test_real_tables_built_on_the_worker_serve_the_next_frames(method: str) -> None:
+    tables = StageTables(lambda i, m: prepare(i, m, ScanParams(method=method, scan_height=40)))
+    assert tables.mount_for(INTR, M0) == M0
+    prepare(INTR, M0, ScanParams(method=method, scan_height=40))
+    assert tables.mount_for(INTR, SMALL) == M0
+    tables.close()
+    assert tables.mount_for(INTR, SMALL) == SMALL
