@@ -314,10 +314,13 @@ def _pipeline_fn(
     return run
 
 
-def synthetic_frames(intr: Intrinsics, n: int = 12) -> tuple[list[Frame], Mount]:
-    """``n`` noisy corridor frames (bench_scene) at the resolution of ``intr``."""
+def synthetic_frames(
+    intr: Intrinsics, n: int = 12, mount: Mount | None = None
+) -> tuple[list[Frame], Mount]:
+    """``n`` noisy corridor frames (bench_scene) at the resolution of ``intr``, seen from ``mount``
+    (default 0.55 m, 15 deg down, no roll)."""
     frames = []
-    mount = Mount(0.55, 15.0, 0.0)
+    mount = mount or Mount(0.55, 15.0, 0.0)
     for seed in range(n):
         depth, mount = bench_scene(intr, mount, seed=seed + 1)
         frames.append(Frame(seed, seed / 30.0, depth, intr))
@@ -535,23 +538,41 @@ def run_bench(
     cpu_seconds: float = 0.0,
     startup: bool = False,
     min_batch_s: float = 0.002,
+    mount: Mount | None = None,
 ) -> BenchReport:
-    """Measure; see the module docstring. ``device`` None = the bundled fixture."""
+    """Measure; see the module docstring. ``device`` None = the bundled fixture.
+
+    ``mount``: also time synthetic corridor frames at the recording's resolution seen from this
+    mount (the exact scan's cost grows with tilt and roll).
+    """
     spec = device or f"replay:{FIXTURE}"
     frames = load_frames(spec)
     if not frames:
         raise DepthnavError(f"{spec} delivered no frames")
     intr = frames[0].intrinsics
-    mount = floor_mount(frames, Mount())
+    floor = floor_mount(frames, Mount())
     timings = time_work(
-        stage_work(frames, mount), [f.depth_mm for f in frames], rounds, samples, min_batch_s
+        stage_work(frames, floor), [f.depth_mm for f in frames], rounds, samples, min_batch_s
     )
     report = BenchReport(
-        machine(), spec, len(frames), f"{intr.width}x{intr.height}", asdict(mount), timings
+        machine(), spec, len(frames), f"{intr.width}x{intr.height}", asdict(floor), timings
     )
     loop_spec = spec if device else f"replay:{FIXTURE}?rate=max&loop=1"
     if latency_frames:
         report.latency = udp_latency(loop_spec, latency_frames)
+    if mount is not None:
+        m_frames, _ = synthetic_frames(intr, mount=mount)
+        name = (
+            f"{intr.width}x{intr.height} from {mount.height_m:g} m, {mount.tilt_deg:g} deg tilt, "
+            f"{mount.roll_deg:g} deg roll"
+        )
+        report.resolutions[name] = time_work(
+            stage_work(m_frames, mount),
+            [f.depth_mm for f in m_frames],
+            rounds,
+            samples,
+            min_batch_s,
+        )
     if resolutions:
         for name, res_intr in RESOLUTIONS.items():
             res_frames, res_mount = synthetic_frames(res_intr)
@@ -611,6 +632,7 @@ def main(
     startup: bool = False,
     rounds: int = 7,
     quick: bool = False,
+    mount: Mount | None = None,
 ) -> int:
     """``depthnav bench``: measure and print; returns the exit code (0)."""
     kwargs: dict[str, Any] = {}
@@ -619,7 +641,12 @@ def main(
     else:
         kwargs["rounds"] = rounds
     report = run_bench(
-        device, resolutions=resolutions, cpu_seconds=cpu_seconds, startup=startup, **kwargs
+        device,
+        resolutions=resolutions,
+        cpu_seconds=cpu_seconds,
+        startup=startup,
+        mount=mount,
+        **kwargs,
     )
     if as_json:
         print(json.dumps(asdict(report), indent=1))  # noqa: T201

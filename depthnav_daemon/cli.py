@@ -14,11 +14,14 @@ import sys
 import threading
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from depthnav_daemon import __version__
 from depthnav_daemon.errors import ConfigError, DepthnavError
 from drivers.errors import DeviceSpecError, DriverError
+
+if TYPE_CHECKING:
+    from depthnav_daemon.pipeline.geometry import Mount
 
 log = logging.getLogger("depthnav_daemon.cli")
 
@@ -178,6 +181,12 @@ def build_parser() -> argparse.ArgumentParser:
         "--startup",
         action="store_true",
         help="also time depthnav run to its first output (5 runs, warm kernel cache)",
+    )
+    p.add_argument(
+        "--mount",
+        metavar="H,TILT,ROLL",
+        help="also time synthetic frames seen from this mount (metres, degrees down, degrees "
+        "left side up): the exact scan's cost grows with tilt and roll",
     )
     p.add_argument(
         "--quick", action="store_true", help="one short round (a smoke test, not a measurement)"
@@ -452,6 +461,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
         raise ConfigError(f"--rounds={args.rounds} is out of range (accepted: 1 or more)")
     if args.cpu_30fps < 0:
         raise ConfigError(f"--cpu-30fps={args.cpu_30fps} is out of range (accepted: seconds > 0)")
+    mount = _parse_mount(args.mount) if args.mount is not None else None
     return bench_main(
         device=args.device,
         as_json=args.json,
@@ -460,7 +470,24 @@ def cmd_bench(args: argparse.Namespace) -> int:
         startup=args.startup,
         rounds=args.rounds,
         quick=args.quick,
+        mount=mount,
     )
+
+
+def _parse_mount(text: str) -> Mount:
+    """``H,TILT,ROLL`` (metres, degrees, degrees) as a Mount; a bad value is a ConfigError."""
+    from depthnav_daemon.pipeline.geometry import Mount
+
+    parts = text.split(",")
+    try:
+        if len(parts) != 3:
+            raise ValueError
+        height_m, tilt_deg, roll_deg = (float(x) for x in parts)
+    except ValueError:
+        raise ConfigError(
+            f"--mount={text!r} is not H,TILT,ROLL", hint="e.g. --mount 0.55,30,5"
+        ) from None
+    return Mount(height_m, tilt_deg, roll_deg)
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -80,3 +80,25 @@ def test_a_recording_without_frames_is_a_one_line_error(
     assert main(["bench", "--quick", "--device", f"replay:{tmp_path / 'missing'}"]) != 0
     err = capsys.readouterr().err
     assert "Traceback" not in err and "depthnav: error" in err
+
+
+def test_mount_option_times_frames_seen_from_that_mount(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    assert main(["bench", "--quick", "--json", "--mount", "0.8,40,-6"]) == 0
+    report = json.loads(capsys.readouterr().out)
+    (name,) = report["resolutions"]
+    assert name == "640x480 from 0.8 m, 40 deg tilt, -6 deg roll"
+    names = [t["name"] for t in report["resolutions"][name]]
+    assert any(n.startswith("scan exact") for n in names)
+    frames, mount = bench.synthetic_frames(bench.RESOLUTIONS["640x480 (Kinect v1)"], 1, mount=None)
+    assert mount.tilt_deg == 15.0  # the default view stays
+
+
+@pytest.mark.parametrize("value", ["0.5,x", "0.5,30", "0.5,95,0", "0,30,0"])
+def test_a_bad_mount_is_a_one_line_usage_error(
+    value: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    assert main(["bench", "--quick", "--mount", value]) == 2
+    err = capsys.readouterr().err
+    assert "Traceback" not in err and err.startswith("depthnav: error:") and "mount" in err
