@@ -97,7 +97,7 @@ def run_flush_codes(
 
 @kernel
 def exact_scan_kernel(depth, rows, near_lo, near_hi, obst_hi, kr, fl_start, fl_code, acc, out):
-    """Exact scan of one frame into ``out`` (n,) float32, REP 117 values.
+    """Exact scan of one frame into ``out[:n]`` (float32, REP 117 values).
 
     One row-major pass keeps a running minimum per column (``acc``) for as long as the column
     feeds the same bins; where a column's bins change from one row to the next (a "run" ends),
