@@ -1,0 +1,107 @@
+"""The paper's scan (laserscan_kinect, eq. 1-5), the ``paper`` method of ``scan.depth_to_scan``.
+
+Per-column minimum over a band of rows, ground removal with margin e_g (eq. 5), the tilt
+compensation factor (eq. 4) with eq. 3's linear row angle, and the original's column-to-bin map
+(which leaves empty bins near the centre: kept for comparison with the ``exact`` method).
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import numpy.typing as npt
+
+from depthnav_daemon.errors import ConfigError
+from depthnav_daemon.pipeline.geometry import (
+    F32,
+    Mount,
+    depth_to_mm,
+    paper_floor_depth_m,
+    paper_row_angles_rad,
+)
+from depthnav_daemon.pipeline.scan import LaserScan, ScanParams
+from depthnav_daemon.pipeline.scan_kernels import paper_scan_kernel
+from drivers.base import Intrinsics
+
+
+@dataclass(frozen=True, slots=True)
+class _PaperTable:
+    row0: int
+    row_step: int
+    lo_mm: npt.NDArray[np.uint16]  # (B,) a reading counts iff lo <= d <= hi: range_min ..
+    hi_mm: npt.NDArray[np.uint16]  # (B,) .. min(range_max, eq. 5 ground threshold minus e_g)
+    factor: F32  # (B,) metres per mm times eq. 4's tilt factor
+    range_per_z: F32  # (W,) sqrt(1 + ((u - cx)/fx)^2): eq. 2's x folded into the range
+    index: npt.NDArray[np.int64]  # (W,) column -> bin, the original's truncating map
+    angle_min: float
+    angle_max: float
+    angle_increment: float
+
+
+@functools.lru_cache(maxsize=16)
+def _paper_table(intr: Intrinsics, mount: Mount, params: ScanParams) -> _PaperTable:
+    half = params.scan_height / 2.0
+    if half > intr.cy or half > intr.height - intr.cy:
+        limit = int(2 * min(intr.cy, intr.height - intr.cy))
+        raise ConfigError(
+            f"scan.scan_height={params.scan_height} is too large for this {intr.height}-row image "
+            f"with cy={intr.cy:g} (accepted: 1..{limit})"
+        )
+    offset = int(intr.cy - half)
+    rows = slice(offset, offset + params.scan_height, params.depth_img_row_step)
+    delta = paper_row_angles_rad(intr)[rows]
+    alpha = mount.tilt_rad
+    b = delta.size
+    # z = d / 1000 m: range_min <= z <= range_max and (eq. 5) z < ground - e_g, as whole millimetres
+    lo = max(1, math.ceil(params.range_min_m * 1000.0 - 1e-6))
+    hi = np.full(b, min(65535, math.floor(params.range_max_m * 1000.0 + 1e-6)), dtype=np.float64)
+    if params.ground_remove:
+        ground = paper_floor_depth_m(mount.height_m, alpha, delta) - params.ground_margin_m
+        with np.errstate(invalid="ignore"):
+            hi = np.minimum(hi, np.where(np.isfinite(ground), np.ceil(ground * 1000.0) - 1, 65535))
+    factor = np.full(b, 0.001)
+    if params.tilt_compensation:
+        factor = factor * np.sin(math.pi / 2 - alpha - delta) / np.sin(math.pi / 2 - delta)  # eq. 4
+    u = np.arange(intr.width, dtype=np.float64)
+    angle_max = math.atan(intr.cx / intr.fx)
+    angle_min = -math.atan((intr.width - 1 - intr.cx) / intr.fx)
+    inc = (angle_max - angle_min) / (intr.width - 1)
+    theta = -np.arctan((u - intr.cx) / intr.fx)
+    index = np.clip(((theta - angle_min) / inc).astype(np.int64), 0, intr.width - 1)
+    return _PaperTable(
+        offset,
+        params.depth_img_row_step,
+        np.full(b, lo, dtype=np.uint16),
+        np.clip(hi, 0, 65535).astype(np.uint16),
+        factor.astype(np.float32),
+        np.sqrt(1.0 + ((u - intr.cx) / intr.fx) ** 2).astype(np.float32),
+        index,
+        angle_min,
+        angle_max,
+        inc,
+    )
+
+
+def paper_scan(depth: np.ndarray, intr: Intrinsics, mount: Mount, params: ScanParams) -> LaserScan:
+    """The paper's scan of one (H, W) uint16 mm or float32 m frame (REP 117 values)."""
+    t = _paper_table(intr, mount, params)
+    ranges = np.empty(intr.width, dtype=np.float32)
+    scratch = np.empty((2, intr.width), dtype=np.float32)
+    paper_scan_kernel(
+        depth_to_mm(depth, intr),
+        t.row0,
+        t.row_step,
+        t.lo_mm,
+        t.hi_mm,
+        t.factor,
+        t.range_per_z,
+        t.index,
+        scratch,
+        ranges,
+    )
+    return LaserScan(
+        t.angle_min, t.angle_max, t.angle_increment, params.range_min_m, params.range_max_m, ranges
+    )
