@@ -368,7 +368,7 @@ def detect_cliffs(
         src, rows = mm[:, int(t.cols[0]) : int(t.cols[-1]) + 1 : t.col_step], t.rows
     else:  # unevenly spaced sample columns: gather the samples once
         src, rows = mm[np.ix_(t.rows, t.cols)], np.arange(t.rows.size, dtype=np.intp)
-    nbr, nj, nbc, ni = t.shape4
+    _, nj, _, ni = t.shape4
     out = np.empty(n_bins + 1, dtype=np.float32)  # + a scratch slot for runs covering no bin
     blocks, points = cliff_kernel(
         src,

@@ -1,4 +1,5 @@
-"""Depth image to planar laser scan: the paper's eq. 1-5 (``paper``) and a level-frame method (``exact``).
+"""Depth image to planar laser scan: a level-frame method (``exact``) and the paper's eq. 1-5
+(``paper``).
 
 ``exact`` back-projects every used pixel, rotates it by tilt and roll into the level frame, keeps
 points whose height above the floor is in [min_obstacle_height_m, max_obstacle_height_m] and whose
@@ -44,6 +45,7 @@ from depthnav_daemon.pipeline.scan_kernels import (
 from drivers.base import Intrinsics
 
 METHODS = ("exact", "paper")
+MAX_BINS = 32000  # bins fit the kernels' packed codes (below 32768), with a scratch slot
 MAX_SPAN_BINS = (
     64  # a pixel that looks almost straight down covers many bearings; cap its footprint
 )
@@ -61,7 +63,8 @@ class ScanParams:
         min_obstacle_height_m: exact: points lower than this above the floor are floor (the
             height margin that plays the role of the paper's e_g).
         max_obstacle_height_m: exact: points higher than this are ignored (above the robot).
-        row_start, row_stop: exact: image rows [row_start, row_stop) used; row_stop -1 = to the bottom.
+        row_start, row_stop: exact: image rows [row_start, row_stop) used; row_stop -1 = to the
+            bottom.
         row_step, col_step: exact: pixel strides.
         angle_increment_deg: exact: bin width; 0 = the width of the centre pixel.
         scan_height: paper: rows in the band centred on cy.
@@ -107,7 +110,8 @@ class ScanParams:
         check_int("scan.row_stop", self.row_stop, -1, 8192)
         if self.row_stop != -1 and self.row_stop <= self.row_start:
             raise ConfigError(
-                f"scan.row_stop ({self.row_stop}) must be above scan.row_start ({self.row_start}) or -1"
+                f"scan.row_stop ({self.row_stop}) must be above scan.row_start "
+                f"({self.row_start}) or -1"
             )
         check_int("scan.row_step", self.row_step, 1, 64)
         check_int("scan.col_step", self.col_step, 1, 64)
@@ -119,7 +123,7 @@ class ScanParams:
 
 @dataclass(frozen=True, slots=True)
 class LaserScan:
-    """A planar scan in the level frame at the sensor (x forward, y left), like sensor_msgs/LaserScan.
+    """A planar scan in the level frame at the sensor (x forward, y left), as sensor_msgs/LaserScan.
 
     ``ranges[i]`` is at bearing ``angle_min + i * angle_increment`` (radians, counter-clockwise from
     forward). Values follow REP 117 (see the module docstring).
@@ -173,13 +177,14 @@ def depth_to_scan(
 class _ExactTable:
     """Per-pixel tables for one (intrinsics, mount, params) over the used grid (Hs, Ws) of pixels.
 
-    Binning: bin b is centred on ``angle_min + b * angle_increment`` (by default the angular width of
-    the pixel at the principal point). In each row a bin takes the pixels whose centres fall in it,
-    or, where pixels are wider than bins (the lower rows of a tilted camera), the pixel whose
-    footprint covers the bin's centre. Every pixel is used and no bin is empty because of the binning.
+    Binning: bin b is centred on ``angle_min + b * angle_increment`` (by default the angular width
+    of the pixel at the principal point). In each row a bin takes the pixels whose centres fall in
+    it, or, where pixels are wider than bins (the lower rows of a tilted camera), the pixel whose
+    footprint covers the bin's centre. Every pixel is used and no bin is empty because of the
+    binning.
 
     The kernel walks the image row by row and keeps a minimum per column while the column feeds the
-    same bins (a "run"); the flush lists say where each run's minimum goes when it ends.
+    same bins (a "run"); the flush codes say where each run's minimum goes when it ends.
     """
 
     rows: npt.NDArray[np.int32]  # (Hs,) image rows
@@ -211,7 +216,7 @@ def _used_rows(intr: Intrinsics, params: ScanParams) -> slice:
 
 
 def _bearing(intr: Intrinsics, rot: F64, u: F64, v: F64) -> F64:
-    """Level-frame bearing (radians) of the rays through pixel coordinates (u, v), any equal shapes."""
+    """Level-frame bearing (radians) of the rays through pixel coordinates (u, v), equal shapes."""
     x = (u - intr.cx) / intr.fx
     y = (v - intr.cy) / intr.fy
     fwd = rot[0, 0] * x + rot[0, 1] * y + rot[0, 2]
@@ -336,9 +341,10 @@ def _exact_table(intr: Intrinsics, mount: Mount, params: ScanParams) -> _ExactTa
     )
     edge_min = float(lo_b[sane].min())
     n = max(1, int(math.ceil((float(hi_b[sane].max()) - edge_min) / inc)))
-    if n > 32000:
+    if n > MAX_BINS:
         raise ConfigError(
-            f"scan.angle_increment_deg={params.angle_increment_deg} gives {n} bins (accepted: up to 32000)"
+            f"scan.angle_increment_deg={params.angle_increment_deg} gives {n} bins "
+            f"(accepted: up to {MAX_BINS})"
         )
     angle_min = edge_min + inc / 2.0
     centre = _bearing(intr, rot, u + 0.0 * v, v + 0.0 * u)
