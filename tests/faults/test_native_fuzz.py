@@ -20,6 +20,7 @@ from drivers.base import Frame, Intrinsics
 from drivers.errors import RecordingError
 from drivers.oni_format import check_oni, write_oni
 from drivers.openni import find_library
+from tests.drivers.driverkit import skip_without
 
 from .kit import ROOT, depthnav, one_error_line
 
@@ -49,8 +50,7 @@ for path in sys.argv[1:]:
 
 @pytest.fixture(scope="module")
 def base_oni(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    if find_library() is None:
-        pytest.skip("libopenni2-0 not installed")
+    skip_without(find_library() is None, "libopenni2-0")
     rng = np.random.default_rng(3)
     frames = [
         Frame(i, i / 30, rng.integers(300, 6000, (48, 64), dtype=np.uint16), SMALL)
@@ -152,8 +152,7 @@ def fakenect_base(tmp_path_factory: pytest.TempPathFactory) -> Path:
     from drivers.fakenect_format import write_fakenect
     from drivers.freenect_lib import find_library as find_freenect
 
-    if find_freenect(fakenect=True) is None:
-        pytest.skip("libfreenect0.5 (fakenect) not installed")
+    skip_without(find_freenect(fakenect=True) is None, "libfreenect0.5")
     vga = Intrinsics(640, 480, 580.0, 580.0, 319.5, 239.5)
     rng = np.random.default_rng(5)
     frames = [

@@ -34,6 +34,7 @@ from drivers.kinect_motor import KinectMotor
 from drivers.recording import read_recording
 from drivers.recording_writer import write_recording
 from drivers.serial_tilt import format_line
+from tests.drivers.driverkit import skip_without
 from tests.drivers.fake_kinect_usb import FakeUsbBackend, KinectMotorModel
 
 from .kit import (
@@ -458,8 +459,7 @@ def test_fakenect_recording_that_ends(tmp_path: Path) -> None:
     from drivers.fakenect_format import write_fakenect
     from drivers.freenect_lib import find_library
 
-    if find_library(fakenect=True) is None:
-        pytest.skip("libfreenect0.5 (fakenect) not installed")
+    skip_without(find_library(fakenect=True) is None, "libfreenect0.5")
     write_fakenect(tmp_path / "fk", read_recording(FIXTURE).frames()[:4])
     p = depthnav(
         "run", "--device", f"kinect?fakenect={tmp_path / 'fk'}", "--sink", "stdout", timeout=120
