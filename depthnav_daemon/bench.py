@@ -560,29 +560,27 @@ def run_bench(
     loop_spec = spec if device else f"replay:{FIXTURE}?rate=max&loop=1"
     if latency_frames:
         report.latency = udp_latency(loop_spec, latency_frames)
+    views: list[tuple[str, Intrinsics, Mount | None]] = []  # synthetic frames to time as well
     if mount is not None:
-        m_frames, _ = synthetic_frames(intr, mount=mount)
-        name = (
-            f"{intr.width}x{intr.height} from {mount.height_m:g} m, {mount.tilt_deg:g} deg tilt, "
-            f"{mount.roll_deg:g} deg roll"
+        views.append(
+            (
+                f"{intr.width}x{intr.height} from {mount.height_m:g} m, {mount.tilt_deg:g} deg "
+                f"tilt, {mount.roll_deg:g} deg roll",
+                intr,
+                mount,
+            )
         )
+    if resolutions:
+        views += [(name, res_intr, None) for name, res_intr in RESOLUTIONS.items()]
+    for name, view_intr, view_mount in views:
+        view_frames, used = synthetic_frames(view_intr, mount=view_mount)
         report.resolutions[name] = time_work(
-            stage_work(m_frames, mount),
-            [f.depth_mm for f in m_frames],
+            stage_work(view_frames, used),
+            [f.depth_mm for f in view_frames],
             rounds,
             samples,
             min_batch_s,
         )
-    if resolutions:
-        for name, res_intr in RESOLUTIONS.items():
-            res_frames, res_mount = synthetic_frames(res_intr)
-            report.resolutions[name] = time_work(
-                stage_work(res_frames, res_mount),
-                [f.depth_mm for f in res_frames],
-                rounds,
-                samples,
-                min_batch_s,
-            )
     if cpu_seconds:
         report.cpu_30fps = cpu_at_30fps(cpu_seconds)
     if startup:

@@ -25,7 +25,6 @@ nearest horizontal range of the floor point of a drop-off sample inside a detect
 
 from __future__ import annotations
 
-import dataclasses
 import functools
 import math
 from dataclasses import dataclass
@@ -44,6 +43,7 @@ from depthnav_daemon.pipeline.geometry import (
     check_order,
     check_range,
     depth_to_mm,
+    frozen_table,
     paper_floor_depth_m,
     paper_row_angles_rad,
 )
@@ -317,11 +317,7 @@ def _cliff_table(
         probe_start,
         probe_code,
     )
-    for f in dataclasses.fields(table):  # cached and shared between calls: read-only
-        value = getattr(table, f.name)
-        if isinstance(value, np.ndarray):
-            value.setflags(write=False)
-    return table
+    return frozen_table(table)  # cached and shared between calls
 
 
 def _selector(idx: npt.NDArray[np.intp]) -> slice | npt.NDArray[np.intp]:

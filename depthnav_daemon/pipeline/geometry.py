@@ -9,9 +9,11 @@ A camera point p maps to the level frame as Ry(tilt) Rx(roll) M p, M: (right, do
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import math
 from dataclasses import dataclass
+from typing import TypeVar
 
 import numpy as np
 import numpy.typing as npt
@@ -21,6 +23,7 @@ from drivers.base import Intrinsics
 
 F32 = npt.NDArray[np.float32]
 F64 = npt.NDArray[np.float64]
+T = TypeVar("T")
 
 # (right, down, forward) -> (forward, left, up)
 M_CAM_TO_FLU: F64 = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
@@ -29,6 +32,15 @@ M_CAM_TO_FLU.setflags(write=False)
 MAX_MOUNT_HEIGHT_M = 10.0
 MAX_TILT_DEG = 89.0
 MAX_ROLL_DEG = 45.0
+
+
+def frozen_table(table: T) -> T:
+    """Make every numpy array field of a dataclass read-only (a cached table shared between calls)."""
+    for f in dataclasses.fields(table):  # type: ignore[arg-type]
+        value = getattr(table, f.name)
+        if isinstance(value, np.ndarray):
+            value.setflags(write=False)
+    return table
 
 
 def check_range(name: str, value: float, lo: float, hi: float, unit: str = "") -> float:

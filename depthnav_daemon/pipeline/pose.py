@@ -38,6 +38,7 @@ from depthnav_daemon.pipeline.geometry import (
     check_order,
     check_range,
     depth_to_mm,
+    frozen_table,
     pixel_rays,
 )
 from depthnav_daemon.pipeline.pose_kernels import (
@@ -244,10 +245,8 @@ def _pose_table(intr: Intrinsics, params: PoseParams) -> _PoseTable:
             np.uint16
         )
         zhi_mm = np.clip(np.floor(zhi * 1000.0), 0, 65535).astype(np.uint16)
-    rays32 = rays.astype(np.float32)
-    for arr in (zlo_mm, zhi_mm, rays32):
-        arr.setflags(write=False)
-    return _PoseTable(rows, cols, zlo_mm, zhi_mm, rays32)
+    # cached and shared between calls
+    return frozen_table(_PoseTable(rows, cols, zlo_mm, zhi_mm, rays.astype(np.float32)))
 
 
 def floor_candidates(depth: np.ndarray, intr: Intrinsics, params: PoseParams) -> F32:

@@ -17,7 +17,6 @@ obstacle within range_max; -inf = an obstacle closer than range_min; NaN = no va
 
 from __future__ import annotations
 
-import dataclasses
 import functools
 import math
 from dataclasses import dataclass
@@ -35,6 +34,7 @@ from depthnav_daemon.pipeline.geometry import (
     check_order,
     check_range,
     depth_to_mm,
+    frozen_table,
 )
 from depthnav_daemon.pipeline.scan_kernels import (
     MAX_CODE_INDEX,
@@ -370,11 +370,7 @@ def _exact_table(intr: Intrinsics, mount: Mount, params: ScanParams) -> _ExactTa
         angle_min,
         inc,
     )
-    for f in dataclasses.fields(table):  # cached and shared between calls: read-only
-        value = getattr(table, f.name)
-        if isinstance(value, np.ndarray):
-            value.setflags(write=False)
-    return table
+    return frozen_table(table)  # cached and shared between calls
 
 
 def scan_layout(intr: Intrinsics, mount: Mount, params: ScanParams) -> tuple[float, float, int]:
