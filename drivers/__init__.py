@@ -34,7 +34,7 @@ __all__ = [
 ]
 
 DRIVERS: dict[str, tuple[str, str]] = {  # scheme -> (module, class); imported only when used
-    "kinect": ("drivers.kinect", "KinectDriver"),
+    "kinect": ("drivers.kinect.driver", "KinectDriver"),
     "openni": ("drivers.openni", "OpenNIDriver"),
     "replay": ("drivers.replay", "ReplayDriver"),
 }

@@ -5,7 +5,8 @@ Conventions (pinned by tests/pipeline/test_conventions.py and tests/drivers/):
 - Camera frame is RDF: x right, y down, z forward. Pixel (0, 0) is the centre of the top-left pixel.
 - Accelerometer readings are specific force in m/s^2 in the camera frame: at rest and level about
   (0, -9.81, 0); pitched down by t about (0, -9.81 cos t, -9.81 sin t).
-- Tilt is positive when the sensor is pitched down toward the floor.
+- Tilt is positive when the sensor is pitched down toward the floor; roll is positive when the
+  left side is up. ``tilt_roll_to_accel`` is this convention written as a formula.
 """
 
 from __future__ import annotations
@@ -18,6 +19,24 @@ import numpy as np
 import numpy.typing as npt
 
 DepthMM = npt.NDArray[np.uint16]  # (H, W) millimetres, 0 = no reading
+STANDARD_GRAVITY_MPS2 = 9.80665  # the accelerometer convention's g (m/s^2)
+
+
+def tilt_roll_to_accel(
+    tilt_deg: float, roll_deg: float, g_mps2: float = STANDARD_GRAVITY_MPS2
+) -> tuple[float, float, float]:
+    """The camera-frame specific force (m/s^2) a sensor at rest with this attitude reads.
+
+    Pitched down by t and rolled (left side up) by r it reads
+    (-g sin r cos t, -g cos r cos t, -g sin t); the inverse is
+    ``depthnav_daemon.pipeline.pose.tilt_roll_from_accel``.
+    """
+    t, r = math.radians(tilt_deg), math.radians(roll_deg)
+    return (
+        -g_mps2 * math.sin(r) * math.cos(t),
+        -g_mps2 * math.cos(r) * math.cos(t),
+        -g_mps2 * math.sin(t),
+    )
 
 
 @dataclass(frozen=True, slots=True)

@@ -39,7 +39,7 @@ from drivers.errors import (
     OpenFailure,
     RecordingError,
 )
-from drivers.oni_format import check_oni
+from drivers.formats.oni import check_oni
 from drivers.spec import (
     INTRINSICS_OPTIONS,
     Spec,

@@ -5,7 +5,7 @@ Spec: ``replay:PATH[?rate=realtime|max&loop=0|1&fps=F&fx=..&fy=..&cx=..&cy=..&sc
 
 PATH is one of (detected when opened):
 - a depthnav recording folder (``recording.toml`` + ``frames.npz``) or a bare ``.npz``;
-- a folder of 16-bit PNG depth images (see drivers/png_folder.py; ``scale`` units per metre,
+- a folder of 16-bit PNG depth images (see drivers/formats/png_folder.py; ``scale`` units per metre,
   default from ``camera.toml`` or 5000; intrinsics from ``camera.toml`` or ``fx, fy, cx, cy``);
 - a fakenect recording (``INDEX.txt``; disparity converted with ``const_shift``, default 200);
 - an ``.oni`` file, played by OpenNI2's libOniFile (see drivers/openni.py).
@@ -32,17 +32,17 @@ from pathlib import Path
 import numpy as np
 import numpy.typing as npt
 
-from drivers import fakenect_format, png_folder
 from drivers.base import KINECT_V1, DeviceInfo, Driver, Frame, Intrinsics, TiltState
 from drivers.errors import DeviceSpecError, DriverError, RecordingError
-from drivers.kinect_axes import accel_counts_to_camera, tilt_status_name
-from drivers.recording import (
+from drivers.formats import fakenect, png_folder
+from drivers.formats.recording import (
     Recording,
     RecordingStream,
     open_recording_stream,
     read_recording,
     recording_depth_nbytes,
 )
+from drivers.kinect.axes import accel_counts_to_camera, tilt_status_name
 from drivers.spec import (
     Spec,
     bool_option,
@@ -81,7 +81,7 @@ class ReplayDriver:
         fps: float = 30.0,
         intrinsics_override: dict[str, float] | None = None,
         scale: float | None = None,
-        const_shift: float = fakenect_format.CONST_SHIFT,
+        const_shift: float = fakenect.CONST_SHIFT,
         start: int = 0,
         spec_text: str = "",
     ) -> None:
@@ -119,8 +119,8 @@ class ReplayDriver:
             fps=float_option(spec, "fps", 30.0, 0.1, 1000.0) or 30.0,
             intrinsics_override=overrides,
             scale=float_option(spec, "scale", None, 1.0, 1e6),
-            const_shift=float_option(spec, "const_shift", fakenect_format.CONST_SHIFT, 0.0, 1000.0)
-            or fakenect_format.CONST_SHIFT,
+            const_shift=float_option(spec, "const_shift", fakenect.CONST_SHIFT, 0.0, 1000.0)
+            or fakenect.CONST_SHIFT,
             spec_text=spec.text,
             start=int_option(spec, "start", 0, 0, 10_000_000),
         )
@@ -204,12 +204,12 @@ class ReplayDriver:
         return items(), intr, self.path.name
 
     def _fakenect_items(self) -> tuple[Iterator[Item], Intrinsics, str]:
-        entries = fakenect_format.read_index(self.path)  # fail at open, not at the first frame
+        entries = fakenect.read_index(self.path)  # fail at open, not at the first frame
         self._has_accel = any(e.kind == "a" for e in entries)
         intr = self._intrinsics_with(KINECT_V1, None)
 
         def items() -> Iterator[Item]:
-            for stamp, depth, dump in fakenect_format.iter_fakenect(self.path, self.const_shift):
+            for stamp, depth, dump in fakenect.iter_fakenect(self.path, self.const_shift):
                 accel = tilt = None
                 if dump is not None:
                     accel = accel_counts_to_camera(*dump[:3])

@@ -34,4 +34,4 @@ if ! { .venv/bin/python -m pip install --disable-pip-version-check --upgrade pip
   exit 1
 fi
 # compile and cache the numeric kernels now, not at the robot's first frame
-.venv/bin/python -m depthnav_daemon.warmup
+.venv/bin/python -m depthnav_daemon.tools.warmup

@@ -3,7 +3,7 @@
 
 Replays the bundled fixture at full speed through every sink for FRAMES frames and prints the
 figures: frames, duration, RSS after warm-up and at the end, drops. Exit 0 when no frame was
-dropped and RSS grew by less than 5 MB after warm-up. See depthnav_daemon/soak.py.
+dropped and RSS grew by less than 5 MB after warm-up. See depthnav_daemon/tools/soak.py.
 """
 
 from __future__ import annotations
@@ -13,7 +13,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from depthnav_daemon.soak import main
+from depthnav_daemon.tools.soak import main
 
 if __name__ == "__main__":
     sys.exit(main())

@@ -6,8 +6,8 @@ import json
 
 import pytest
 
-from depthnav_daemon import bench
 from depthnav_daemon.cli import build_parser, main
+from depthnav_daemon.commands import bench_stages as bench
 
 STAGES = (
     "scan exact",

@@ -16,9 +16,9 @@ import numpy as np
 import pytest
 
 from depthnav_daemon.pipeline.geometry import Mount
-from depthnav_daemon.synthetic import Scene, render, wall
+from depthnav_daemon.sim.synthetic import Scene, render, wall
 from drivers.base import KINECT_V1, Frame
-from drivers.recording_writer import write_recording
+from drivers.formats.recording_writer import write_recording
 
 ROOT = Path(__file__).resolve().parents[1]
 FIXTURE = ROOT / "fixtures" / "corridor_step"

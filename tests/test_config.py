@@ -6,7 +6,7 @@ from pathlib import Path
 
 import pytest
 
-from depthnav_daemon.config import Config, build_config, config_to_dict, valid_keys
+from depthnav_daemon.config.loader import Config, build_config, config_to_dict, valid_keys
 from depthnav_daemon.errors import ConfigError
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -79,7 +79,7 @@ def test_bad_files_are_one_line_errors(tmp_path: Path) -> None:
 
 
 def test_config_round_trips_through_a_dict() -> None:
-    from depthnav_daemon.config import config_from_dict
+    from depthnav_daemon.config.loader import config_from_dict
 
     cfg = build_config([], ["scan.method=paper", "mount.roll_deg=3"])
     assert config_from_dict(config_to_dict(cfg)) == cfg

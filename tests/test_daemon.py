@@ -8,10 +8,10 @@ from pathlib import Path
 
 import pytest
 
-from depthnav_daemon.config import build_config
-from depthnav_daemon.daemon import run
+from depthnav_daemon.config.loader import build_config
+from depthnav_daemon.daemon.loop import run
+from depthnav_daemon.daemon.mount_tracker import MountTracker, TrackerParams
 from depthnav_daemon.errors import DepthnavError
-from depthnav_daemon.mount_tracker import MountTracker, TrackerParams
 from depthnav_daemon.pipeline import Result
 from depthnav_daemon.pipeline.geometry import Mount
 from depthnav_daemon.sinks.base import SinkContext
@@ -217,7 +217,7 @@ def test_mount_tracker_deadband_keeps_the_applied_mount_through_wobble() -> None
 
 
 def test_tilt_sensor_narrows_the_floor_search_window() -> None:
-    from depthnav_daemon.daemon import pose_prior
+    from depthnav_daemon.daemon.frame_step import pose_prior
     from depthnav_daemon.pipeline.pose import PoseParams
 
     base = PoseParams(tilt_min_deg=-10.0, tilt_max_deg=60.0)
@@ -235,7 +235,7 @@ def test_serial_tilt_source_gives_the_mount_through_a_pty() -> None:
     import os
     import time as _time
 
-    from drivers.serial_tilt import SerialTiltSource, format_line
+    from drivers.tilt.serialtilt import SerialTiltSource, format_line
 
     master, slave = os.openpty()
     stop = threading.Event()

@@ -7,13 +7,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from depthnav_daemon.config.ros_params import load_ros_params
 from depthnav_daemon.errors import ConfigError
 from depthnav_daemon.pipeline.cliff import CliffParams
 from depthnav_daemon.pipeline.geometry import Mount
 from depthnav_daemon.pipeline.pose import PoseParams
 from depthnav_daemon.pipeline.scan import ScanParams, depth_to_scan
-from depthnav_daemon.ros_params import load_ros_params
-from depthnav_daemon.synthetic import Scene, render
+from depthnav_daemon.sim.synthetic import Scene, render
 from drivers.base import KINECT_V1
 
 SHARED = Path(__file__).resolve().parents[1].parent / "shared"

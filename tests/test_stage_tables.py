@@ -7,12 +7,12 @@ import threading
 import numpy as np
 import pytest
 
+from depthnav_daemon.daemon.stage_tables import KEEP_READY, StageTables
 from depthnav_daemon.pipeline import prepare
 from depthnav_daemon.pipeline import scan as scan_mod
 from depthnav_daemon.pipeline.cliff import CliffParams, detect_cliffs
 from depthnav_daemon.pipeline.geometry import Mount
 from depthnav_daemon.pipeline.scan import ScanParams, depth_to_scan
-from depthnav_daemon.stage_tables import KEEP_READY, StageTables
 from drivers.base import Intrinsics
 
 INTR = Intrinsics(64, 48, 60.0, 60.0, 31.5, 23.5)

@@ -1,7 +1,9 @@
-"""The per-frame pipeline: scan, cliff and pose stages, composed into one Result per frame.
+"""The per-frame pipeline: scan and cliff stages composed into one Result per frame.
 
-Stages are pure functions over numpy arrays (no I/O, no clock, no globals); the daemon owns state
-such as the smoothed mount and when to re-estimate the pose.
+Stages are pure functions over numpy arrays (no I/O, no clock, no globals). The daemon owns the
+state: it decides when to run the floor pose stage (``pose.estimate_pose``), updates the mount
+from it, then calls :func:`process` with that mount. Whatever a sink shows (the scan's row band,
+the obstacle mask) is on the Result, so sinks never call stage code.
 """
 
 from __future__ import annotations
@@ -11,21 +13,40 @@ from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
 import numpy as np
+import numpy.typing as npt
 
+from depthnav_daemon.pipeline.cliff import CliffParams, CliffResult, detect_cliffs
 from depthnav_daemon.pipeline.geometry import Mount
-from depthnav_daemon.pipeline.scan import LaserScan, ScanParams, depth_to_scan
-from drivers.base import Frame
+from depthnav_daemon.pipeline.scan import (
+    LaserScan,
+    ScanParams,
+    depth_to_scan,
+    obstacle_pixels,
+    scan_rows,
+)
 
 if TYPE_CHECKING:
-    from depthnav_daemon.pipeline.cliff import CliffParams, CliffResult
-    from depthnav_daemon.pipeline.pose import PoseEstimate, PoseParams
-    from drivers.base import Intrinsics
-
-# where the mount used for a frame came from
-POSE_SOURCES = ("config", "accel", "serial", "floor")
+    from depthnav_daemon.pipeline.pose import PoseEstimate
+    from drivers.base import Frame, Intrinsics
 
 
-@dataclass(frozen=True, slots=True)
+@dataclass(frozen=True, slots=True, kw_only=True)
+class StageParams:
+    """What :func:`process` runs on each frame.
+
+    Attributes:
+        scan: scan parameters.
+        cliff: cliff parameters, or None to skip the cliff stage.
+        obstacle_mask: also return the (H, W) mask of obstacle pixels (exact method; for sinks
+            that draw it, at the cost of one more pass over the image).
+    """
+
+    scan: ScanParams
+    cliff: CliffParams | None = None
+    obstacle_mask: bool = False
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
 class Result:
     """Everything depthnav computed for one frame.
 
@@ -34,11 +55,14 @@ class Result:
         timestamp_s: the frame's timestamp, seconds.
         intrinsics: intrinsics of the frame.
         mount: the sensor height/tilt/roll the stages used for this frame.
-        mount_source: where that mount came from, one of POSE_SOURCES.
+        mount_source: where that mount came from ("config", "accel", "serial" or "floor").
         scan: obstacles per bearing (level frame, REP 117).
+        scan_band: [first, stop) image rows the scan read.
         cliff: drop-offs (floor points and a polar cliff scan), or None when the stage is off.
         pose: a floor pose estimate made on this frame, or None when none ran.
-        timings_s: seconds spent per stage on this frame ("scan", "cliff", "pose").
+        obstacle_mask: (H, W) bool, the pixels the exact scan counts as obstacles, when asked for
+            (StageParams.obstacle_mask) and the method is exact; else None.
+        timings_s: seconds spent per stage on this frame ("pose", "scan", "cliff").
         warning: a one-line note about this frame (e.g. "no valid depth"), or None.
     """
 
@@ -48,8 +72,10 @@ class Result:
     mount: Mount
     mount_source: str
     scan: LaserScan
+    scan_band: tuple[int, int] = (0, 0)
     cliff: CliffResult | None = None
     pose: PoseEstimate | None = None
+    obstacle_mask: npt.NDArray[np.bool_] | None = None
     timings_s: dict[str, float] = field(default_factory=dict)
     warning: str | None = None
 
@@ -57,79 +83,64 @@ class Result:
 def process(
     frame: Frame,
     mount: Mount,
-    scan_params: ScanParams,
-    cliff_params: CliffParams | None = None,
-    pose_params: PoseParams | None = None,
-    rng: np.random.Generator | None = None,
+    params: StageParams,
+    *,
     mount_source: str = "config",
+    pose: PoseEstimate | None = None,
     clock: Callable[[], float] | None = None,
-    on_pose: Callable[[PoseEstimate], tuple[Mount, str]] | None = None,
+    timings_s: dict[str, float] | None = None,
 ) -> Result:
-    """Run the stages on one frame: the floor pose (when asked), then the scan, then the cliffs.
+    """Run the scan and cliff stages on one frame with a given mount.
 
     Args:
         frame: the depth frame.
-        mount: sensor height, tilt and roll the scan and cliff stages use.
-        scan_params: scan parameters.
-        cliff_params: cliff parameters, or None to skip the cliff stage.
-        pose_params: pose parameters, or None to skip the floor pose estimate on this frame.
-        rng: random generator for RANSAC; required with ``pose_params``.
+        mount: sensor height, tilt and roll the stages use.
+        params: which stages run and their parameters.
         mount_source: where ``mount`` came from, copied into the result.
+        pose: a floor pose estimate the caller made on this frame, copied into the result.
         clock: a monotonic clock (seconds) to time the stages with, or None for no timings.
-        on_pose: given this frame's pose estimate, returns the (mount, source) to use from now on,
-            so a new floor estimate already serves the frame it was made on.
+        timings_s: timings the caller already took on this frame (e.g. "pose"), kept in the
+            result's ``timings_s``.
 
     Returns:
         The frame's Result; a frame without any valid reading gives all-NaN scans and a warning.
     """
-    from depthnav_daemon.pipeline.cliff import detect_cliffs
-    from depthnav_daemon.pipeline.pose import estimate_pose
-
     depth, intr = frame.depth_mm, frame.intrinsics
     tick = clock or (lambda: 0.0)
-    timings: dict[str, float] = {}
-
-    pose = None
-    if pose_params is not None:
-        if rng is None:
-            raise ValueError("process() with pose_params needs an rng (numpy.random.Generator)")
-        t0 = tick()
-        pose = estimate_pose(depth, intr, pose_params, rng)
-        timings["pose"] = tick() - t0
-        if on_pose is not None:
-            mount, mount_source = on_pose(pose)
+    timings: dict[str, float] = dict(timings_s or {})
     t0 = tick()
-    scan = depth_to_scan(depth, intr, mount, scan_params)
+    scan = depth_to_scan(depth, intr, mount, params.scan)
     timings["scan"] = tick() - t0
     cliff = None
-    if cliff_params is not None:
+    if params.cliff is not None:
         t0 = tick()
         cliff = detect_cliffs(
-            depth, intr, mount, cliff_params, scan.angle_min, scan.angle_increment, scan.ranges.size
+            depth, intr, mount, params.cliff, scan.angle_min, scan.angle_increment, scan.ranges.size
         )
         timings["cliff"] = tick() - t0
+    mask = None
+    if params.obstacle_mask and params.scan.method == "exact":
+        mask = obstacle_pixels(depth, intr, mount, params.scan)
+    rows = scan_rows(intr, params.scan)
     # the scan already visited every used pixel: all-NaN means none of them had a reading
     warning = "no valid depth in this frame (all pixels 0)" if np.isnan(scan.ranges).all() else None
     return Result(
-        frame.seq,
-        frame.timestamp_s,
-        intr,
-        mount,
-        mount_source,
-        scan,
-        cliff,
-        pose,
-        timings if clock else {},
-        warning,
+        seq=frame.seq,
+        timestamp_s=frame.timestamp_s,
+        intrinsics=intr,
+        mount=mount,
+        mount_source=mount_source,
+        scan=scan,
+        scan_band=(rows.start, min(rows.stop, intr.height)),
+        cliff=cliff,
+        pose=pose,
+        obstacle_mask=mask,
+        timings_s=timings if clock else dict(timings_s or {}),
+        warning=warning,
     )
 
 
-def prepare(
-    intr: Intrinsics,
-    mount: Mount,
-    scan_params: ScanParams,
-    cliff_params: CliffParams | None = None,
-) -> None:
+def prepare(intr: Intrinsics, mount: Mount, params: StageParams) -> None:
     """Build the scan's and cliff detector's tables for this camera and mount, and cache them.
 
     What the first frame with this mount would build (tens of ms at 640x480): the stages run on
@@ -138,11 +149,9 @@ def prepare(
     Raises:
         ConfigError: parameters that do not fit this camera and mount (as ``process`` would).
     """
-    from depthnav_daemon.pipeline.cliff import detect_cliffs
-
     blank = np.zeros((intr.height, intr.width), dtype=np.uint16)
-    scan = depth_to_scan(blank, intr, mount, scan_params)
-    if cliff_params is not None:
+    scan = depth_to_scan(blank, intr, mount, params.scan)
+    if params.cliff is not None:
         detect_cliffs(
-            blank, intr, mount, cliff_params, scan.angle_min, scan.angle_increment, scan.ranges.size
+            blank, intr, mount, params.cliff, scan.angle_min, scan.angle_increment, scan.ranges.size
         )

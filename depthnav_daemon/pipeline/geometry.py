@@ -170,19 +170,6 @@ def depth_to_mm(depth: np.ndarray, intr: Intrinsics) -> npt.NDArray[np.uint16]:
     return np.where(ok, mm, 0).astype(np.uint16)
 
 
-def depth_to_m(depth: np.ndarray, intr: Intrinsics) -> F32:
-    """Checked depth as float32 metres, (H, W), NaN where there is no valid reading."""
-    check_depth(depth, intr)
-    if depth.dtype == np.uint16:
-        out = depth.astype(np.float32) * np.float32(0.001)
-        out[depth == 0] = np.nan
-        return out
-    out = depth.copy()
-    with np.errstate(invalid="ignore"):
-        out[~(np.isfinite(out) & (out > 0))] = np.nan
-    return out
-
-
 def paper_vertical_fov_rad(intr: Intrinsics) -> float:
     """Vertical field of view as depth_nav_tools computes it: angle(top, centre) + angle(centre, bottom)."""
     return math.atan(intr.cy / intr.fy) + math.atan((intr.height - 1 - intr.cy) / intr.fy)

@@ -48,9 +48,9 @@ from depthnav_daemon.pipeline.pose_kernels import (
     plane_moments_kernel,
     ransac_count_kernel,
 )
+from drivers.base import STANDARD_GRAVITY_MPS2 as G_MPS2
 from drivers.base import Intrinsics
 
-G_MPS2 = 9.80665
 PRIOR_SLACK_DEG = 2.0  # fitted angles may exceed the prior by this much (noise at its edges)
 PRIOR_SLACK_M = 0.02
 SCORE_CHUNK = 32  # RANSAC hypotheses scored per batch

@@ -46,9 +46,6 @@ from drivers.base import Intrinsics
 
 METHODS = ("exact", "paper")
 MAX_BINS = 32000  # bins fit the kernels' packed codes (below 32768), with a scratch slot
-MAX_SPAN_BINS = (
-    64  # a pixel that looks almost straight down covers many bearings; cap its footprint
-)
 
 
 @dataclass(frozen=True, slots=True)
@@ -205,7 +202,22 @@ class _ExactTable:
     angle_increment: float
 
 
-def _used_rows(intr: Intrinsics, params: ScanParams) -> slice:
+def scan_rows(intr: Intrinsics, params: ScanParams) -> slice:
+    """The image rows the scan reads (start, stop, step), for either method.
+
+    Raises:
+        ConfigError: a row band that does not fit this image.
+    """
+    if params.method == "paper":
+        half = params.scan_height / 2.0
+        if half > intr.cy or half > intr.height - intr.cy:
+            limit = int(2 * min(intr.cy, intr.height - intr.cy))
+            raise ConfigError(
+                f"scan.scan_height={params.scan_height} is too large for this {intr.height}-row "
+                f"image with cy={intr.cy:g} (accepted: 1..{limit})"
+            )
+        offset = int(intr.cy - half)  # the original's truncation
+        return slice(offset, offset + params.scan_height, params.depth_img_row_step)
     stop = intr.height if params.row_stop == -1 else min(params.row_stop, intr.height)
     if params.row_start >= stop:
         raise ConfigError(
@@ -285,7 +297,7 @@ def _bin_map(
 
 @functools.lru_cache(maxsize=16)
 def _exact_table(intr: Intrinsics, mount: Mount, params: ScanParams) -> _ExactTable:
-    rows = _used_rows(intr, params)
+    rows = scan_rows(intr, params)
     cols = slice(0, intr.width, params.col_step)
     v = np.arange(intr.height, dtype=np.float64)[rows][:, None]
     u = np.arange(intr.width, dtype=np.float64)[cols][None, :]

@@ -14,7 +14,6 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
-from depthnav_daemon.errors import ConfigError
 from depthnav_daemon.pipeline.geometry import (
     F32,
     Mount,
@@ -22,7 +21,7 @@ from depthnav_daemon.pipeline.geometry import (
     paper_floor_depth_m,
     paper_row_angles_rad,
 )
-from depthnav_daemon.pipeline.scan import LaserScan, ScanParams
+from depthnav_daemon.pipeline.scan import LaserScan, ScanParams, scan_rows
 from depthnav_daemon.pipeline.scan_kernels import paper_scan_kernel
 from drivers.base import Intrinsics
 
@@ -43,15 +42,7 @@ class _PaperTable:
 
 @functools.lru_cache(maxsize=16)
 def _paper_table(intr: Intrinsics, mount: Mount, params: ScanParams) -> _PaperTable:
-    half = params.scan_height / 2.0
-    if half > intr.cy or half > intr.height - intr.cy:
-        limit = int(2 * min(intr.cy, intr.height - intr.cy))
-        raise ConfigError(
-            f"scan.scan_height={params.scan_height} is too large for this {intr.height}-row image "
-            f"with cy={intr.cy:g} (accepted: 1..{limit})"
-        )
-    offset = int(intr.cy - half)
-    rows = slice(offset, offset + params.scan_height, params.depth_img_row_step)
+    rows = scan_rows(intr, params)
     delta = paper_row_angles_rad(intr)[rows]
     alpha = mount.tilt_rad
     b = delta.size
@@ -72,7 +63,7 @@ def _paper_table(intr: Intrinsics, mount: Mount, params: ScanParams) -> _PaperTa
     theta = -np.arctan((u - intr.cx) / intr.fx)
     index = np.clip(((theta - angle_min) / inc).astype(np.int64), 0, intr.width - 1)
     return _PaperTable(
-        offset,
+        rows.start,
         params.depth_img_row_step,
         np.full(b, lo, dtype=np.uint16),
         np.clip(hi, 0, 65535).astype(np.uint16),

@@ -54,6 +54,10 @@ class Sink(Protocol):
 
     Attributes:
         name: the spec the sink was made from, for messages.
+
+    A sink that draws the obstacle pixels sets ``needs_obstacle_mask = True`` (read once, after
+    ``open``); the loop then asks the pipeline for ``Result.obstacle_mask``. Sinks never call
+    stage code themselves.
     """
 
     name: str

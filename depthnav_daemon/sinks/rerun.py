@@ -91,15 +91,6 @@ def scan_points(scan: LaserScan, z: float = SCAN_Z_M) -> np.ndarray:
     return _xy_to_points3d(r[ok] * np.cos(a), r[ok] * np.sin(a), z)
 
 
-def used_rows(intr: Intrinsics, params: Any) -> tuple[int, int]:
-    """[first, last) image rows the scan reads, for the method in ``params`` (ScanParams)."""
-    if params.method == "paper":
-        first = int(intr.cy - params.scan_height / 2.0)
-        return max(0, first), min(intr.height, first + params.scan_height)
-    stop = intr.height if params.row_stop == -1 else min(params.row_stop, intr.height)
-    return min(params.row_start, intr.height), stop
-
-
 def blueprint() -> Any:
     """The default layout: depth + overlays and time series left, the 3-D view right."""
     import rerun.blueprint as rrb
@@ -204,6 +195,7 @@ class RerunSink:
         self, name: str, mode: str, target: str = "", every: int = 1, image: bool = True
     ) -> None:
         self.name, self.mode, self.target, self.every, self.image = name, mode, target, every, image
+        self.needs_obstacle_mask = image  # drawn over the depth image (Sink protocol)
         self._rec: Any = None
         self._stream: Any = None
         self._rr: Any = None
@@ -450,7 +442,7 @@ class RerunSink:
                 frame.depth_mm, meter=1000.0, colormap="turbo", depth_range=[0.0, far_mm]
             ),
         )
-        first, stop = used_rows(intr, ctx.scan_params)
+        first, stop = result.scan_band
         rec.log(
             "/world/sensor/depth/band",
             rr.Boxes2D(
@@ -460,13 +452,12 @@ class RerunSink:
                 labels=["scan rows"],
             ),
         )
-        if ctx.scan_params.method == "exact":
-            from depthnav_daemon.pipeline.scan import obstacle_pixels
-
-            mask = obstacle_pixels(frame.depth_mm, intr, result.mount, ctx.scan_params)
+        if result.obstacle_mask is not None:
             rec.log(
                 "/world/sensor/depth/obstacles",
-                rr.SegmentationImage(mask.astype(np.uint8) * CLASS_OBSTACLE, opacity=0.6),
+                rr.SegmentationImage(
+                    result.obstacle_mask.astype(np.uint8) * CLASS_OBSTACLE, opacity=0.6
+                ),
             )
         blocks = (
             np.empty((0, 2))

@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from drivers.base import Frame, Intrinsics
-from drivers.fakenect_format import disparity_to_mm_table
+from drivers.formats.fakenect import disparity_to_mm_table
 
 REPO = Path(__file__).resolve().parents[2]
 

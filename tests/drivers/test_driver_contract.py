@@ -14,12 +14,12 @@ from driverkit import (
     skip_without,
 )
 
-from drivers.fakenect_format import write_fakenect
-from drivers.freenect_lib import find_library as find_freenect
-from drivers.oni_format import write_oni
+from drivers.formats.fakenect import write_fakenect
+from drivers.formats.oni import write_oni
+from drivers.formats.png_folder import write_png_folder
+from drivers.formats.recording_writer import write_recording
+from drivers.kinect.freenect import find_library as find_freenect
 from drivers.openni import find_library as find_openni
-from drivers.png_folder import write_png_folder
-from drivers.recording_writer import write_recording
 
 N = 3
 

@@ -10,7 +10,7 @@ from driverkit import VGA, kinect_exact_frames
 
 from drivers.base import Frame
 from drivers.errors import RecordingError
-from drivers.fakenect_format import (
+from drivers.formats.fakenect import (
     PGM_HEADER,
     disparity_to_mm,
     disparity_to_mm_table,

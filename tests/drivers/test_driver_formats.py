@@ -7,12 +7,12 @@ import hashlib
 from driverkit import contract_report_isolated, kinect_exact_frames, skip_without
 
 import drivers
-from drivers.fakenect_format import write_fakenect
-from drivers.freenect_lib import find_library as find_freenect
-from drivers.oni_format import write_oni
+from drivers.formats.fakenect import write_fakenect
+from drivers.formats.oni import write_oni
+from drivers.formats.png_folder import write_png_folder
+from drivers.formats.recording_writer import write_recording
+from drivers.kinect.freenect import find_library as find_freenect
 from drivers.openni import find_library as find_openni
-from drivers.png_folder import write_png_folder
-from drivers.recording_writer import write_recording
 
 
 def digest(depth) -> str:

@@ -13,8 +13,8 @@ from driverkit import kinect_exact_frames, run_isolated, skip_without
 
 import drivers
 from drivers.errors import DeviceOpenError
-from drivers.fakenect_format import write_fakenect
-from drivers.freenect_lib import find_library
+from drivers.formats.fakenect import write_fakenect
+from drivers.kinect.freenect import find_library
 
 
 @pytest.fixture(autouse=True)
@@ -26,7 +26,7 @@ CHILD = """
 import json, sys, numpy as np
 from pathlib import Path
 from drivers.errors import DriverError
-from drivers.kinect import KinectDriver
+from drivers.kinect.driver import KinectDriver
 from driverkit import kinect_exact_frames
 from fake_kinect_usb import FakeUsbBackend, KinectMotorModel
 folder, accel, unplug_after, stall = Path(sys.argv[1]), sys.argv[2], sys.argv[3], int(sys.argv[4])

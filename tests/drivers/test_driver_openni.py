@@ -15,7 +15,7 @@ import pytest
 from driverkit import SMALL, ramp_frames, run_isolated, skip_without
 
 from drivers.errors import RecordingError
-from drivers.oni_format import check_oni, write_oni
+from drivers.formats.oni import check_oni, write_oni
 from drivers.openni import find_library
 
 

@@ -13,8 +13,8 @@ from driverkit import ramp_frames, run_isolated
 
 import drivers
 from drivers.errors import DriverError
-from drivers.recording import read_recording
-from drivers.recording_writer import write_recording
+from drivers.formats.recording import read_recording
+from drivers.formats.recording_writer import write_recording
 from drivers.replay import ReplayDriver
 
 

@@ -10,8 +10,8 @@ import pytest
 from driverkit import SMALL, ramp_frames
 
 from drivers.errors import RecordingError
-from drivers.recording import read_recording
-from drivers.recording_writer import write_recording
+from drivers.formats.recording import read_recording
+from drivers.formats.recording_writer import write_recording
 
 
 def test_round_trip_is_bit_exact(tmp_path):

@@ -11,9 +11,9 @@ from driverkit import SMALL, VGA, kinect_exact_frames, ramp_frames
 
 import drivers
 from drivers.errors import RecordingError
-from drivers.fakenect_format import write_fakenect
-from drivers.png_folder import write_png_folder
-from drivers.recording_writer import write_recording
+from drivers.formats.fakenect import write_fakenect
+from drivers.formats.png_folder import write_png_folder
+from drivers.formats.recording_writer import write_recording
 from drivers.replay import ReplayDriver
 
 

@@ -11,13 +11,13 @@ import tty
 import pytest
 from pymavlink.dialects.v20 import common as mavlink2
 
+from drivers.base import tilt_roll_to_accel
 from drivers.errors import DeviceLost, DeviceOpenError, DeviceSpecError
-from drivers.serial_tilt import (
+from drivers.tilt.serialtilt import (
     SerialTiltSource,
     format_line,
     nmea_checksum,
     parse_line,
-    tilt_roll_to_accel,
 )
 
 WAIT_S = 10.0  # generous bound for a slow machine; the tests return as soon as data arrives

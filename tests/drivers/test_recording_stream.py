@@ -16,14 +16,14 @@ import drivers
 from drivers import replay
 from drivers.base import Frame, Intrinsics
 from drivers.errors import RecordingError
-from drivers.recording import (
+from drivers.formats.recording import (
     Recording,
     RecordingStream,
     open_recording_stream,
     read_recording,
     recording_depth_nbytes,
 )
-from drivers.recording_writer import write_recording
+from drivers.formats.recording_writer import write_recording
 
 QVGA = Intrinsics(160, 120, 150.5, 148.25, 79.75, 60.5)
 
@@ -38,7 +38,7 @@ def lazy_frames(n: int, intr: Intrinsics = QVGA) -> Iterator[Frame]:
 
 
 def test_write_holds_a_frame_not_the_recording(tmp_path, monkeypatch):
-    monkeypatch.setattr("drivers.recording_writer._COPY_CHUNK_BYTES", 64 << 10)
+    monkeypatch.setattr("drivers.formats.recording_writer._COPY_CHUNK_BYTES", 64 << 10)
     n = 300
     total = n * QVGA.width * QVGA.height * 2  # 11.5 MB of frames
     tracemalloc.start()
@@ -138,7 +138,7 @@ import json, resource, signal, sys
 import numpy as np
 from drivers.base import Frame, Intrinsics
 from drivers.errors import RecordingError
-from drivers.recording_writer import write_recording
+from drivers.formats.recording_writer import write_recording
 
 intr = Intrinsics(160, 120, 150.0, 150.0, 80.0, 60.0)
 rng = np.random.default_rng(5)

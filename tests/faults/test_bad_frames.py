@@ -16,11 +16,11 @@ import numpy as np
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from depthnav_daemon.config import build_config
-from depthnav_daemon.daemon import run
+from depthnav_daemon.config.loader import build_config
+from depthnav_daemon.daemon.loop import run
 from depthnav_daemon.pipeline import Result
 from drivers.base import DeviceInfo, Frame, Intrinsics
-from drivers.recording_writer import write_recording
+from drivers.formats.recording_writer import write_recording
 
 from .kit import depthnav, json_lines, one_error_line
 

@@ -24,19 +24,19 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from PIL import Image
 
-from depthnav_daemon.config import build_config, parse_set
+from depthnav_daemon.config.loader import build_config, parse_set
+from depthnav_daemon.config.ros_params import load_ros_params
 from depthnav_daemon.errors import ConfigError
-from depthnav_daemon.ros_params import load_ros_params
 from depthnav_daemon.sinks import create_sink
 from drivers import create_driver
 from drivers.base import Frame, Intrinsics
 from drivers.errors import DriverError, RecordingError
-from drivers.fakenect_format import ACCEL_DUMP, write_fakenect
-from drivers.kinect import check_fakenect_recording
-from drivers.oni_format import check_oni, write_oni
-from drivers.recording_writer import write_recording
+from drivers.formats.fakenect import ACCEL_DUMP, write_fakenect
+from drivers.formats.oni import check_oni, write_oni
+from drivers.formats.recording_writer import write_recording
+from drivers.kinect.driver import check_fakenect_recording
 from drivers.replay import CACHE_MAX_BYTES, ReplayDriver
-from drivers.serial_tilt import SerialTiltSource, parse_line
+from drivers.tilt.serialtilt import SerialTiltSource, parse_line
 
 BASE = settings(
     deadline=None, suppress_health_check=list(HealthCheck), derandomize=True, database=None

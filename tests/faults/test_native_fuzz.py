@@ -1,6 +1,6 @@
 """.oni files mutated until they pass depthnav's checker, then played by the real libOniFile.
 
-The checker (drivers/oni_format.check_oni) is what stands between a damaged file and native code:
+The checker (drivers/formats/oni.check_oni) is what stands between a damaged file and native code:
 every file it accepts must play, or end in one DriverError line, without crashing the process.
 The player runs in a child process, so a native crash fails this test, not the run.
 """
@@ -18,7 +18,7 @@ import pytest
 
 from drivers.base import Frame, Intrinsics
 from drivers.errors import RecordingError
-from drivers.oni_format import check_oni, write_oni
+from drivers.formats.oni import check_oni, write_oni
 from drivers.openni import find_library
 from tests.drivers.driverkit import skip_without
 
@@ -149,8 +149,8 @@ FAKENECT_CASES, FAKENECT_CASES_LONG = 4, 20  # one child process each (fakenect 
 
 @pytest.fixture(scope="module")
 def fakenect_base(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    from drivers.fakenect_format import write_fakenect
-    from drivers.freenect_lib import find_library as find_freenect
+    from drivers.formats.fakenect import write_fakenect
+    from drivers.kinect.freenect import find_library as find_freenect
 
     skip_without(find_freenect(fakenect=True) is None, "libfreenect0.5")
     vga = Intrinsics(640, 480, 580.0, 580.0, 319.5, 239.5)
@@ -197,7 +197,7 @@ def fakenect_mutant(base: Path, out: Path, r: random.Random) -> Path:
 def test_fakenect_mutants_never_crash_or_write_into_stdout(
     fakenect_base: Path, tmp_path: Path, soak_long: bool
 ) -> None:
-    from drivers.kinect import check_fakenect_recording
+    from drivers.kinect.driver import check_fakenect_recording
 
     r = random.Random(7)
     wanted = FAKENECT_CASES_LONG if soak_long else FAKENECT_CASES

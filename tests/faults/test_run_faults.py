@@ -25,15 +25,15 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from depthnav_daemon.config import build_config
-from depthnav_daemon.daemon import run
+from depthnav_daemon.config.loader import build_config
+from depthnav_daemon.daemon.loop import run
 from depthnav_daemon.sinks.null import NullSink
 from drivers import create_driver
 from drivers.base import DeviceInfo, Frame
-from drivers.kinect_motor import KinectMotor
-from drivers.recording import read_recording
-from drivers.recording_writer import write_recording
-from drivers.serial_tilt import format_line
+from drivers.formats.recording import read_recording
+from drivers.formats.recording_writer import write_recording
+from drivers.kinect.motor import KinectMotor
+from drivers.tilt.serialtilt import format_line
 from tests.drivers.driverkit import skip_without
 from tests.drivers.fake_kinect_usb import FakeUsbBackend, KinectMotorModel
 
@@ -456,8 +456,8 @@ def test_usb_unplug_errno_19_reconnects_with_backoff(caplog: pytest.LogCaptureFi
 
 def test_fakenect_recording_that_ends(tmp_path: Path) -> None:
     """The real fakenect library in the child process: the run ends at the end, stdout is pure JSON."""
-    from drivers.fakenect_format import write_fakenect
-    from drivers.freenect_lib import find_library
+    from drivers.formats.fakenect import write_fakenect
+    from drivers.kinect.freenect import find_library
 
     skip_without(find_library(fakenect=True) is None, "libfreenect0.5")
     write_fakenect(tmp_path / "fk", read_recording(FIXTURE).frames()[:4])

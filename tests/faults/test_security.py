@@ -11,13 +11,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from depthnav_daemon.config import build_config
+from depthnav_daemon.config.loader import build_config
 from depthnav_daemon.errors import ConfigError
 from depthnav_daemon.sinks import create_sink
 from drivers import create_driver
 from drivers.base import Frame, Intrinsics
 from drivers.errors import RecordingError
-from drivers.recording_writer import write_recording
+from drivers.formats.recording_writer import write_recording
 
 from .kit import ENDLESS, ROOT, depthnav, finish, free_udp_port, one_error_line, read_lines, start
 
@@ -141,7 +141,7 @@ def test_a_recording_write_never_follows_a_planted_link(tmp_path: Path) -> None:
     folder = tmp_path / "rec"
     folder.mkdir()
 
-    def frames_then_plant():  # noqa: ANN202
+    def frames_then_plant():
         yield from frames()
         (folder / "frames.npz.partial").symlink_to(outside)
 

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import pytest
 
-from drivers.recording import read_recording
+from drivers.formats.recording import read_recording
 
 from .kit import ENDLESS, FIXTURE, finish, json_lines, read_lines, start, wait_until_ours
 

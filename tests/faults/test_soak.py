@@ -8,12 +8,12 @@ from __future__ import annotations
 
 import pytest
 
-from depthnav_daemon.soak import RSS_LIMIT_MB, run_soak
+from depthnav_daemon.tools.soak import RSS_LIMIT_MB, run_soak
 
 SHORT, LONG = 1500, 100_000
 
 
-def test_soak_through_every_sink(soak_long: bool, tmp_path) -> None:  # noqa: ANN001
+def test_soak_through_every_sink(soak_long: bool, tmp_path) -> None:
     frames = LONG if soak_long else SHORT
     report = run_soak(
         frames,
@@ -35,7 +35,7 @@ def test_soak_through_every_sink(soak_long: bool, tmp_path) -> None:  # noqa: AN
 @pytest.mark.parametrize("frames", [1])
 def test_soak_report_fails_on_a_drop(frames: int) -> None:
     """The report's verdict is not a tautology: a missing datagram makes it fail."""
-    from depthnav_daemon.soak import SoakReport
+    from depthnav_daemon.tools.soak import SoakReport
 
     good = SoakReport(frames, frames_processed=1, stdout_lines=1, udp_received=1, exit_code=0)
     assert good.ok

@@ -7,7 +7,7 @@ import math
 import numpy as np
 
 from depthnav_daemon.pipeline.geometry import Mount, level_rays
-from depthnav_daemon.synthetic import Box, Scene
+from depthnav_daemon.sim.synthetic import Box, Scene
 from drivers.base import Intrinsics
 
 # Asymmetric on purpose (fx != fy, cx != W/2, cy != H/2, H != W) so swapped axes fail loudly.

@@ -9,7 +9,8 @@ import pytest
 
 from depthnav_daemon.errors import ConfigError
 from depthnav_daemon.pipeline.geometry import cam_to_level
-from depthnav_daemon.pipeline.pose import G_MPS2, tilt_roll_from_accel
+from depthnav_daemon.pipeline.pose import tilt_roll_from_accel
+from drivers.base import STANDARD_GRAVITY_MPS2 as G_MPS2
 
 
 def test_fifteen_degrees_down_reads_minus_9p47_minus_2p54() -> None:

@@ -13,7 +13,7 @@ from depthnav_daemon.errors import ConfigError, FrameError
 from depthnav_daemon.pipeline.cliff import CliffParams, CliffResult, _selector, detect_cliffs
 from depthnav_daemon.pipeline.geometry import Mount, level_rays
 from depthnav_daemon.pipeline.scan import ScanParams, scan_layout
-from depthnav_daemon.synthetic import (
+from depthnav_daemon.sim.synthetic import (
     Box,
     Hole,
     KinectNoise,

@@ -12,7 +12,7 @@ import pytest
 
 from depthnav_daemon.pipeline.geometry import Mount, cam_to_level, level_rays, pixel_rays
 from depthnav_daemon.pipeline.scan import ScanParams, depth_to_scan
-from depthnav_daemon.synthetic import Box, Scene, render
+from depthnav_daemon.sim.synthetic import Box, Scene, render
 from drivers.base import Intrinsics
 from tests.pipeline.scenes import ASYM_640
 

@@ -20,9 +20,9 @@ from depthnav_daemon.pipeline import pose_kernels
 from depthnav_daemon.pipeline import scan as scan_mod
 from depthnav_daemon.pipeline.cliff import CliffParams, detect_cliffs
 from depthnav_daemon.pipeline.geometry import Mount, cam_to_level
-from depthnav_daemon.pipeline.pose import PoseParams
+from depthnav_daemon.pipeline.pose import PoseParams, estimate_pose
 from depthnav_daemon.pipeline.scan import ScanParams, depth_to_scan
-from depthnav_daemon.synthetic import Box, KinectNoise, Scene, render, step_down
+from depthnav_daemon.sim.synthetic import Box, KinectNoise, Scene, render, step_down
 from drivers.base import KINECT_V1, Intrinsics
 
 MOUNTS = [
@@ -59,7 +59,7 @@ def reference_exact_scan(
     Uses the stage's per-pixel thresholds and bin map (what the scan *means*), not its kernel tables.
     """
     t = scan_mod._exact_table(intr, mount, params)
-    rows = scan_mod._used_rows(intr, params)
+    rows = scan_mod.scan_rows(intr, params)
     cols = slice(0, intr.width, params.col_step)
     v = np.arange(intr.height, dtype=np.float64)[rows][:, None]
     u = np.arange(intr.width, dtype=np.float64)[cols][None, :]
@@ -412,8 +412,8 @@ def test_refined_plane_equals_numpy_least_squares() -> None:
 
 
 def test_warm_up_compiles_every_kernel_the_daemon_path_calls() -> None:
-    from depthnav_daemon import warmup
-    from depthnav_daemon.pipeline import cliff_kernels, process, scan_kernels
+    from depthnav_daemon.pipeline import StageParams, cliff_kernels, process, scan_kernels
+    from depthnav_daemon.tools import warmup
     from drivers.base import Frame
 
     kernels = [
@@ -433,14 +433,10 @@ def test_warm_up_compiles_every_kernel_the_daemon_path_calls() -> None:
     depth = noisy_frame(SMALL, mount, seed=1)
     frame = Frame(0, 0.0, depth.copy(), SMALL)  # read-only, as drivers deliver
     for scan in (ScanParams(), ScanParams(method="paper", scan_height=100)):
-        process(
-            frame,
-            mount,
-            scan,
-            CliffParams(),
-            PoseParams(used_depth_height=100),
-            np.random.default_rng(0),
+        estimate_pose(
+            frame.depth_mm, SMALL, PoseParams(used_depth_height=100), np.random.default_rng(0)
         )
+        process(frame, mount, StageParams(scan=scan, cliff=CliffParams()))
     depth_to_scan(depth.astype(np.float32) / 1000, SMALL, mount, ScanParams())  # float metres input
     assert [len(k.signatures) for k in kernels] == before
 

@@ -15,7 +15,7 @@ from depthnav_daemon.pipeline.mount_planner import (
     min_visible_height_m,
     plan_table,
 )
-from depthnav_daemon.synthetic import LABEL_FLOOR, Scene, render
+from depthnav_daemon.sim.synthetic import LABEL_FLOOR, Scene, render
 from drivers.base import Intrinsics
 
 

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from depthnav_daemon.paper_experiment import BOX_HEIGHTS_M, format_table, run
+from depthnav_daemon.sim.paper_experiment import BOX_HEIGHTS_M, format_table, run
 
 
 def test_exact_detects_a_box_iff_taller_than_the_margin_at_every_pose() -> None:

@@ -12,7 +12,15 @@ import pytest
 from depthnav_daemon.errors import ConfigError, FrameError
 from depthnav_daemon.pipeline.geometry import Mount
 from depthnav_daemon.pipeline.pose import PoseEstimate, PoseParams, estimate_pose
-from depthnav_daemon.synthetic import LABEL_BOX0, LABEL_FLOOR, Box, KinectNoise, Scene, render, wall
+from depthnav_daemon.sim.synthetic import (
+    LABEL_BOX0,
+    LABEL_FLOOR,
+    Box,
+    KinectNoise,
+    Scene,
+    render,
+    wall,
+)
 from drivers.base import Intrinsics
 from tests.pipeline.scenes import ASYM_640, floor_point
 

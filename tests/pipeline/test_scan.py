@@ -10,7 +10,7 @@ import pytest
 from depthnav_daemon.errors import ConfigError, FrameError
 from depthnav_daemon.pipeline.geometry import Mount
 from depthnav_daemon.pipeline.scan import LaserScan, ScanParams, depth_to_scan
-from depthnav_daemon.synthetic import (
+from depthnav_daemon.sim.synthetic import (
     LABEL_BOX0,
     Box,
     KinectNoise,

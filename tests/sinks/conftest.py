@@ -9,13 +9,13 @@ import numpy as np
 import pytest
 
 from depthnav_daemon import __version__
-from depthnav_daemon.pipeline import Result
-from depthnav_daemon.pipeline.cliff import CliffParams, detect_cliffs
+from depthnav_daemon.pipeline import Result, StageParams, process
+from depthnav_daemon.pipeline.cliff import CliffParams
 from depthnav_daemon.pipeline.geometry import Mount
 from depthnav_daemon.pipeline.pose import PoseEstimate
-from depthnav_daemon.pipeline.scan import ScanParams, depth_to_scan, scan_layout
+from depthnav_daemon.pipeline.scan import ScanParams
+from depthnav_daemon.sim.synthetic import Box, Scene, render, step_down
 from depthnav_daemon.sinks import SinkContext
-from depthnav_daemon.synthetic import Box, Scene, render, step_down
 from drivers.base import DeviceInfo, Frame, Intrinsics
 
 # Asymmetric on purpose (fx != fy, cx != W/2, cy != H/2) so swapped axes fail loudly.
@@ -42,22 +42,12 @@ def make_pair(
     """Render ``scene`` and run the real scan (and cliff) stage on it: one (Frame, Result)."""
     view = render(scene, intr, mount)
     frame = Frame(seq, 100.0 + seq / 30.0, view.depth_mm, intr)
-    scan = depth_to_scan(view.depth_mm, intr, mount, SCAN)
-    cliff_result = None
-    if cliff:
-        a0, inc, n = scan_layout(intr, mount, SCAN)
-        cliff_result = detect_cliffs(view.depth_mm, intr, mount, CLIFF, a0, inc, n)
-    result = Result(
-        seq,
-        frame.timestamp_s,
-        intr,
-        mount,
-        "config",
-        scan,
-        cliff_result,
-        pose,
-        {"scan": 0.004 + seq * 1e-4, "cliff": 0.002},
-        warning,
+    params = StageParams(scan=SCAN, cliff=CLIFF if cliff else None, obstacle_mask=True)
+    result = replace(
+        process(frame, mount, params),
+        pose=pose,
+        timings_s={"scan": 0.004 + seq * 1e-4, "cliff": 0.002},
+        warning=warning,
     )
     return frame, result
 

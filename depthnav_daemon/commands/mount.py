@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import argparse
 import math
 from pathlib import Path
 
 import numpy as np
 
+from depthnav_daemon.commands.common import EXIT_OK
 from depthnav_daemon.errors import ConfigError
 from depthnav_daemon.pipeline.geometry import Mount, check_range
 from depthnav_daemon.pipeline.mount_planner import lower_dead_zone_m, max_visible_height_m
@@ -125,3 +127,11 @@ def draw_side_view(
     for d in np.arange(0, max_dist_m + 1e-9, 0.5):
         g.text((px(float(d), 0)[0] - 8, h - margin + 8), f"{d:g}", fill="black")
     img.save(path)
+
+
+def cmd_mount(args: argparse.Namespace) -> int:
+    text = mount_report(
+        args.height_m, args.tilt_deg, args.sensor, args.vfov_deg, args.distances_m, args.plot
+    )
+    print(text)  # noqa: T201
+    return EXIT_OK

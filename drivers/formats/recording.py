@@ -6,7 +6,7 @@
 table and an optional ``[truth]`` table. A bare ``.npz`` with the same arrays is also readable.
 
 Memory: ``read_recording`` decompresses every frame into memory, ``open_recording_stream`` one
-frame at a time; ``drivers.recording_writer.write_recording`` holds one frame at a time.
+frame at a time; ``drivers.formats.recording_writer.write_recording`` holds one frame at a time.
 """
 
 from __future__ import annotations

@@ -23,12 +23,12 @@ import math
 import re
 import threading
 import time
-from dataclasses import dataclass
 from types import TracebackType
 from typing import Any
 
 from drivers.errors import DeviceLost, DeviceOpenError, DeviceSpecError, DriverError, OpenFailure
 from drivers.spec import check_options, choice_option, int_option, parse_spec
+from drivers.tilt import TiltReading
 
 log = logging.getLogger(__name__)
 
@@ -36,15 +36,6 @@ GRAMMAR = "serialtilt:PORT[?protocol=line|mavlink&baud=N]"
 LINE = re.compile(rb"\$(TILT,([-+]?\d+(?:\.\d*)?),([-+]?\d+(?:\.\d*)?))\*([0-9A-Fa-f]{2})")
 MAX_LINE = 128
 MAVLINK_ATTITUDE = 30
-
-
-@dataclass(frozen=True, slots=True)
-class TiltReading:
-    """One attitude reading in depthnav's convention."""
-
-    tilt_deg: float  # positive = pitched down
-    roll_deg: float  # positive = left side up
-    timestamp_s: float  # host monotonic time of arrival
 
 
 def nmea_checksum(body: bytes) -> int:
@@ -77,23 +68,6 @@ def parse_line(line: bytes) -> tuple[float, float] | None:
 def attitude_to_tilt_roll(pitch_rad: float, roll_rad: float) -> tuple[float, float]:
     """MAVLink ATTITUDE (nose-up pitch, right-down roll, radians) to (tilt_deg, roll_deg)."""
     return -math.degrees(pitch_rad), math.degrees(roll_rad)
-
-
-def tilt_roll_to_accel(
-    tilt_deg: float, roll_deg: float, g_mps2: float = 9.80665
-) -> tuple[float, float, float]:
-    """The camera-frame specific force (m/s^2) a sensor at rest with this attitude would read.
-
-    Lets an IMU's attitude stand in for a missing accelerometer in ``Frame.accel_mps2``:
-    pitched down by t and rolled (left side up) by r it reads
-    (-g sin r cos t, -g cos r cos t, -g sin t).
-    """
-    t, r = math.radians(tilt_deg), math.radians(roll_deg)
-    return (
-        -g_mps2 * math.sin(r) * math.cos(t),
-        -g_mps2 * math.cos(r) * math.cos(t),
-        -g_mps2 * math.sin(t),
-    )
 
 
 class SerialTiltSource:

@@ -1,4 +1,4 @@
-"""Writing depthnav recordings (the format is described in ``drivers.recording``).
+"""Writing depthnav recordings (the format is described in ``drivers.formats.recording``).
 
 ``write_recording`` holds one frame at a time: the frames wait in a temporary raw file in the
 target folder (so recording needs free disk for them uncompressed until ``frames.npz`` is
@@ -25,7 +25,7 @@ import tomli_w
 
 from drivers.base import Frame, Intrinsics
 from drivers.errors import RecordingError
-from drivers.recording import DEPTH_MEMBER, FORMAT_VERSION, FRAMES_FILE, META_FILE
+from drivers.formats.recording import DEPTH_MEMBER, FORMAT_VERSION, FRAMES_FILE, META_FILE
 
 log = logging.getLogger(__name__)
 

@@ -17,7 +17,7 @@ from typing import Any
 
 from drivers.base import TiltState
 from drivers.errors import DeviceLost, DeviceOpenError, DriverError, OpenFailure
-from drivers.kinect_axes import accel_counts_to_camera, tilt_status_name
+from drivers.kinect.axes import accel_counts_to_camera, tilt_status_name
 
 log = logging.getLogger(__name__)
 

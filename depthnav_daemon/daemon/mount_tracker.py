@@ -12,23 +12,37 @@ import logging
 import math
 from dataclasses import dataclass
 
+from depthnav_daemon.config.loader import DaemonParams
 from depthnav_daemon.pipeline.geometry import MAX_ROLL_DEG, MAX_TILT_DEG, Mount
 
 log = logging.getLogger(__name__)
 
 
-@dataclass(frozen=True, slots=True)
+_DAEMON = DaemonParams()  # the defaults of the fields below live there, once
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
 class TrackerParams:
     """See DaemonParams for the meaning of each field."""
 
-    smoothing: float = 0.3
-    max_jump_m: float = 0.05
-    max_jump_deg: float = 3.0
-    confirmations: int = 3
+    smoothing: float = _DAEMON.pose_smoothing
+    max_jump_m: float = _DAEMON.max_jump_m
+    max_jump_deg: float = _DAEMON.max_jump_deg
+    confirmations: int = _DAEMON.jump_confirmations
     # the applied mount follows the smoothed one only beyond this, so the stages' lookup tables
     # (built per mount, ~0.1 s) are not rebuilt for sub-millimetre wobble
     deadband_m: float = 0.002
     deadband_deg: float = 0.1
+
+    @classmethod
+    def from_daemon(cls, d: DaemonParams) -> TrackerParams:
+        """The tracker's part of the daemon's configuration."""
+        return cls(
+            smoothing=d.pose_smoothing,
+            max_jump_m=d.max_jump_m,
+            max_jump_deg=d.max_jump_deg,
+            confirmations=d.jump_confirmations,
+        )
 
 
 def _distance(a: Mount, b: Mount) -> tuple[float, float]:

@@ -1,12 +1,11 @@
 """The bundled fixtures: synthetic recordings with exact ground truth, made by the scene generator.
 
-``python -m depthnav_daemon.fixtures [OUT_DIR]`` writes them again (they are committed under
+``python -m depthnav_daemon.sim.fixtures [OUT_DIR]`` writes them again (they are committed under
 fixtures/ so the quick start and the tests need no generation step).
 """
 
 from __future__ import annotations
 
-import math
 import sys
 from collections.abc import Iterator
 from pathlib import Path
@@ -14,11 +13,9 @@ from pathlib import Path
 import numpy as np
 
 from depthnav_daemon.pipeline.geometry import Mount
-from depthnav_daemon.synthetic import Box, Hole, KinectNoise, Scene, render, step_down
-from drivers.base import KINECT_V1, Frame, Intrinsics
-from drivers.recording_writer import write_recording
-
-G_MPS2 = 9.80665
+from depthnav_daemon.sim.synthetic import Box, Hole, KinectNoise, Scene, render, step_down
+from drivers.base import KINECT_V1, Frame, Intrinsics, tilt_roll_to_accel
+from drivers.formats.recording_writer import write_recording
 
 CORRIDOR_MOUNT = Mount(0.55, 15.0, 0.0)
 CORRIDOR_STEP_M = 2.0
@@ -37,8 +34,7 @@ def accel_for(
     mount: Mount, rng: np.random.Generator, sigma_mps2: float = 0.02
 ) -> tuple[float, float, float]:
     """Specific force a still sensor at ``mount`` reads in the camera frame, with a little noise."""
-    t, r = mount.tilt_rad, mount.roll_rad
-    a = np.array([-math.sin(r) * math.cos(t), -math.cos(r) * math.cos(t), -math.sin(t)]) * G_MPS2
+    a = np.array(tilt_roll_to_accel(mount.tilt_deg, mount.roll_deg))
     a += rng.normal(0.0, sigma_mps2, 3)
     return (float(a[0]), float(a[1]), float(a[2]))
 
@@ -72,7 +68,7 @@ def write_corridor_step(out: Path, n: int = 12) -> int:
         description="Synthetic corridor, 18 cm step down at 2.0 m, a 20 cm hole, two boxes; "
         "Kinect v1 intrinsics, 0.55 m high, pitched 15 degrees down; Kinect-like noise",
         truth=truth,
-        device="synthetic (depthnav_daemon.fixtures)",
+        device="synthetic (depthnav_daemon.sim.fixtures)",
     )
 
 

@@ -1,4 +1,4 @@
-"""Compile and cache every numeric kernel now (``python -m depthnav_daemon.warmup``).
+"""Compile and cache every numeric kernel now (``python -m depthnav_daemon.tools.warmup``).
 
 scripts/install.sh runs it, so ``depthnav run`` compiles nothing at its first frame: numba keeps
 the machine code on disk (see pipeline/_jit.py), keyed to this CPU. numba compiles one version per
@@ -12,12 +12,12 @@ import time
 
 import numpy as np
 
-from depthnav_daemon.pipeline import process
+from depthnav_daemon.pipeline import StageParams, process
 from depthnav_daemon.pipeline.cliff import CliffParams, detect_cliffs
 from depthnav_daemon.pipeline.geometry import Mount
 from depthnav_daemon.pipeline.pose import PoseParams, estimate_pose
 from depthnav_daemon.pipeline.scan import ScanParams, depth_to_scan, scan_layout
-from depthnav_daemon.synthetic import Box, Scene, render, step_down
+from depthnav_daemon.sim.synthetic import Box, Scene, render, step_down
 from drivers.base import Frame, Intrinsics
 
 # every scan / cliff configuration that gives its kernel a differently typed array:
@@ -56,7 +56,8 @@ def warm_up() -> float:
             detect_cliffs(depth, intr, mount, cliff, *layout)
         estimate_pose(depth, intr, pose, rng)
     # and the whole per-frame path once, as the daemon calls it
-    process(frame, mount, ScanParams(), CliffParams(used_depth_height=100), pose, rng)
+    estimate_pose(frame.depth_mm, intr, pose, rng)
+    process(frame, mount, StageParams(scan=ScanParams(), cliff=CliffParams(used_depth_height=100)))
     return time.perf_counter() - t0
 
 

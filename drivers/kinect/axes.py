@@ -13,8 +13,9 @@ from __future__ import annotations
 
 import math
 
+from drivers.base import STANDARD_GRAVITY_MPS2
+
 COUNTS_PER_G = 819.0
-STANDARD_GRAVITY_MPS2 = 9.80665
 AXIS_SIGNS = (-1.0, -1.0, 1.0)  # raw device axis -> camera axis, see the module docstring
 
 TILT_STATUS = {0: "stopped", 1: "at_limit", 4: "moving"}

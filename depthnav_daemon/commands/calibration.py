@@ -1,4 +1,4 @@
-"""``depthnav calibrate``: the sensor's height, tilt and roll from the floor over N frames."""
+"""Calibration for ``depthnav calibrate``: the sensor's height, tilt and roll from the floor over N frames."""
 
 from __future__ import annotations
 
@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 import tomli_w
 
-from depthnav_daemon.config import Config
+from depthnav_daemon.config.loader import Config
 from depthnav_daemon.errors import ConfigError, DepthnavError
 from depthnav_daemon.pipeline.pose import estimate_pose
 from drivers import create_driver, iter_frames, opened

@@ -26,7 +26,7 @@ import numpy.typing as npt
 
 from drivers.base import Frame
 from drivers.errors import RecordingError
-from drivers.kinect_axes import camera_to_accel_counts
+from drivers.kinect.axes import camera_to_accel_counts
 
 log = logging.getLogger(__name__)
 

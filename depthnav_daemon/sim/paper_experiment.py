@@ -18,7 +18,7 @@ import numpy as np
 
 from depthnav_daemon.pipeline.geometry import Mount
 from depthnav_daemon.pipeline.scan import ScanParams, depth_to_scan
-from depthnav_daemon.synthetic import Box, KinectNoise, Scene, render, truth_obstacle_ranges
+from depthnav_daemon.sim.synthetic import Box, KinectNoise, Scene, render, truth_obstacle_ranges
 from drivers.base import KINECT_V1, Intrinsics
 
 BOX_HEIGHTS_M = (0.40, 0.15, 0.03, 0.01)
@@ -113,7 +113,7 @@ def format_table(rows: list[Row]) -> str:
 
 
 def main() -> None:
-    """Print the table (``python -m depthnav_daemon.paper_experiment``)."""
+    """Print the table (``python -m depthnav_daemon.sim.paper_experiment``)."""
     print(format_table(run()))  # noqa: T201
 
 

@@ -23,7 +23,7 @@ from pathlib import Path
 
 log = logging.getLogger(__name__)
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 FIXTURE = ROOT / "fixtures" / "corridor_step"
 RSS_LIMIT_MB = 5.0
 UDP_BUFFER = 64 << 20  # a receiver that keeps up on loopback; the bitmap shows any loss anyway

@@ -42,7 +42,7 @@ class DaemonParams:
         tilt_source: where the first mount and the prior come from: "auto" (accelerometer if the
             device has one, else the serial source if given, else the config), "config", "accel",
             "serial", or "floor" (config until the first confident floor estimate).
-        serial_tilt: a serial tilt source spec (see drivers.serial_tilt), or "" for none.
+        serial_tilt: a serial tilt source spec (see drivers.tilt), or "" for none.
         frame_timeout_s: wait this long for one frame.
         max_consecutive_timeouts: then treat the device as lost and reconnect.
         reconnect_attempts: give up after this many reconnects in a row (0 = never give up).
@@ -171,7 +171,7 @@ def read_config_file(path: Path) -> dict[str, Any]:
             f"config file {path} does not exist", hint="check the path given to --config"
         )
     if path.suffix in (".yaml", ".yml"):
-        from depthnav_daemon.ros_params import load_ros_params
+        from depthnav_daemon.config.ros_params import load_ros_params
 
         ros = load_ros_params(path)
         for warning in ros.warnings:

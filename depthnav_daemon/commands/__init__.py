@@ -1,0 +1,2 @@
+"""One module per ``depthnav`` subcommand; ``depthnav_daemon.cli`` parses the arguments and
+dispatches here."""

@@ -1,0 +1,215 @@
+"""What ``depthnav bench`` times as whole processes: frame-read-to-UDP latency of the real loop,
+the CPU the daemon uses at 30 frames/s and the start-up time of ``depthnav run``."""
+
+from __future__ import annotations
+
+import os
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from depthnav_daemon.errors import DepthnavError
+from depthnav_daemon.pipeline.cliff import CliffParams
+from depthnav_daemon.pipeline.pose import (
+    PoseParams,
+)
+from drivers.base import KINECT_V1, Frame, Intrinsics
+
+FIXTURE = Path(__file__).resolve().parents[2] / "fixtures" / "corridor_step"
+MAX_FRAMES = 64
+POSE_EVERY = 30  # the daemon's default pose_every_frames
+# the resolutions of the issue's table; intrinsics of the typical sensor at each (approximate)
+RESOLUTIONS: dict[str, Intrinsics] = {
+    "640x480 (Kinect v1)": KINECT_V1,
+    "512x424 (Kinect v2)": Intrinsics(512, 424, 365.5, 365.5, 255.5, 211.5),
+    "848x480 (RealSense D435)": Intrinsics(848, 480, 425.0, 425.0, 423.5, 239.5),
+    "1280x720 (RealSense D435)": Intrinsics(1280, 720, 640.0, 640.0, 639.5, 359.5),
+}
+DENSE_CLIFF = CliffParams(
+    block_size=8, row_step=1, col_step=1, block_points_thresh=10, used_depth_height=8192
+)
+RANSAC_TARGET = PoseParams(row_step=2, col_step=2, max_points=5000, ransac_iterations=200)
+
+
+# --- whole-process figures ---------------------------------------------------------------------------
+
+
+class _TimedDriver:
+    """A driver that notes when each frame was read (perf_counter), by frame identity."""
+
+    def __init__(self, inner: Any, marks: dict[int, float]) -> None:
+        self._inner = inner
+        self._marks = marks
+
+    def read_frame(self, timeout_s: float) -> Frame | None:
+        frame = self._inner.read_frame(timeout_s=timeout_s)
+        if frame is not None:
+            self._marks[id(frame)] = time.perf_counter()
+        return frame
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._inner, name)
+
+
+class _TimedSink:
+    """A sink that notes, after its inner sink's write returned, how long ago its frame was read."""
+
+    def __init__(self, inner: Any, marks: dict[int, float], latencies: list[float]) -> None:
+        self._inner = inner
+        self._marks = marks
+        self._lat = latencies
+        self.name = inner.name
+
+    def write(self, frame: Frame, result: Any) -> None:
+        self._inner.write(frame, result)
+        t = time.perf_counter()
+        t0 = self._marks.pop(id(frame), None)
+        if t0 is not None:
+            self._lat.append(t - t0)
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._inner, name)
+
+
+class _UdpDrain:
+    """A local UDP receiver that reads and counts datagrams in a thread."""
+
+    def __init__(self) -> None:
+        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.sock.bind(("127.0.0.1", 0))
+        self.sock.settimeout(0.2)
+        self.port = self.sock.getsockname()[1]
+        self.count = 0
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            try:
+                self.sock.recv(65536)
+                self.count += 1
+            except (TimeoutError, OSError):
+                continue
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(1.0)
+        self.sock.close()
+
+
+def udp_latency(spec: str, n_frames: int = 600) -> dict[str, float]:
+    """Frame read to UDP datagram sent, through the daemon's own frame loop at full speed.
+
+    Args:
+        spec: a device spec that delivers at least ``n_frames`` frames (e.g. replay with loop=1).
+        n_frames: frames to run.
+
+    Returns:
+        p50_ms, p99_ms, max_ms of the latency, frames, and fps of the loop (frames / wall time).
+    """
+    import logging
+
+    from depthnav_daemon.config.loader import Config, DaemonParams
+    from depthnav_daemon.daemon.loop import run
+    from depthnav_daemon.sinks import create_sink
+    from drivers import create_driver
+
+    drain = _UdpDrain()
+    marks: dict[int, float] = {}
+    lat: list[float] = []
+    quiet = logging.getLogger("depthnav_daemon")
+    level = quiet.level
+    quiet.setLevel(logging.WARNING)  # the loop's info lines are not the bench's output
+    cfg = Config(
+        device=spec,
+        sinks=(f"udp://127.0.0.1:{drain.port}",),
+        daemon=DaemonParams(tilt_source="floor"),
+    )
+    try:
+        t0 = time.perf_counter()
+        report = run(
+            cfg,
+            threading.Event(),
+            n_frames,
+            driver_factory=lambda s: _TimedDriver(create_driver(s), marks),
+            sink_factory=lambda s: _TimedSink(create_sink(s), marks, lat),
+        )
+        wall = time.perf_counter() - t0
+    finally:
+        drain.close()
+        quiet.setLevel(level)
+    ms = np.array(lat[1:] if len(lat) > 1 else lat) * 1e3  # the first frame also builds tables
+    if ms.size == 0:
+        raise DepthnavError(f"{spec} delivered no frame to time the UDP latency on")
+    return {
+        "p50_ms": float(np.percentile(ms, 50)),
+        "p99_ms": float(np.percentile(ms, 99)),
+        "max_ms": float(ms.max()),
+        "frames": float(report.frames),
+        "loop_fps": report.frames / wall,
+    }
+
+
+def _cpu_s(pid: int) -> float:
+    """utime + stime of a process, seconds (/proc/PID/stat fields 14 and 15)."""
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def _daemon_cmd(device: str, *args: str) -> list[str]:
+    return [sys.executable, "-m", "depthnav_daemon", "-q", "run", "--device", device, *args]
+
+
+def cpu_at_30fps(seconds: float = 20.0, settle_s: float = 3.0) -> dict[str, float]:
+    """CPU share of one core used by ``depthnav run`` replaying the fixture at 30 frames/s to UDP.
+
+    The first ``settle_s`` (start-up, imports, table builds) are left out of the share.
+    """
+    drain = _UdpDrain()
+    cmd = _daemon_cmd(
+        f"replay:{FIXTURE}?rate=realtime&loop=1", "--sink", f"udp://127.0.0.1:{drain.port}"
+    )
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    try:
+        time.sleep(settle_s)
+        if proc.poll() is not None:
+            raise DepthnavError(
+                f"depthnav run ended early: {proc.stderr.read().decode(errors='replace')[-300:]}"
+            )
+        c0, n0, t0 = _cpu_s(proc.pid), drain.count, time.perf_counter()
+        time.sleep(seconds)
+        c1, n1, t1 = _cpu_s(proc.pid), drain.count, time.perf_counter()
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        try:
+            proc.wait(5)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+        drain.close()
+    wall = t1 - t0
+    return {
+        "cpu_percent_of_one_core": 100.0 * (c1 - c0) / wall,
+        "seconds": wall,
+        "datagrams_per_s": (n1 - n0) / wall,
+        "startup_cpu_s": c0,
+    }
+
+
+def startup_time(repeats: int = 5) -> dict[str, float]:
+    """Wall time of ``depthnav run --device replay:fixture --sink stdout --max-frames 1`` (warm cache)."""
+    cmd = _daemon_cmd(f"replay:{FIXTURE}", "--sink", "stdout", "--max-frames", "1")
+    walls = []
+    for i in range(repeats + 1):
+        t0 = time.perf_counter()
+        subprocess.run(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, check=True)
+        if i:  # the first run may fill the kernel cache
+            walls.append(time.perf_counter() - t0)
+    return {"median_s": float(np.median(walls)), "best_s": min(walls), "runs": float(repeats)}

@@ -1,0 +1,44 @@
+"""``depthnav calibrate``: estimate the sensor's height, tilt and roll from the floor (the work is
+in ``calibration``, imported after the stop handlers)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import signal
+import threading
+
+from depthnav_daemon.commands.common import (
+    EXIT_INTERRUPTED,
+    EXIT_OK,
+    install_stop_handlers,
+    load_config,
+    progress_bar,
+)
+from depthnav_daemon.errors import ConfigError
+
+log = logging.getLogger(__name__)
+
+
+def cmd_calibrate(args: argparse.Namespace) -> int:
+    if args.frames < 1:
+        raise ConfigError(f"--frames={args.frames} is out of range (accepted: 1 or more)")
+    stop = threading.Event()
+    got = install_stop_handlers(stop)  # before the heavy imports: see install_stop_handlers
+    from depthnav_daemon.commands.calibrate import calibrate, format_text, write_mount
+
+    cfg = load_config(args, args.device)
+    result = calibrate(
+        cfg, args.frames, stop, progress=progress_bar("calibrating") if not args.json else None
+    )
+    if got.get("signal") == signal.SIGINT:
+        return EXIT_INTERRUPTED
+    if args.json:
+        print(json.dumps(result.as_dict(), allow_nan=False))  # noqa: T201
+    else:
+        print(format_text(result))  # noqa: T201
+    if args.write:
+        write_mount(args.write, result)
+        log.info("wrote [mount] to %s", args.write)
+    return EXIT_OK

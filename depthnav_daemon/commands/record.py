@@ -1,0 +1,75 @@
+"""``depthnav record``: a device's frames into a depthnav recording (a fixture)."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import signal
+import sys
+import threading
+
+from depthnav_daemon.commands.common import (
+    EXIT_INTERRUPTED,
+    EXIT_OK,
+    install_stop_handlers,
+    mib,
+    progress_bar,
+)
+from depthnav_daemon.errors import ConfigError
+
+log = logging.getLogger(__name__)
+
+
+def cmd_record(args: argparse.Namespace) -> int:
+    if args.frames < 1:
+        raise ConfigError(f"--frames={args.frames} is out of range (accepted: 1 or more)")
+    stop = threading.Event()
+    got = install_stop_handlers(stop)  # before the heavy imports: see install_stop_handlers
+    from drivers import create_driver, iter_frames, opened
+    from drivers.formats.recording_writer import write_recording
+
+    driver = create_driver(args.device)
+    recording = progress_bar("recording")
+    compressing = progress_bar("compressing", unit="MiB")
+    taken = [0]
+
+    def took(k: int) -> None:
+        taken[0] = k
+        recording(k, args.frames)
+
+    def compressed(done: int, total: int) -> None:
+        if taken[0] < args.frames and sys.stderr.isatty():
+            sys.stderr.write("\n")  # a stop left the recording bar's line open
+        taken[0] = args.frames
+        compressing(mib(done), mib(total))
+
+    def while_compressing(signum: int, _frame: object) -> None:
+        if got.get("abandon"):
+            log.warning("recording abandoned: nothing is written to %s", args.out)
+            raise KeyboardInterrupt  # write_recording removes its partial files
+        got["abandon"] = signum
+        got.setdefault("signal", signum)
+        log.warning(
+            "finishing %s with the frames recorded; stop again to abandon the recording", args.out
+        )
+
+    def frames():
+        for i, frame in enumerate(iter_frames(driver, stop)):
+            if i >= args.frames:
+                break
+            yield frame
+        driver.close()  # the device is not needed while the frames are compressed
+        signal.signal(signal.SIGINT, while_compressing)
+        signal.signal(signal.SIGTERM, while_compressing)
+
+    with opened(driver):
+        n = write_recording(
+            args.out,
+            frames(),
+            description=args.description,
+            device=args.device,
+            progress=took,
+            progress_compress=compressed,
+        )
+    log.info("recorded %d frames into %s", n, args.out)
+    return EXIT_INTERRUPTED if got.get("signal") == signal.SIGINT else EXIT_OK

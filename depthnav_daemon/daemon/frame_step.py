@@ -1,0 +1,157 @@
+"""What the frame loop decides for each frame, in order: the tilt sensor's reading, whether the
+floor pose stage runs, the mount the stages use, then the stages themselves.
+
+The state between frames lives here (the mount tracker, the stage tables, the RANSAC generator,
+the pose schedule); the stages stay pure functions.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import time
+
+import numpy as np
+
+from depthnav_daemon.config.loader import Config
+from depthnav_daemon.daemon.mount_tracker import MountTracker, TrackerParams
+from depthnav_daemon.daemon.stage_tables import StageTables
+from depthnav_daemon.pipeline import Result, StageParams, prepare, process
+from depthnav_daemon.pipeline.pose import (
+    PoseEstimate,
+    PoseParams,
+    estimate_pose,
+    tilt_roll_from_accel,
+)
+from drivers.base import Frame
+from drivers.errors import DriverError
+from drivers.tilt import TiltSource
+
+log = logging.getLogger(__name__)
+
+PRIOR_HALF_WIDTH_DEG = 10.0
+
+
+class FrameStep:
+    """Turns each frame into a Result: mount decisions first, then ``pipeline.process``.
+
+    Args:
+        cfg: the effective configuration.
+        params: the stages to run; the loop may replace it once the sinks are known.
+        tilt_source: a started tilt source (serial IMU), or None.
+    """
+
+    def __init__(self, cfg: Config, params: StageParams, tilt_source: TiltSource | None) -> None:
+        d = cfg.daemon
+        self.params = params
+        self._daemon = d
+        self._pose_params = cfg.pose
+        self._tilt_source = tilt_source
+        self._tracker = MountTracker(cfg.mount, TrackerParams.from_daemon(d))
+        self._tables = StageTables(lambda intr, mount: prepare(intr, mount, self.params))
+        self._rng = np.random.default_rng(d.seed)
+        self._since_pose = d.pose_every_frames  # estimate on the first frame
+        self._last_pose_t: float | None = None
+
+    @property
+    def rejected_pose_jumps(self) -> int:
+        """Floor estimates held back as jumps so far."""
+        return self._tracker.rejected
+
+    def run(self, frame: Frame) -> Result:
+        """The frame's Result.
+
+        Raises:
+            FrameError: the frame cannot be processed (the loop skips it).
+        """
+        self._read_tilt_source(frame)
+        want_pose = self._pose_due(frame)
+        pose = None
+        timings: dict[str, float] = {}
+        if want_pose:
+            t0 = time.perf_counter()
+            pose = estimate_pose(
+                frame.depth_mm,
+                frame.intrinsics,
+                pose_prior(self._pose_params, self._tracker),
+                self._rng,
+            )
+            timings["pose"] = time.perf_counter() - t0
+            _apply_pose(self._tracker, pose, self._daemon.tilt_source)
+        # a new floor estimate already serves the frame it was made on
+        result = process(
+            frame,
+            self._tables.mount_for(frame.intrinsics, self._tracker.mount),
+            self.params,
+            mount_source=self._tracker.source,
+            pose=pose,
+            clock=time.perf_counter,
+            timings_s=timings,
+        )
+        if want_pose:
+            self._since_pose, self._last_pose_t = 0, frame.timestamp_s
+        self._since_pose += 1
+        return result
+
+    def close(self) -> None:
+        """Stop the table builder."""
+        self._tables.close()
+
+    def _pose_due(self, frame: Frame) -> bool:
+        d = self._daemon
+        if d.pose_every_frames > 0 and self._since_pose >= d.pose_every_frames:
+            return True
+        return d.pose_every_s > 0 and (
+            self._last_pose_t is None or frame.timestamp_s - self._last_pose_t >= d.pose_every_s
+        )
+
+    def _read_tilt_source(self, frame: Frame) -> None:
+        try:
+            _update_tilt_prior(self._tracker, frame, self._daemon.tilt_source, self._tilt_source)
+        except DriverError as exc:
+            # the IMU only refines the mount: losing it must not blind the robot, so say so
+            # once and go on with the floor estimate and the last mount
+            log.error("%s; going on without the serial tilt source", exc)
+            self._tilt_source = None
+
+
+def pose_prior(params: PoseParams, tracker: MountTracker) -> PoseParams:
+    """The floor search's tilt window: centred on a tilt sensor's reading while one gives the mount.
+
+    Rounded to whole degrees, so the pose stage's per-prior tables are reused frame after frame.
+    """
+    if tracker.source not in ("accel", "serial"):
+        return params
+    t = round(tracker.mount.tilt_deg)
+    lo = max(params.tilt_min_deg, t - PRIOR_HALF_WIDTH_DEG)
+    hi = min(params.tilt_max_deg, t + PRIOR_HALF_WIDTH_DEG)
+    if lo >= hi:  # the sensor disagrees with the configured window: trust the configured window
+        return params
+    return dataclasses.replace(params, tilt_min_deg=lo, tilt_max_deg=hi)
+
+
+def _update_tilt_prior(
+    tracker: MountTracker, frame: Frame, tilt_source: str, serial_tilt: TiltSource | None
+) -> None:
+    if tilt_source in ("auto", "accel") and frame.accel_mps2 is not None:
+        try:
+            tilt, roll = tilt_roll_from_accel(frame.accel_mps2)
+        except ValueError as exc:
+            log.debug("accelerometer reading ignored: %s", exc)
+            return
+        tracker.from_tilt_sensor(tilt, roll, "accel")
+    elif tilt_source in ("auto", "serial") and serial_tilt is not None:
+        reading = serial_tilt.latest(max_age_s=2.0)
+        if reading is not None:
+            tracker.from_tilt_sensor(reading.tilt_deg, reading.roll_deg, "serial")
+
+
+def _apply_pose(tracker: MountTracker, est: PoseEstimate, tilt_source: str) -> None:
+    if not est.ok:
+        log.debug("floor pose not confident: %s", est.reason)
+        return
+    if tilt_source == "config":
+        return  # the user pinned the mount
+    note = tracker.from_floor(est.height_m, est.tilt_deg, est.roll_deg)
+    if note:
+        (log.warning if "not applied" in note else log.info)("%s", note)

@@ -1,0 +1,172 @@
+"""The frame loop: read a frame, decide the mount and run the stages (``frame_step``), fan the
+result out to every sink. Data flows one way: driver -> loop -> stages -> sinks.
+
+A device that stops delivering is reconnected with backoff and reported; a sink that fails is
+dropped and reported while the others go on; a stop event (set by SIGINT/SIGTERM) ends the loop
+within a second and every sink is closed (flushed).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import threading
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+
+from depthnav_daemon import __version__
+from depthnav_daemon.config.loader import Config
+from depthnav_daemon.daemon.frame_step import FrameStep
+from depthnav_daemon.daemon.source import DeviceSource
+from depthnav_daemon.errors import DepthnavError, FrameError, SinkError
+from depthnav_daemon.pipeline import Result, StageParams
+from depthnav_daemon.sinks import create_sink
+from depthnav_daemon.sinks.base import Sink, SinkContext
+from drivers import create_driver
+from drivers.base import Driver, Frame
+from drivers.errors import DriverError, FrameTimeout, RecordingError
+from drivers.tilt import TiltSource
+
+log = logging.getLogger(__name__)
+
+POLL_S = 0.25  # longest a read blocks, so a stop request is seen within a second
+
+
+@dataclass
+class RunReport:
+    """What a run did, for the CLI's summary and the tests."""
+
+    frames: int = 0
+    reconnects: int = 0
+    dropped_sinks: list[str] = field(default_factory=list)
+    rejected_pose_jumps: int = 0
+    last_result: Result | None = None
+    stopped: bool = False  # ended by the stop event rather than by the source
+
+
+def _open_sinks(
+    specs: tuple[str, ...], context: SinkContext, factory: Callable[[str], Sink]
+) -> list[Sink]:
+    sinks: list[Sink] = []
+    for spec in specs:
+        sink = factory(spec)
+        try:
+            sink.open(context)
+        except (SinkError, OSError) as exc:
+            log.error("sink %s could not start: %s; going on without it", spec, exc)
+            continue
+        sinks.append(sink)
+    if not sinks:
+        raise DepthnavError(
+            "no output sink could start", hint="check the --sink specs (depthnav run --help)"
+        )
+    return sinks
+
+
+def _fan_out(sinks: list[Sink], frame: Frame, result: Result, report: RunReport) -> None:
+    for sink in list(sinks):
+        try:
+            sink.write(frame, result)
+        except Exception as exc:
+            msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+            log.error("sink %s failed: %s; dropped, the others go on", sink.name, msg)
+            report.dropped_sinks.append(sink.name)
+            sinks.remove(sink)
+            try:
+                sink.close()
+            except Exception:
+                log.debug("closing failed sink %s", sink.name, exc_info=True)
+    if not sinks:
+        raise DepthnavError("every output sink failed", hint="see the errors above")
+
+
+def run(
+    cfg: Config,
+    stop: threading.Event,
+    max_frames: int | None = None,
+    driver_factory: Callable[[str], Driver] = create_driver,
+    sink_factory: Callable[[str], Sink] = create_sink,
+    serial_tilt: TiltSource | None = None,
+) -> RunReport:
+    """Run the frame loop until the source ends, ``max_frames`` frames, or ``stop`` is set.
+
+    Args:
+        cfg: the effective configuration (cfg.device names the device).
+        stop: set it to stop the loop (signal handlers do).
+        max_frames: stop after this many frames; None = no limit.
+        driver_factory, sink_factory: how specs become drivers and sinks.
+        serial_tilt: a started drivers.tilt.TiltSource, or None.
+
+    Raises:
+        DepthnavError, DriverError: what ended the run; the message is fit for the user.
+    """
+    report = RunReport()
+    params = StageParams(scan=cfg.scan, cliff=cfg.cliff if cfg.daemon.cliff else None)
+    step = FrameStep(cfg, params, serial_tilt)
+    source = DeviceSource(cfg.device, cfg.daemon, stop, driver_factory)
+    info = source.open()
+    sinks: list[Sink] = []
+    try:
+        context = SinkContext(info, cfg.scan, cfg.cliff.block_size, __version__)
+        sinks = _open_sinks(cfg.sinks, context, sink_factory)
+        # the obstacle mask costs a pass over the image: only when a sink draws it
+        wanted = any(getattr(sink, "needs_obstacle_mask", False) for sink in sinks)
+        step.params = dataclasses.replace(params, obstacle_mask=wanted)
+        for frame in _frames(source, cfg, stop, report):
+            try:
+                result = step.run(frame)
+            except FrameError as exc:
+                log.warning("frame %d skipped: %s", frame.seq, exc)
+                continue
+            if result.warning:
+                log.debug("frame %d: %s", frame.seq, result.warning)
+            _fan_out(sinks, frame, result, report)
+            report.frames += 1
+            report.last_result = result
+            if max_frames is not None and report.frames >= max_frames:
+                break
+        report.stopped = stop.is_set()
+    finally:
+        for sink in sinks:
+            try:
+                sink.close()
+            except Exception as exc:
+                log.error("sink %s did not close cleanly: %s", sink.name, exc)
+        source.close()
+        step.close()
+        report.reconnects = source.reconnects
+        report.rejected_pose_jumps = step.rejected_pose_jumps
+    return report
+
+
+def _frames(
+    source: DeviceSource, cfg: Config, stop: threading.Event, report: RunReport
+) -> Iterator[Frame]:
+    """The device's frames until it ends or ``stop`` is set; reconnects a silent or lost device."""
+    d = cfg.daemon
+    last_frame_wall = time.monotonic()
+    while not stop.is_set():
+        try:
+            frame = source.driver.read_frame(timeout_s=min(d.frame_timeout_s, POLL_S))
+        except FrameTimeout:
+            silent = time.monotonic() - last_frame_wall
+            if silent > d.frame_timeout_s * d.max_consecutive_timeouts:
+                if not source.reconnect(f"no frame for {silent:.1f} s"):
+                    return
+                last_frame_wall = time.monotonic()
+            continue
+        except RecordingError:
+            # a bad file does not heal by reopening it: replaying it again would repeat the
+            # frames before the bad one forever, so a damaged recording ends the run
+            raise
+        except DriverError as exc:
+            if not source.reconnect(str(exc)):
+                return
+            last_frame_wall = time.monotonic()
+            continue
+        if frame is None:
+            log.info("end of %s after %d frames", cfg.device, report.frames)
+            return
+        last_frame_wall = time.monotonic()
+        yield frame

@@ -1,0 +1,1 @@
+"""Developer and installer tools: the kernel warm-up (``warmup``) and the soak run (``soak``)."""
