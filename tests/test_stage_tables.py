@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from depthnav_daemon.daemon.stage_tables import KEEP_READY, StageTables
-from depthnav_daemon.pipeline import prepare
+from depthnav_daemon.pipeline import StageParams, prepare
 from depthnav_daemon.pipeline import scan as scan_mod
 from depthnav_daemon.pipeline.cliff import CliffParams, detect_cliffs
 from depthnav_daemon.pipeline.geometry import Mount
@@ -85,7 +85,7 @@ def test_ready_mounts_are_bounded() -> None:
 def test_prepare_builds_exactly_the_tables_a_frame_uses() -> None:
     mount = Mount(0.55, 14.31, 0.7)  # a mount no other test builds
     scan, cliff = ScanParams(), CliffParams(block_size=8, row_step=2, col_step=2)
-    prepare(INTR, mount, scan, cliff)
+    prepare(INTR, mount, StageParams(scan=scan, cliff=cliff))
     before = scan_mod._exact_table.cache_info()
     depth = np.full((INTR.height, INTR.width), 1500, dtype=np.uint16)
     s = depth_to_scan(depth, INTR, mount, scan)
@@ -96,9 +96,10 @@ def test_prepare_builds_exactly_the_tables_a_frame_uses() -> None:
 
 @pytest.mark.parametrize("method", ["exact", "paper"])
 def test_real_tables_built_on_the_worker_serve_the_next_frames(method: str) -> None:
-    tables = StageTables(lambda i, m: prepare(i, m, ScanParams(method=method, scan_height=40)))
+    params = StageParams(scan=ScanParams(method=method, scan_height=40))
+    tables = StageTables(lambda i, m: prepare(i, m, params))
     assert tables.mount_for(INTR, M0) == M0
-    prepare(INTR, M0, ScanParams(method=method, scan_height=40))
+    prepare(INTR, M0, params)
     assert tables.mount_for(INTR, SMALL) == M0
     tables.close()
     assert tables.mount_for(INTR, SMALL) == SMALL

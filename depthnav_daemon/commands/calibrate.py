@@ -26,7 +26,7 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
         raise ConfigError(f"--frames={args.frames} is out of range (accepted: 1 or more)")
     stop = threading.Event()
     got = install_stop_handlers(stop)  # before the heavy imports: see install_stop_handlers
-    from depthnav_daemon.commands.calibrate import calibrate, format_text, write_mount
+    from depthnav_daemon.commands.calibration import calibrate, format_text, write_mount
 
     cfg = load_config(args, args.device)
     result = calibrate(

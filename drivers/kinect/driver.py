@@ -33,7 +33,7 @@ from drivers.errors import (
     FrameTimeout,
     RecordingError,
 )
-from drivers.formats import fakenect
+from drivers.formats import fakenect as fakenect_format
 from drivers.kinect.axes import accel_counts_to_camera, tilt_status_name
 from drivers.kinect.freenect import FreenectDepth, find_library
 from drivers.kinect.motor import LED, KinectMotor, describe_kinects
@@ -62,20 +62,20 @@ def check_fakenect_recording(folder: Path) -> tuple[int, int]:
     Returns:
         (depth frames, index lines); fakenect plays one index line per event.
     """
-    entries = fakenect.read_index(folder)
+    entries = fakenect_format.read_index(folder)
     lines = (folder / "INDEX.txt").read_text(encoding="ascii").splitlines()
     for number, line in enumerate(lines, 1):
         if not line.strip():
             raise RecordingError(
                 f"{folder / 'INDEX.txt'}:{number}: blank line; fakenect cannot play it"
             )
-    expected = len(fakenect.PGM_HEADER) + fakenect.WIDTH * fakenect.HEIGHT * 2
+    expected = len(fakenect_format.PGM_HEADER) + fakenect_format.WIDTH * fakenect_format.HEIGHT * 2
     for entry in entries:
         if entry.kind in "dr":
             with open(entry.path, "rb") as fh:
-                head = fh.read(len(fakenect.PGM_HEADER))
+                head = fh.read(len(fakenect_format.PGM_HEADER))
             if entry.kind == "d" and (
-                head != fakenect.PGM_HEADER or entry.path.stat().st_size != expected
+                head != fakenect_format.PGM_HEADER or entry.path.stat().st_size != expected
             ):
                 raise RecordingError(
                     f"{entry.path}: not a 640x480 11-bit fakenect depth file of {expected} bytes "
@@ -83,11 +83,11 @@ def check_fakenect_recording(folder: Path) -> tuple[int, int]:
                 )
             if entry.kind == "r" and b"\n" not in head:
                 raise RecordingError(f"{entry.path}: colour file without a header line")
-        elif entry.kind == "a" and entry.path.stat().st_size != fakenect.ACCEL_DUMP.size:
+        elif entry.kind == "a" and entry.path.stat().st_size != fakenect_format.ACCEL_DUMP.size:
             # fakenect printf()s a warning about it onto stdout, the daemon's JSON channel
             raise RecordingError(
                 f"{entry.path}: {entry.path.stat().st_size} bytes, an accelerometer dump has "
-                f"{fakenect.ACCEL_DUMP.size} (truncated or from another libfreenect version)"
+                f"{fakenect_format.ACCEL_DUMP.size} (truncated or from another libfreenect version)"
             )
     return sum(e.kind == "d" for e in entries), len(lines)
 
@@ -112,7 +112,7 @@ class KinectDriver:
         led: str | None = None,
         lib_path: Path | None = None,
         fakenect_dir: Path | None = None,
-        const_shift: float = fakenect.CONST_SHIFT,
+        const_shift: float = fakenect_format.CONST_SHIFT,
         usb_backend: Any = None,
         spec_text: str = "",
     ) -> None:
@@ -160,8 +160,8 @@ class KinectDriver:
             led=led,
             lib_path=Path(spec.options["lib"]) if "lib" in spec.options else None,
             fakenect_dir=fakenect,
-            const_shift=float_option(spec, "const_shift", fakenect.CONST_SHIFT, 0.0, 1000.0)
-            or fakenect.CONST_SHIFT,
+            const_shift=float_option(spec, "const_shift", fakenect_format.CONST_SHIFT, 0.0, 1000.0)
+            or fakenect_format.CONST_SHIFT,
             spec_text=spec.text,
         )
         driver.intrinsics = with_overrides(KINECT_V1, intrinsics_options(spec), spec.text)
@@ -294,7 +294,7 @@ class KinectDriver:
             )
         t_s, depth = item
         if not self._depth.is_mm:
-            depth = fakenect.disparity_to_mm(depth, self.const_shift)
+            depth = fakenect_format.disparity_to_mm(depth, self.const_shift)
         accel, tilt = self._accel()
         frame = Frame(
             seq=self._seq,

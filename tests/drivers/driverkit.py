@@ -62,7 +62,7 @@ def run_isolated(
     """Run Python code in a child process, so a native crash fails one test, not the run."""
     full_env = {
         **os.environ,
-        "PYTHONPATH": os.pathsep.join([str(REPO), str(Path(__file__).parent)]),
+        "PYTHONPATH": str(REPO),
         **(env or {}),
     }
     return subprocess.run(  # noqa: PLW1510 - callers check returncode and show stderr
@@ -144,7 +144,7 @@ def contract_report(spec: str, max_frames: int = 8, timeout_s: float = 5.0) -> d
 
 CONTRACT_CHILD = """
 import json, sys
-from driverkit import contract_report
+from tests.drivers.driverkit import contract_report
 print(json.dumps(contract_report(sys.argv[1], int(sys.argv[2]))))
 """
 

@@ -6,7 +6,7 @@ from __future__ import annotations
 import itertools
 
 import pytest
-from driverkit import (
+from tests.drivers.driverkit import (
     contract_report,
     contract_report_isolated,
     kinect_exact_frames,

@@ -6,7 +6,7 @@ import struct
 
 import numpy as np
 import pytest
-from driverkit import VGA, kinect_exact_frames
+from tests.drivers.driverkit import VGA, kinect_exact_frames
 
 from drivers.base import Frame
 from drivers.errors import RecordingError

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import hashlib
 
-from driverkit import contract_report_isolated, kinect_exact_frames, skip_without
+from tests.drivers.driverkit import contract_report_isolated, kinect_exact_frames, skip_without
 
 import drivers
 from drivers.formats.fakenect import write_fakenect

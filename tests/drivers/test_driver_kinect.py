@@ -9,7 +9,7 @@ from __future__ import annotations
 import json
 
 import pytest
-from driverkit import kinect_exact_frames, run_isolated, skip_without
+from tests.drivers.driverkit import kinect_exact_frames, run_isolated, skip_without
 
 import drivers
 from drivers.errors import DeviceOpenError
@@ -27,8 +27,8 @@ import json, sys, numpy as np
 from pathlib import Path
 from drivers.errors import DriverError
 from drivers.kinect.driver import KinectDriver
-from driverkit import kinect_exact_frames
-from fake_kinect_usb import FakeUsbBackend, KinectMotorModel
+from tests.drivers.driverkit import kinect_exact_frames
+from tests.drivers.fake_kinect_usb import FakeUsbBackend, KinectMotorModel
 folder, accel, unplug_after, stall = Path(sys.argv[1]), sys.argv[2], sys.argv[3], int(sys.argv[4])
 model = KinectMotorModel(counts=(-12, 805, 140), tilt_half_deg=-20)
 if unplug_after != "none":

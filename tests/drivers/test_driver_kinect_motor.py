@@ -5,7 +5,7 @@ from __future__ import annotations
 import math
 
 import pytest
-from fake_kinect_usb import FakeUsbBackend, KinectMotorModel
+from tests.drivers.fake_kinect_usb import FakeUsbBackend, KinectMotorModel
 
 from drivers.base import STANDARD_GRAVITY_MPS2 as G
 from drivers.errors import DeviceLost, DeviceOpenError, DriverError, OpenFailure

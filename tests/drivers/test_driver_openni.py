@@ -12,7 +12,7 @@ import struct
 
 import numpy as np
 import pytest
-from driverkit import SMALL, ramp_frames, run_isolated, skip_without
+from tests.drivers.driverkit import SMALL, ramp_frames, run_isolated, skip_without
 
 from drivers.errors import RecordingError
 from drivers.formats.oni import check_oni, write_oni
@@ -26,7 +26,7 @@ def _needs_openni():
 
 READ_ALL = """
 import json, sys, numpy as np, drivers
-from driverkit import ramp_frames
+from tests.drivers.driverkit import ramp_frames
 spec, n_read = sys.argv[1], int(sys.argv[2])
 expected = ramp_frames(int(sys.argv[3]))
 offset = int(sys.argv[4])

@@ -9,7 +9,7 @@ import threading
 
 import numpy as np
 import pytest
-from driverkit import ramp_frames, run_isolated
+from tests.drivers.driverkit import ramp_frames, run_isolated
 
 import drivers
 from drivers.errors import DriverError

@@ -7,7 +7,7 @@ import tomllib
 
 import numpy as np
 import pytest
-from driverkit import SMALL, ramp_frames
+from tests.drivers.driverkit import SMALL, ramp_frames
 
 from drivers.errors import RecordingError
 from drivers.formats.recording import read_recording

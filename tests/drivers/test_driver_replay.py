@@ -7,7 +7,7 @@ import time
 
 import numpy as np
 import pytest
-from driverkit import SMALL, VGA, kinect_exact_frames, ramp_frames
+from tests.drivers.driverkit import SMALL, VGA, kinect_exact_frames, ramp_frames
 
 import drivers
 from drivers.errors import RecordingError

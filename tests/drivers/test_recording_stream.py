@@ -10,7 +10,7 @@ from collections.abc import Iterator
 
 import numpy as np
 import pytest
-from driverkit import SMALL, ramp_frames, run_isolated
+from tests.drivers.driverkit import SMALL, ramp_frames, run_isolated
 
 import drivers
 from drivers import replay

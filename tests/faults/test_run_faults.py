@@ -362,7 +362,13 @@ def test_rerun_viewer_that_is_closed(tmp_path: Path) -> None:
         text = err.read_text()
         assert code == 0, text
         assert "Traceback" not in text
-        assert "is not keeping up (gone?); frames skipped for it" in text
+        # whether the viewer's queue fills (frames skipped for it) or rerun drops the data for
+        # the gone viewer itself depends on how fast each side runs: either is fine, as long as
+        # the sink says what became of its frames and the other sink got every frame
+        assert (
+            "is not keeping up (gone?); frames skipped for it" in text
+            or "frames logged to rerun+http://127.0.0.1" in text
+        ), text
         json_lines("".join(seen) + rest)
     finally:
         if viewer.poll() is None:
