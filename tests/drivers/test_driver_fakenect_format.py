@@ -6,7 +6,6 @@ import struct
 
 import numpy as np
 import pytest
-from tests.drivers.driverkit import VGA, kinect_exact_frames
 
 from drivers.base import Frame
 from drivers.errors import RecordingError
@@ -18,6 +17,7 @@ from drivers.formats.fakenect import (
     mm_to_disparity,
     write_fakenect,
 )
+from tests.drivers.driverkit import VGA, kinect_exact_frames
 
 
 def test_table_matches_libfreenect_formula_at_a_hand_computed_point():

@@ -4,8 +4,6 @@ from __future__ import annotations
 
 import hashlib
 
-from tests.drivers.driverkit import contract_report_isolated, kinect_exact_frames, skip_without
-
 import drivers
 from drivers.formats.fakenect import write_fakenect
 from drivers.formats.oni import write_oni
@@ -13,6 +11,7 @@ from drivers.formats.png_folder import write_png_folder
 from drivers.formats.recording_writer import write_recording
 from drivers.kinect.freenect import find_library as find_freenect
 from drivers.openni import find_library as find_openni
+from tests.drivers.driverkit import contract_report_isolated, kinect_exact_frames, skip_without
 
 
 def digest(depth) -> str:

@@ -9,12 +9,12 @@ from __future__ import annotations
 import json
 
 import pytest
-from tests.drivers.driverkit import kinect_exact_frames, run_isolated, skip_without
 
 import drivers
 from drivers.errors import DeviceOpenError
 from drivers.formats.fakenect import write_fakenect
 from drivers.kinect.freenect import find_library
+from tests.drivers.driverkit import kinect_exact_frames, run_isolated, skip_without
 
 
 @pytest.fixture(autouse=True)

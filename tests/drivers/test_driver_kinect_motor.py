@@ -5,12 +5,12 @@ from __future__ import annotations
 import math
 
 import pytest
-from tests.drivers.fake_kinect_usb import FakeUsbBackend, KinectMotorModel
 
 from drivers.base import STANDARD_GRAVITY_MPS2 as G
 from drivers.errors import DeviceLost, DeviceOpenError, DriverError, OpenFailure
 from drivers.kinect.axes import accel_counts_to_camera, camera_to_accel_counts
 from drivers.kinect.motor import NOT_FOUND, KinectMotor, describe_kinects, parse_state
+from tests.drivers.fake_kinect_usb import FakeUsbBackend, KinectMotorModel
 
 
 def opened_motor(model: KinectMotorModel) -> KinectMotor:

@@ -12,11 +12,11 @@ import struct
 
 import numpy as np
 import pytest
-from tests.drivers.driverkit import SMALL, ramp_frames, run_isolated, skip_without
 
 from drivers.errors import RecordingError
 from drivers.formats.oni import check_oni, write_oni
 from drivers.openni import find_library
+from tests.drivers.driverkit import SMALL, ramp_frames, run_isolated, skip_without
 
 
 @pytest.fixture(autouse=True)

@@ -9,13 +9,13 @@ import threading
 
 import numpy as np
 import pytest
-from tests.drivers.driverkit import ramp_frames, run_isolated
 
 import drivers
 from drivers.errors import DriverError
 from drivers.formats.recording import read_recording
 from drivers.formats.recording_writer import write_recording
 from drivers.replay import ReplayDriver
+from tests.drivers.driverkit import ramp_frames, run_isolated
 
 
 def test_opened_closes_even_when_the_body_raises(tmp_path):

@@ -7,11 +7,11 @@ import tomllib
 
 import numpy as np
 import pytest
-from tests.drivers.driverkit import SMALL, ramp_frames
 
 from drivers.errors import RecordingError
 from drivers.formats.recording import read_recording
 from drivers.formats.recording_writer import write_recording
+from tests.drivers.driverkit import SMALL, ramp_frames
 
 
 def test_round_trip_is_bit_exact(tmp_path):

@@ -7,7 +7,6 @@ import time
 
 import numpy as np
 import pytest
-from tests.drivers.driverkit import SMALL, VGA, kinect_exact_frames, ramp_frames
 
 import drivers
 from drivers.errors import RecordingError
@@ -15,6 +14,7 @@ from drivers.formats.fakenect import write_fakenect
 from drivers.formats.png_folder import write_png_folder
 from drivers.formats.recording_writer import write_recording
 from drivers.replay import ReplayDriver
+from tests.drivers.driverkit import SMALL, VGA, kinect_exact_frames, ramp_frames
 
 
 def read_all(spec: str, limit: int = 100):

@@ -10,7 +10,6 @@ from collections.abc import Iterator
 
 import numpy as np
 import pytest
-from tests.drivers.driverkit import SMALL, ramp_frames, run_isolated
 
 import drivers
 from drivers import replay
@@ -24,6 +23,7 @@ from drivers.formats.recording import (
     recording_depth_nbytes,
 )
 from drivers.formats.recording_writer import write_recording
+from tests.drivers.driverkit import SMALL, ramp_frames, run_isolated
 
 QVGA = Intrinsics(160, 120, 150.5, 148.25, 79.75, 60.5)
 
