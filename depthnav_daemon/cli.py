@@ -21,6 +21,7 @@ from depthnav_daemon.commands.common import EXIT_FAIL, EXIT_INTERRUPTED, EXIT_OK
 from depthnav_daemon.errors import DepthnavError
 from drivers.errors import DeviceSpecError, DriverError
 
+TRACEBACK_VERBOSITY = 2  # -vv shows tracebacks
 log = logging.getLogger("depthnav_daemon.cli")
 
 
@@ -230,7 +231,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         return int(_handler(args.handler)(args))
     except (DepthnavError, DriverError) as exc:
-        log.debug("traceback", exc_info=args.verbose >= 2)
+        log.debug("traceback", exc_info=args.verbose >= TRACEBACK_VERBOSITY)
         sys.stderr.write(
             f"depthnav: error: {str(exc).splitlines()[0] if str(exc) else type(exc).__name__}\n"
         )

@@ -20,6 +20,11 @@ import numpy.typing as npt
 
 DepthMM = npt.NDArray[np.uint16]  # (H, W) millimetres, 0 = no reading
 STANDARD_GRAVITY_MPS2 = 9.80665  # the accelerometer convention's g (m/s^2)
+MM_PER_M = 1000.0
+UINT16_MAX = 65535  # the largest depth a uint16 millimetre image holds
+MAX_IMAGE_SIDE = 8192  # pixels each way, for every image depthnav reads
+MAX_FOCAL_PX = 1e5
+PIXEL_HALF = 0.5  # pixel centres at integers: the image spans -0.5 .. size - 0.5
 
 
 def tilt_roll_to_accel(
@@ -55,17 +60,18 @@ class Intrinsics:
             raise ValueError(
                 f"intrinsics width/height must be integers, got {self.width!r}x{self.height!r}"
             )
-        if not (1 <= self.width <= 8192 and 1 <= self.height <= 8192):
+        if not (1 <= self.width <= MAX_IMAGE_SIDE and 1 <= self.height <= MAX_IMAGE_SIDE):
             raise ValueError(
-                f"intrinsics size {self.width}x{self.height} is out of range (1..8192 pixels each way)"
+                f"intrinsics size {self.width}x{self.height} is out of range "
+                "(1..8192 pixels each way)"
             )
         for name in ("fx", "fy"):
             value = getattr(self, name)
-            if not (math.isfinite(value) and 1.0 <= value <= 1e5):
+            if not (math.isfinite(value) and 1.0 <= value <= MAX_FOCAL_PX):
                 raise ValueError(f"intrinsics {name}={value!r} is out of range (1..100000 pixels)")
         for name, limit in (("cx", self.width), ("cy", self.height)):
             value = getattr(self, name)
-            if not (math.isfinite(value) and -0.5 <= value <= limit - 0.5):
+            if not (math.isfinite(value) and -PIXEL_HALF <= value <= limit - PIXEL_HALF):
                 raise ValueError(
                     f"intrinsics {name}={value!r} is outside the image (-0.5..{limit - 0.5} pixels)"
                 )
@@ -102,7 +108,7 @@ class Intrinsics:
         return np.array([self.fx, self.fy, self.cx, self.cy], dtype=np.float64)
 
 
-# Kinect 360 depth camera, a common calibration (the ROS test intrinsics use 570 with cx 314, cy 235).
+# Kinect 360 depth camera, a common calibration (the ROS test intrinsics: 570, cx 314, cy 235)
 KINECT_V1 = Intrinsics(640, 480, 580.0, 580.0, 319.5, 239.5)
 
 
@@ -138,7 +144,8 @@ class Frame:
         expected = (self.intrinsics.height, self.intrinsics.width)
         if self.depth_mm.dtype != np.uint16 or self.depth_mm.shape != expected:
             raise ValueError(
-                f"depth_mm must be uint16 {expected}, got {self.depth_mm.dtype} {self.depth_mm.shape}"
+                f"depth_mm must be uint16 {expected}, "
+                f"got {self.depth_mm.dtype} {self.depth_mm.shape}"
             )
         self.depth_mm.setflags(write=False)
 
@@ -157,7 +164,8 @@ class DeviceInfo:
 class Driver(Protocol):
     """A source of depth frames.
 
-    Constructing a driver does no I/O. ``open()`` touches the device; ``close()`` is safe to call twice.
+    Constructing a driver does no I/O. ``open()`` touches the device; ``close()`` is safe to call
+    twice.
     """
 
     def open(self) -> DeviceInfo:

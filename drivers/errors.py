@@ -3,7 +3,7 @@
 DriverError(Exception)                  .hint
  ├─ DeviceSpecError                     a device spec that does not parse or names nothing known
  ├─ DriverNotAvailable                  a missing library (libOpenNI2, libfreenect, a pip package)
- ├─ DeviceOpenError                     .reason: OpenFailure (NOT_FOUND, PERMISSION, BUSY, UNSUPPORTED)
+ ├─ DeviceOpenError                     .reason: OpenFailure (NOT_FOUND, PERMISSION, BUSY, ...)
  ├─ RecordingError                      a recording that is missing, corrupt or truncated
  ├─ FrameTimeout(DriverError, TimeoutError)   no frame within the timeout; the caller may retry
  └─ DeviceLost                          the device went away mid-stream (unplugged, stream error)

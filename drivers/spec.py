@@ -56,7 +56,8 @@ def parse_spec(
     if not _SCHEME.match(scheme):
         raise DeviceSpecError(
             f"{kind} spec {text!r} does not start with a scheme",
-            hint=f"write scheme[://target][?key=value&...], e.g. {examples.rsplit(', ', maxsplit=1)[-1]}",
+            hint="write scheme[://target][?key=value&...], "
+            f"e.g. {examples.rsplit(', ', maxsplit=1)[-1]}",
         )
     if colon and target.startswith("//"):
         target = target[2:]

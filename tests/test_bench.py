@@ -91,7 +91,7 @@ def test_mount_option_times_frames_seen_from_that_mount(
     assert name == "640x480 from 0.8 m, 40 deg tilt, -6 deg roll"
     names = [t["name"] for t in report["resolutions"][name]]
     assert any(n.startswith("scan exact") for n in names)
-    frames, mount = bench.synthetic_frames(bench.RESOLUTIONS["640x480 (Kinect v1)"], 1, mount=None)
+    _, mount = bench.synthetic_frames(bench.RESOLUTIONS["640x480 (Kinect v1)"], 1, mount=None)
     assert mount.tilt_deg == 15.0  # the default view stays
 
 

@@ -1,4 +1,5 @@
-"""The depthnav command line end to end, as a user runs it (subprocesses, real fixture, real signals)."""
+"""The depthnav command line end to end, as a user runs it (subprocesses, real fixture, real
+signals)."""
 
 from __future__ import annotations
 

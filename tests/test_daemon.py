@@ -1,4 +1,5 @@
-"""The frame loop: sinks that fail, devices that stop or go silent, the live mount from the floor."""
+"""The frame loop: sinks that fail, devices that stop or go silent, the live mount from the
+floor."""
 
 from __future__ import annotations
 
@@ -114,7 +115,11 @@ def test_a_device_that_never_comes_back_gives_up_with_a_hint() -> None:
     def factory(_s: str) -> FlakyDriver:
         made.append(FlakyDriver(2 if not made else 0))
         if len(made) > 1:
-            made[-1].open = lambda: (_ for _ in ()).throw(DeviceLost("no Kinect found"))  # type: ignore[method-assign]
+
+            def never_opens() -> None:
+                raise DeviceLost("no Kinect found")
+
+            made[-1].open = never_opens  # type: ignore[method-assign]
         return made[-1]
 
     with pytest.raises(DepthnavError, match="2 reconnect attempts failed") as info:
@@ -202,7 +207,8 @@ def test_mount_tracker_uses_tilt_sensor_only_until_the_floor_speaks() -> None:
 
 
 def test_mount_tracker_deadband_keeps_the_applied_mount_through_wobble() -> None:
-    """Sub-millimetre wobble of the estimates must not move the mount (each move rebuilds tables)."""
+    """Sub-millimetre wobble of the estimates must not move the mount (each move rebuilds
+    tables)."""
     t = MountTracker(
         Mount(0.5, 10.0, 0.0), TrackerParams(smoothing=0.5, deadband_m=0.002, deadband_deg=0.1)
     )
@@ -231,7 +237,8 @@ def test_tilt_sensor_narrows_the_floor_search_window() -> None:
 
 
 def test_serial_tilt_source_gives_the_mount_through_a_pty() -> None:
-    """An IMU on a serial port (a pty pair, a simulator thread writing $TILT lines) sets tilt and roll."""
+    """An IMU on a serial port (a pty pair, a simulator thread writing $TILT lines) sets tilt and
+    roll."""
     import os
     import time as _time
 

@@ -79,7 +79,7 @@ def _violations(folder: Path, allowed) -> list[str]:
 
 
 def _ours(name: str) -> bool:
-    return name.split(".")[0] in ("depthnav_daemon", "drivers")
+    return name.split(".", maxsplit=1)[0] in ("depthnav_daemon", "drivers")
 
 
 def test_the_rule_reader_sees_imports_inside_functions_and_relative_ones(tmp_path: Path) -> None:

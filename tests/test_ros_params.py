@@ -129,7 +129,7 @@ def test_non_numeric_value_is_a_one_line_error_naming_file_and_key(tmp_path: Pat
     with pytest.raises(ConfigError, match="ground_remove_en=1 is not true/false"):
         load_ros_params(p)
     p = write(tmp_path, "block_size: 16.5\n")
-    with pytest.raises(ConfigError, match="block_size=16.5 is not an integer"):
+    with pytest.raises(ConfigError, match=r"block_size=16\.5 is not an integer"):
         load_ros_params(p)
 
 

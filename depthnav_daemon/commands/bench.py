@@ -40,6 +40,8 @@ from depthnav_daemon.errors import ConfigError, DepthnavError
 from depthnav_daemon.pipeline.geometry import Mount
 from drivers.base import Intrinsics
 
+MOUNT_FIELDS = ("height_m", "tilt_deg", "roll_deg")  # --mount H,TILT,ROLL
+
 
 @dataclass
 class BenchReport:
@@ -146,14 +148,16 @@ def format_report(r: BenchReport) -> str:
     m = r.machine
     out = [
         f"depthnav bench: {r.source}, {r.frames} frames {r.resolution}, mount {r.mount}",
-        f"machine: {m['cpu']}, {m['cores']} cores, loadavg {', '.join(f'{x:.2f}' for x in m['loadavg'])}; "
+        f"machine: {m['cpu']}, {m['cores']} cores, loadavg "
+        f"{', '.join(f'{x:.2f}' for x in m['loadavg'])}; "
         f"Python {m['python']}, numpy {m['numpy']}, numba {m['numba']}",
         format_timings(r.timings, "per frame, one core (median of interleaved rounds):"),
     ]
     if r.latency:
         lt = r.latency
         out.append(
-            f"frame read -> UDP datagram sent (daemon loop, full speed, {lt['frames']:.0f} frames): "
+            "frame read -> UDP datagram sent "
+            f"(daemon loop, full speed, {lt['frames']:.0f} frames): "
             f"p50 {lt['p50_ms']:.3f} ms, p99 {lt['p99_ms']:.3f} ms, max {lt['max_ms']:.3f} ms; "
             f"loop {lt['loop_fps']:.0f} frames/s"
         )
@@ -236,7 +240,7 @@ def _parse_mount(text: str) -> Mount:
 
     parts = text.split(",")
     try:
-        if len(parts) != 3:
+        if len(parts) != len(MOUNT_FIELDS):
             raise ValueError
         height_m, tilt_deg, roll_deg = (float(x) for x in parts)
     except ValueError:

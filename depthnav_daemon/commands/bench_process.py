@@ -15,30 +15,9 @@ from typing import Any
 
 import numpy as np
 
+from depthnav_daemon.commands.bench_stages import FIXTURE
 from depthnav_daemon.errors import DepthnavError
-from depthnav_daemon.pipeline.cliff import CliffParams
-from depthnav_daemon.pipeline.pose import (
-    PoseParams,
-)
-from drivers.base import KINECT_V1, Frame, Intrinsics
-
-FIXTURE = Path(__file__).resolve().parents[2] / "fixtures" / "corridor_step"
-MAX_FRAMES = 64
-POSE_EVERY = 30  # the daemon's default pose_every_frames
-# the resolutions of the issue's table; intrinsics of the typical sensor at each (approximate)
-RESOLUTIONS: dict[str, Intrinsics] = {
-    "640x480 (Kinect v1)": KINECT_V1,
-    "512x424 (Kinect v2)": Intrinsics(512, 424, 365.5, 365.5, 255.5, 211.5),
-    "848x480 (RealSense D435)": Intrinsics(848, 480, 425.0, 425.0, 423.5, 239.5),
-    "1280x720 (RealSense D435)": Intrinsics(1280, 720, 640.0, 640.0, 639.5, 359.5),
-}
-DENSE_CLIFF = CliffParams(
-    block_size=8, row_step=1, col_step=1, block_points_thresh=10, used_depth_height=8192
-)
-RANSAC_TARGET = PoseParams(row_step=2, col_step=2, max_points=5000, ransac_iterations=200)
-
-
-# --- whole-process figures ---------------------------------------------------------------------------
+from drivers.base import Frame
 
 
 class _TimedDriver:
@@ -204,7 +183,8 @@ def cpu_at_30fps(seconds: float = 20.0, settle_s: float = 3.0) -> dict[str, floa
 
 
 def startup_time(repeats: int = 5) -> dict[str, float]:
-    """Wall time of ``depthnav run --device replay:fixture --sink stdout --max-frames 1`` (warm cache)."""
+    """Wall time of ``depthnav run --device replay:fixture --sink stdout --max-frames 1`` (warm
+    cache)."""
     cmd = _daemon_cmd(f"replay:{FIXTURE}", "--sink", "stdout", "--max-frames", "1")
     walls = []
     for i in range(repeats + 1):

@@ -174,7 +174,7 @@ def format_timings(timings: list[Timing], title: str) -> str:
     return "\n".join(lines)
 
 
-# --- what is timed ---------------------------------------------------------------------------------
+# --- what is timed --------------------------------------------------------------------------------
 
 
 def load_frames(spec: str, limit: int = MAX_FRAMES) -> list[Frame]:
@@ -196,7 +196,8 @@ def load_frames(spec: str, limit: int = MAX_FRAMES) -> list[Frame]:
 
 
 def floor_mount(frames: Sequence[Frame], fallback: Mount) -> Mount:
-    """The mount the daemon would settle on: a floor estimate on the first frame, else ``fallback``."""
+    """The mount the daemon would settle on: a floor estimate on the first frame, else
+    ``fallback``."""
     est = estimate_pose(
         frames[0].depth_mm, frames[0].intrinsics, PoseParams(), np.random.default_rng(0)
     )
@@ -267,7 +268,8 @@ def _pipeline_fn(
     pose: PoseParams,
     rng: np.random.Generator,
 ) -> Callable[[], None]:
-    """POSE_EVERY frames through ``process`` as the daemon calls it, the first with a pose estimate."""
+    """POSE_EVERY frames through ``process`` as the daemon calls it, the first with a pose
+    estimate."""
     nxt = itertools.cycle(frames).__next__
 
     params = StageParams(scan=scan, cliff=cliff)

@@ -1,4 +1,5 @@
-"""Calibration for ``depthnav calibrate``: the sensor's height, tilt and roll from the floor over N frames."""
+"""Calibration for ``depthnav calibrate``: the sensor's height, tilt and roll from the floor over N
+frames."""
 
 from __future__ import annotations
 
@@ -23,7 +24,8 @@ from drivers import create_driver, iter_frames, opened
 
 @dataclass(frozen=True, slots=True)
 class Calibration:
-    """The mount estimated over several frames: medians, spreads (standard deviations) and quality."""
+    """The mount estimated over several frames: medians, spreads (standard deviations) and
+    quality."""
 
     height_m: float
     tilt_deg: float
@@ -78,8 +80,10 @@ def calibrate(
     if len(good) < need:
         why = reasons[-1] if reasons else "no confident floor estimate"
         raise DepthnavError(
-            f"too little floor: {len(good)} of {read} frames gave a confident floor estimate ({why})",
-            hint="point the sensor at open floor, or widen the [pose] prior (height_min_m.. tilt_max_deg)",
+            f"too little floor: {len(good)} of {read} frames gave a confident floor estimate "
+            f"({why})",
+            hint="point the sensor at open floor, or widen the [pose] prior "
+            "(height_min_m.. tilt_max_deg)",
         )
     a = np.array(good)
     med = np.median(a, axis=0)
@@ -101,8 +105,10 @@ def format_text(c: Calibration) -> str:
     return "\n".join(
         [
             f"height  {c.height_m:.3f} m    (spread {c.height_std_m * 1000:.1f} mm)",
-            f"tilt    {c.tilt_deg:.2f} deg   (spread {c.tilt_std_deg:.2f} deg, positive = pitched down)",
-            f"roll    {c.roll_deg:.2f} deg   (spread {c.roll_std_deg:.2f} deg, positive = left side up)",
+            f"tilt    {c.tilt_deg:.2f} deg   "
+            f"(spread {c.tilt_std_deg:.2f} deg, positive = pitched down)",
+            f"roll    {c.roll_deg:.2f} deg   "
+            f"(spread {c.roll_std_deg:.2f} deg, positive = left side up)",
             f"floor   {c.inlier_ratio:.0%} inliers, {c.frames_used} of {c.frames_read} frames used",
             "",
             "[mount]",

@@ -35,10 +35,12 @@ class DaemonParams:
         cliff: run the cliff stage.
         pose_every_frames: estimate the mount from the floor every N frames (0 = never).
         pose_every_s: ... or every N seconds of sensor time, whichever comes first (0 = off).
-        pose_smoothing: weight of a new floor estimate in the running mount (0..1, 1 = no smoothing).
-        max_jump_m, max_jump_deg: an estimate further than this from the running mount is not applied
-            until ``jump_confirmations`` consecutive estimates agree with each other.
-        jump_confirmations: consecutive agreeing estimates that make a jump real (the robot was moved).
+        pose_smoothing: weight of a new floor estimate in the running mount (0..1, 1 = no
+            smoothing).
+        max_jump_m, max_jump_deg: an estimate further than this from the running mount is not
+            applied until ``jump_confirmations`` consecutive estimates agree with each other.
+        jump_confirmations: consecutive agreeing estimates that make a jump real (the robot was
+            moved).
         tilt_source: where the first mount and the prior come from: "auto" (accelerometer if the
             device has one, else the serial source if given, else the config), "config", "accel",
             "serial", or "floor" (config until the first confident floor estimate).
@@ -75,7 +77,8 @@ class DaemonParams:
         check_int("daemon.jump_confirmations", self.jump_confirmations, 1, 1000)
         if self.tilt_source not in TILT_SOURCES:
             raise ConfigError(
-                f"daemon.tilt_source={self.tilt_source!r} is not known (accepted: {', '.join(TILT_SOURCES)})"
+                f"daemon.tilt_source={self.tilt_source!r} is not known "
+                f"(accepted: {', '.join(TILT_SOURCES)})"
             )
         check_range("daemon.frame_timeout_s", self.frame_timeout_s, 0.01, 60.0, " s")
         check_int("daemon.max_consecutive_timeouts", self.max_consecutive_timeouts, 1, 10_000)
@@ -250,7 +253,8 @@ def config_from_dict(data: Mapping[str, Any]) -> Config:
 
 
 def config_to_dict(cfg: Config) -> dict[str, Any]:
-    """A Config as a nested dict of plain values (for --write and for showing the effective config)."""
+    """A Config as a nested dict of plain values (for --write and for showing the effective
+    config)."""
     out: dict[str, Any] = {"device": cfg.device, "sinks": list(cfg.sinks)}
     for section in SECTIONS:
         out[section] = dataclasses.asdict(getattr(cfg, section))

@@ -102,6 +102,7 @@ _SIGNATURE = {
 }
 
 TIGHT_RANSAC_DIST_M = 0.005
+ROS2 = 2  # a ROS 2 parameter file (ros__parameters)
 
 
 @dataclass(frozen=True, slots=True)
@@ -218,17 +219,7 @@ def load_ros_params(path: str | Path, node: str | None = None) -> RosParams:
         raise ConfigError(
             f"node={node!r} is not a depth_nav_tools node (accepted: {', '.join(NODES)})"
         )
-    try:
-        text = p.read_text(encoding="utf-8")
-    except OSError as e:
-        raise ConfigError(f"{where}: cannot read ({e.strerror or e})") from None
-    try:
-        doc = yaml.safe_load(text)
-    except yaml.YAMLError as e:
-        mark = getattr(e, "problem_mark", None)
-        at = f" at line {mark.line + 1}" if mark is not None else ""
-        raise ConfigError(f"{where}: not valid YAML{at}") from None
-    name, version, params = _split(doc, where, node)
+    name, version, params = _split(_read_yaml(p), where, node)
     mapping = _MAP[name]
     values: dict[str, dict[str, object]] = {}
     warnings: list[str] = []
@@ -241,6 +232,35 @@ def load_ros_params(path: str | Path, node: str | None = None) -> RosParams:
         section, fname, kind = mapping[key]
         values.setdefault(section, {})[fname] = _convert(raw, kind, where, key)
 
+    warnings += _node_notes(name, version, params, values)
+    if ignored:
+        warnings.append(f"ignored (no depthnav equivalent): {', '.join(ignored)}")
+    if unknown:
+        warnings.append(f"unknown keys (not {name} parameters), ignored: {', '.join(unknown)}")
+    _validate(values, where)
+    return RosParams(values, name, version, warnings)
+
+
+def _read_yaml(p: Path) -> object:
+    """The parsed YAML document of ``p`` (ConfigError: unreadable or not YAML)."""
+    try:
+        text = p.read_text(encoding="utf-8")
+    except OSError as e:
+        raise ConfigError(f"{p}: cannot read ({e.strerror or e})") from None
+    try:
+        return yaml.safe_load(text)
+    except yaml.YAMLError as e:
+        mark = getattr(e, "problem_mark", None)
+        at = f" at line {mark.line + 1}" if mark is not None else ""
+        raise ConfigError(f"{p}: not valid YAML{at}") from None
+
+
+def _node_notes(
+    name: str, version: int, params: dict, values: dict[str, dict[str, object]]
+) -> list[str]:
+    """What the user must know about this node's file: sign flips, mode switches, known bugs of
+    the original nodes. Adjusts ``values`` where depthnav reads a value differently."""
+    warnings: list[str] = []
     if name == "laserscan_kinect":
         tilt = values.get("mount", {}).get("tilt_deg")
         if isinstance(tilt, float) and tilt != 0.0:
@@ -262,7 +282,7 @@ def load_ros_params(path: str | Path, node: str | None = None) -> RosParams:
                 "(depthnav's "
                 "level-frame scan) they are unused"
             )
-    if name == "cliff_detector" and version == 2:
+    if name == "cliff_detector" and version == ROS2:
         odd = [k for k in ("depth_img_step_row", "depth_img_step_col") if k in params]
         if odd:
             warnings.append(
@@ -279,14 +299,10 @@ def load_ros_params(path: str | Path, node: str | None = None) -> RosParams:
                 "at 2 m); few points will count as floor inliers, consider pose.inlier_dist_m = "
                 "0.02"
             )
-        if version == 2 and "tilt_angle_max" in params:
+        if version == ROS2 and "tilt_angle_max" in params:
             warnings.append(
-                "the ROS 2 depth_sensor_pose applied tilt_angle_max to mount_height_max (a bug) and "
+                "the ROS 2 depth_sensor_pose applied tilt_angle_max to mount_height_max (a bug) "
+                "and "
                 "never ran its estimator; depthnav uses it as the upper bound of the tilt prior"
             )
-    if ignored:
-        warnings.append(f"ignored (no depthnav equivalent): {', '.join(ignored)}")
-    if unknown:
-        warnings.append(f"unknown keys (not {name} parameters), ignored: {', '.join(unknown)}")
-    _validate(values, where)
-    return RosParams(values, name, version, warnings)
+    return warnings

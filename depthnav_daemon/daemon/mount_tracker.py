@@ -61,7 +61,8 @@ def _clamped(height_m: float, tilt_deg: float, roll_deg: float) -> Mount:
 
 
 class MountTracker:
-    """Holds the mount the stages use and where it came from ("config", "accel", "serial", "floor")."""
+    """Holds the mount the stages use and where it came from ("config", "accel", "serial",
+    "floor")."""
 
     def __init__(self, configured: Mount, params: TrackerParams) -> None:
         self.mount = configured
@@ -102,7 +103,8 @@ class MountTracker:
             self.mount = smoothed
 
     def from_floor(self, height_m: float, tilt_deg: float, roll_deg: float) -> str | None:
-        """Apply a confident floor estimate; returns a log-worthy note when something notable happened."""
+        """Apply a confident floor estimate; returns a log-worthy note when something notable
+        happened."""
         new = _clamped(height_m, tilt_deg, roll_deg)
         if not self._floor_seen:
             self._floor_seen = True
@@ -110,8 +112,9 @@ class MountTracker:
             self._apply(new, force=True)
             self._pending.clear()
             return (
-                f"mount from the floor: height {new.height_m:.3f} m, tilt {new.tilt_deg:.2f} deg, roll "
-                f"{new.roll_deg:.2f} deg (was {old.height_m:.3f} m, {old.tilt_deg:.2f} deg, {old.roll_deg:.2f} deg)"
+                f"mount from the floor: height {new.height_m:.3f} m, tilt {new.tilt_deg:.2f} deg, "
+                f"roll {new.roll_deg:.2f} deg (was {old.height_m:.3f} m, {old.tilt_deg:.2f} deg, "
+                f"{old.roll_deg:.2f} deg)"
             )
         dh, da = _distance(new, self._smoothed)
         p = self._params
@@ -139,11 +142,13 @@ class MountTracker:
             self._pending.clear()
             return (
                 f"mount jump accepted after {p.confirmations} agreeing floor estimates: height "
-                f"{self.mount.height_m:.3f} m, tilt {self.mount.tilt_deg:.2f} deg, roll {self.mount.roll_deg:.2f} deg"
+                f"{self.mount.height_m:.3f} m, tilt {self.mount.tilt_deg:.2f} deg, "
+                f"roll {self.mount.roll_deg:.2f} deg"
             )
         self.rejected += 1
         return (
-            f"floor estimate (height {new.height_m:.3f} m, tilt {new.tilt_deg:.2f} deg, roll {new.roll_deg:.2f} deg) "
+            f"floor estimate (height {new.height_m:.3f} m, tilt {new.tilt_deg:.2f} deg, "
+            f"roll {new.roll_deg:.2f} deg) "
             f"jumps {dh:.3f} m / {da:.2f} deg from the running mount; not applied "
             f"({len(self._pending)}/{p.confirmations} agreeing estimates)"
         )

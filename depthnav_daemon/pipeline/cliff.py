@@ -120,7 +120,7 @@ class CliffResult:
     scan: LaserScan
 
 
-@dataclass(frozen=True, slots=True)
+@dataclass(frozen=True, slots=True, kw_only=True)
 class _CliffTable:
     """Sample grid and thresholds for one (intrinsics, mount, params, layout); read-only arrays.
 
@@ -188,7 +188,8 @@ def _covering_samples(
         n: bins.
 
     Returns:
-        cov_start (n + 1,), cov_row and cov_col (M,): bin b's samples are cov_start[b]:cov_start[b + 1].
+        cov_start (n + 1,), cov_row and cov_col (M,): bin b's samples are
+            cov_start[b]:cov_start[b + 1].
     """
     span = np.maximum(last.astype(np.int64) - first + 1, 0).ravel()
     item = np.repeat(np.arange(span.size), span)
@@ -244,38 +245,11 @@ def _cliff_table(
     # prefetcher follows better (~1.5-2x on a frame that is not in cache)
     rows = (intr.height - 1 - (np.arange(nbr)[:, None] * bs + j[None, :]))[::-1, ::-1].ravel()
     cols = (np.arange(nbc)[:, None] * bs + i[None, :]).ravel()
-    h = mount.height_m
     rot = cam_to_level(mount.tilt_rad, mount.roll_rad)
     u = cols.astype(np.float64)[None, :]
     v = rows.astype(np.float64)[:, None]
-    kx, ky, kz = _floor_hits(intr, rot, u, v)
-    down = kz < 0
-    with np.errstate(divide="ignore", invalid="ignore"):
-        t_floor = np.where(down, h / np.where(down, -kz, 1.0), np.inf)  # floor depth, m
-        range_m = np.where(down, t_floor * np.hypot(kx, ky), np.inf)  # (nr, nc)
-    if params.method == "exact":
-        in_range = down & (range_m >= params.range_min_m) & (range_m <= params.range_max_m)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            lo = np.where(in_range, (h + params.ground_margin_m) / np.where(down, -kz, 1.0), np.inf)
-        hi_mm = NEVER_MM
-    else:
-        delta = paper_row_angles_rad(intr)[rows][:, None]
-        ground = paper_floor_depth_m(h, mount.tilt_rad, delta) + params.ground_margin_m  # eq. 6
-        lo = np.broadcast_to(np.maximum(ground, params.range_min_m), range_m.shape)
-        hi_mm = min(math.ceil(params.range_max_m * 1000.0), NEVER_MM)
-    # integer readings: d > lo_m * 1000 <=> d > floor(lo_m * 1000)
-    with np.errstate(invalid="ignore"):
-        lo_mm = np.where(np.isfinite(lo), np.clip(np.floor(lo * 1000.0), 0, NEVER_MM), NEVER_MM)
-    lo_mm = lo_mm.astype(np.uint16)
-
-    # floor point of every block's centre ray (sub-pixel centre)
-    half = (bs - 1) / 2.0
-    bu = (np.arange(nbc) * bs + half)[None, :]
-    bv = (intr.height - (np.arange(nbr) + 1) * bs + half)[:, None]
-    bx, by, bz = _floor_hits(intr, rot, bu, bv)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        bt = np.where(bz < 0, h / -bz, np.nan)
-    block_xy = np.stack([bt * bx, bt * by], axis=-1).astype(np.float32)  # (nbr, nbc, 2)
+    lo_mm, hi_mm, range_m = _thresholds(intr, mount, params, rot, rows, u, v)
+    block_xy = _block_floor_points(intr, rot, mount.height_m, bs, nbr, nbc)
 
     # each sample covers the bearings between the left and right edges of its col_step footprint
     e = params.col_step / 2.0
@@ -301,23 +275,72 @@ def _cliff_table(
     col_sel = _selector(cols)
     col_step = col_sel.step if isinstance(col_sel, slice) else 0
     table = _CliffTable(
-        rows,
-        cols,
-        (nbr, j.size, nbc, i.size),
-        lo_mm,
-        hi_mm,
-        range32,
-        block_xy,
-        block_ok,
-        col_step,
-        ev_block,
-        ev_code,
-        cov_start,
-        cov_code,
-        probe_start,
-        probe_code,
+        rows=rows,
+        cols=cols,
+        shape4=(nbr, j.size, nbc, i.size),
+        lo_mm=lo_mm,
+        hi_mm=hi_mm,
+        range_m=range32,
+        block_xy_m=block_xy,
+        block_ok=block_ok,
+        col_step=col_step,
+        ev_block=ev_block,
+        ev_code=ev_code,
+        cov_start=cov_start,
+        cov_code=cov_code,
+        probe_start=probe_start,
+        probe_code=probe_code,
     )
     return frozen_table(table)  # cached and shared between calls
+
+
+def _thresholds(
+    intr: Intrinsics,
+    mount: Mount,
+    params: CliffParams,
+    rot: F64,
+    rows: npt.NDArray[np.intp],
+    u: F64,
+    v: F64,
+) -> tuple[npt.NDArray[np.uint16], int, F64]:
+    """Per-sample drop-off thresholds: (lo_mm (R, C) uint16, hi_mm, floor range_m (R, C)).
+
+    A reading d (mm) is a drop-off sample iff lo_mm < d < hi_mm: deeper than the floor plus the
+    ground margin (``exact``: along the level-frame ray; ``paper``: eq. 6's per-row floor).
+    """
+    h = mount.height_m
+    kx, ky, kz = _floor_hits(intr, rot, u, v)
+    down = kz < 0
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t_floor = np.where(down, h / np.where(down, -kz, 1.0), np.inf)  # floor depth, m
+        range_m = np.where(down, t_floor * np.hypot(kx, ky), np.inf)  # (nr, nc)
+    if params.method == "exact":
+        in_range = down & (range_m >= params.range_min_m) & (range_m <= params.range_max_m)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            lo = np.where(in_range, (h + params.ground_margin_m) / np.where(down, -kz, 1.0), np.inf)
+        hi_mm = NEVER_MM
+    else:
+        delta = paper_row_angles_rad(intr)[rows][:, None]
+        ground = paper_floor_depth_m(h, mount.tilt_rad, delta) + params.ground_margin_m  # eq. 6
+        lo = np.broadcast_to(np.maximum(ground, params.range_min_m), range_m.shape)
+        hi_mm = min(math.ceil(params.range_max_m * 1000.0), NEVER_MM)
+    # integer readings: d > lo_m * 1000 <=> d > floor(lo_m * 1000)
+    with np.errstate(invalid="ignore"):
+        lo_mm = np.where(np.isfinite(lo), np.clip(np.floor(lo * 1000.0), 0, NEVER_MM), NEVER_MM)
+    return lo_mm.astype(np.uint16), hi_mm, range_m
+
+
+def _block_floor_points(
+    intr: Intrinsics, rot: F64, height_m: float, bs: int, nbr: int, nbc: int
+) -> F32:
+    """(nbr, nbc, 2) level-frame floor point (x, y) of each block's centre ray, NaN none."""
+    half = (bs - 1) / 2.0  # the sub-pixel centre
+    bu = (np.arange(nbc) * bs + half)[None, :]
+    bv = (intr.height - (np.arange(nbr) + 1) * bs + half)[:, None]
+    bx, by, bz = _floor_hits(intr, rot, bu, bv)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        bt = np.where(bz < 0, height_m / -bz, np.nan)
+    return np.stack([bt * bx, bt * by], axis=-1).astype(np.float32)
 
 
 def _selector(idx: npt.NDArray[np.intp]) -> slice | npt.NDArray[np.intp]:

@@ -19,7 +19,7 @@ import numpy as np
 import numpy.typing as npt
 
 from depthnav_daemon.errors import ConfigError, FrameError
-from drivers.base import Intrinsics
+from drivers.base import UINT16_MAX, Intrinsics
 
 F32 = npt.NDArray[np.float32]
 F64 = npt.NDArray[np.float64]
@@ -35,7 +35,8 @@ MAX_ROLL_DEG = 45.0
 
 
 def frozen_table(table: T) -> T:
-    """Make every numpy array field of a dataclass read-only (a cached table shared between calls)."""
+    """Make every numpy array field of a dataclass read-only (a cached table shared between
+    calls)."""
     for f in dataclasses.fields(table):  # type: ignore[arg-type]
         value = getattr(table, f.name)
         if isinstance(value, np.ndarray):
@@ -121,7 +122,8 @@ def cam_to_level(tilt_rad: float, roll_rad: float) -> F64:
 
 @functools.lru_cache(maxsize=8)
 def pixel_rays(intr: Intrinsics) -> F64:
-    """Camera rays per unit depth: ((u - cx)/fx, (v - cy)/fy, 1) for every pixel, (H, W, 3), read-only."""
+    """Camera rays per unit depth: ((u - cx)/fx, (v - cy)/fy, 1) for every pixel, (H, W, 3),
+    read-only."""
     u = (np.arange(intr.width, dtype=np.float64) - intr.cx) / intr.fx
     v = (np.arange(intr.height, dtype=np.float64) - intr.cy) / intr.fy
     rays = np.empty((intr.height, intr.width, 3))
@@ -144,34 +146,39 @@ def level_rays(intr: Intrinsics, tilt_rad: float, roll_rad: float) -> F64:
 
 
 def check_depth(depth: np.ndarray, intr: Intrinsics) -> None:
-    """Raise FrameError unless ``depth`` is a (H, W) uint16 (mm) or float32 (m) image of ``intr``."""
+    """Raise FrameError unless ``depth`` is a (H, W) uint16 (mm) or float32 (m) image of
+    ``intr``."""
     if not isinstance(depth, np.ndarray):
         raise FrameError(f"depth must be a numpy array, got {type(depth).__name__}")
     if depth.dtype not in (np.uint16, np.float32):
         raise FrameError(
-            f"depth dtype {depth.dtype} is not accepted (accepted: uint16 millimetres or float32 metres)"
+            f"depth dtype {depth.dtype} is not accepted "
+            "(accepted: uint16 millimetres or float32 metres)"
         )
     if depth.shape != (intr.height, intr.width):
         raise FrameError(
             f"depth shape {depth.shape} does not match the intrinsics "
             f"({intr.height}, {intr.width}) (rows, columns)",
-            hint="give the intrinsics of this image (scale them with Intrinsics.scaled for another resolution)",
+            hint="give the intrinsics of this image "
+            "(scale them with Intrinsics.scaled for another resolution)",
         )
 
 
 def depth_to_mm(depth: np.ndarray, intr: Intrinsics) -> npt.NDArray[np.uint16]:
-    """Checked depth as uint16 millimetres, (H, W); float32 metres are converted, NaN/inf/<=0 -> 0."""
+    """Checked depth as uint16 millimetres, (H, W); float32 metres are converted, NaN/inf/<=0 ->
+    0."""
     check_depth(depth, intr)
     if depth.dtype == np.uint16:
         return depth
     with np.errstate(invalid="ignore"):
         mm = np.rint(depth * 1000.0)
-        ok = np.isfinite(mm) & (mm > 0) & (mm <= 65535)
+        ok = np.isfinite(mm) & (mm > 0) & (mm <= UINT16_MAX)
     return np.where(ok, mm, 0).astype(np.uint16)
 
 
 def paper_vertical_fov_rad(intr: Intrinsics) -> float:
-    """Vertical field of view as depth_nav_tools computes it: angle(top, centre) + angle(centre, bottom)."""
+    """Vertical field of view as depth_nav_tools computes it: angle(top, centre) + angle(centre,
+    bottom)."""
     return math.atan(intr.cy / intr.fy) + math.atan((intr.height - 1 - intr.cy) / intr.fy)
 
 

@@ -56,6 +56,7 @@ PRIOR_SLACK_M = 0.02
 SCORE_CHUNK = 32  # RANSAC hypotheses scored per batch
 RANSAC_CONFIDENCE = 0.999
 ENVELOPE_STEP_DEG = 4.0
+PLANE_POINTS = 3  # the fewest points that define a plane
 
 
 @dataclass(frozen=True, slots=True)
@@ -358,7 +359,7 @@ def refine_plane(
         pts, np.asarray(plane[:3], dtype=np.float64), float(plane[3]), dist, mean, scatter
     )
     for _ in range(rounds):
-        if n_in < 3:
+        if n_in < PLANE_POINTS:
             break
         n = np.linalg.eigh(scatter)[1][:, 0]
         d = -float(n @ mean)
@@ -412,7 +413,7 @@ def estimate_pose(
         ]
     )
     plane, n0 = ransac_plane(pts, params.ransac_iterations, params.inlier_dist_m, rng, accept)
-    if n0 < 3:
+    if n0 < PLANE_POINTS:
         return _fail(
             f"no floor plane inside the prior among {k} candidate points; check the prior", cand=k
         )

@@ -12,6 +12,8 @@ import numpy as np
 
 from depthnav_daemon.pipeline._jit import kernel
 
+DEGENERATE_NORM = 1e-9  # a plane normal shorter than this: the three points are collinear
+
 
 @kernel
 def count_candidates_kernel(depth, row0, row_step, col0, col_step, zlo, zhi):
@@ -19,7 +21,8 @@ def count_candidates_kernel(depth, row0, row_step, col0, col_step, zlo, zhi):
 
     Args:
         depth: (H, W) uint16 mm.
-        row0, row_step, col0, col_step: grid pixel (i, j) is depth[row0 + i * row_step, col0 + j * col_step].
+        row0, row_step, col0, col_step: grid pixel (i, j) is depth[row0 + i * row_step, col0 + j *
+            col_step].
         zlo, zhi: (Hs, Ws) uint16: a candidate iff zlo <= d <= zhi.
 
     Returns:
@@ -87,7 +90,8 @@ def hypotheses_kernel(pts, idx, accept, use_accept, normals, offsets, good):
     Args:
         pts: (K, 3) float32 points, metres.
         idx: (I, 3) int64 indices of each hypothesis' three points (drawn by the caller).
-        accept: (3, 2) float64 [[tilt_lo, tilt_hi], [|roll| hi, unused], [h_lo, h_hi]] (radians, metres).
+        accept: (3, 2) float64 [[tilt_lo, tilt_hi], [|roll| hi, unused], [h_lo, h_hi]] (radians,
+            metres).
         use_accept: check the prior at all.
         normals: (I, 3) float64 unit normals, overwritten; offsets: (I,) float64: n.p + d = 0.
         good: (I,) bool, overwritten: a proper plane (non-degenerate triple) inside the prior.
@@ -109,7 +113,7 @@ def hypotheses_kernel(pts, idx, accept, use_accept, normals, offsets, good):
         ny = az * bx - ax * bz
         nz = ax * by - ay * bx
         norm = math.sqrt(nx * nx + ny * ny + nz * nz)
-        ok = norm > 1e-9
+        ok = norm > DEGENERATE_NORM
         if ok:
             nx /= norm
             ny /= norm

@@ -170,7 +170,7 @@ def depth_to_scan(
 # --- exact ----------------------------------------------------------------------------------------
 
 
-@dataclass(frozen=True, slots=True)
+@dataclass(frozen=True, slots=True, kw_only=True)
 class _ExactTable:
     """Per-pixel tables for one (intrinsics, mount, params) over the used grid (Hs, Ws) of pixels.
 
@@ -352,7 +352,7 @@ def _exact_table(intr: Intrinsics, mount: Mount, params: ScanParams) -> _ExactTa
         else float(abs(principal[1] - principal[0]))
     )
     edge_min = float(lo_b[sane].min())
-    n = max(1, int(math.ceil((float(hi_b[sane].max()) - edge_min) / inc)))
+    n = max(1, math.ceil((float(hi_b[sane].max()) - edge_min) / inc))
     if n > MAX_BINS:
         raise ConfigError(
             f"scan.angle_increment_deg={params.angle_increment_deg} gives {n} bins "
@@ -365,22 +365,22 @@ def _exact_table(intr: Intrinsics, mount: Mount, params: ScanParams) -> _ExactTa
     kr32 = (kr / 1000.0).astype(np.float32)
     row_idx = np.arange(intr.height, dtype=np.int32)[rows]
     table = _ExactTable(
-        row_idx,
-        0,
-        params.col_step,
-        zlo_mm,
-        zhi_mm,
-        near_lo_mm,
-        near_hi_mm,
-        k_lo,
-        k_mid,
-        k_hi,
-        kr32,
-        fl_start,
-        fl_code,
-        n,
-        angle_min,
-        inc,
+        rows=row_idx,
+        col0=0,
+        col_step=params.col_step,
+        zlo_mm=zlo_mm,
+        zhi_mm=zhi_mm,
+        near_lo_mm=near_lo_mm,
+        near_hi_mm=near_hi_mm,
+        k_lo=k_lo,
+        k_mid=k_mid,
+        k_hi=k_hi,
+        kr_m_per_mm=kr32,
+        fl_start=fl_start,
+        fl_code=fl_code,
+        n_bins=n,
+        angle_min=angle_min,
+        angle_increment=inc,
     )
     return frozen_table(table)  # cached and shared between calls
 

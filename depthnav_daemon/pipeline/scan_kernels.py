@@ -163,7 +163,8 @@ def bin_map_kernel(centre, lo_b, hi_b, sane, angle_min, inc, g_lo, g_hi, cb_lo, 
         centre, lo_b, hi_b: (Hs, Ws) float64 bearing of each pixel's centre and footprint edges.
         sane: (Hs, Ws) bool pixels to use.
         angle_min, inc: bin b is centred on angle_min + b * inc.
-        g_lo, g_hi: (Hs, n) int64, overwritten: first and last column feeding each bin (Ws, -1: none).
+        g_lo, g_hi: (Hs, n) int64, overwritten: first and last column feeding each bin (Ws, -1:
+            none).
         cb_lo, cb_hi: (Hs, Ws) int64, overwritten: first and last bin a column feeds (n, -1: none).
     """
     hs, ws = centre.shape
@@ -225,7 +226,8 @@ def paper_scan_kernel(
 
     Args:
         depth: (H, W) uint16 mm.
-        row0, row_step: the band's first row and stride; rows are row0 + i * row_step, i < len(lo_mm).
+        row0, row_step: the band's first row and stride; rows are row0 + i * row_step, i <
+            len(lo_mm).
         lo_mm, hi_mm: (B,) uint16: a reading counts iff lo <= d <= hi (range and eq. 5 ground test).
         factor: (B,) float32 metres per mm times eq. 4's tilt factor.
         range_per_z: (W,) float32 sqrt(1 + ((u - cx) / fx)^2), eq. 2 folded into the range.

@@ -23,10 +23,10 @@ from depthnav_daemon.pipeline.geometry import (
 )
 from depthnav_daemon.pipeline.scan import LaserScan, ScanParams, scan_rows
 from depthnav_daemon.pipeline.scan_kernels import paper_scan_kernel
-from drivers.base import Intrinsics
+from drivers.base import UINT16_MAX, Intrinsics
 
 
-@dataclass(frozen=True, slots=True)
+@dataclass(frozen=True, slots=True, kw_only=True)
 class _PaperTable:
     row0: int
     row_step: int
@@ -63,16 +63,16 @@ def _paper_table(intr: Intrinsics, mount: Mount, params: ScanParams) -> _PaperTa
     theta = -np.arctan((u - intr.cx) / intr.fx)
     index = np.clip(((theta - angle_min) / inc).astype(np.int64), 0, intr.width - 1)
     return _PaperTable(
-        rows.start,
-        params.depth_img_row_step,
-        np.full(b, lo, dtype=np.uint16),
-        np.clip(hi, 0, 65535).astype(np.uint16),
-        factor.astype(np.float32),
-        np.sqrt(1.0 + ((u - intr.cx) / intr.fx) ** 2).astype(np.float32),
-        index,
-        angle_min,
-        angle_max,
-        inc,
+        row0=rows.start,
+        row_step=params.depth_img_row_step,
+        lo_mm=np.full(b, lo, dtype=np.uint16),
+        hi_mm=np.clip(hi, 0, UINT16_MAX).astype(np.uint16),
+        factor=factor.astype(np.float32),
+        range_per_z=np.sqrt(1.0 + ((u - intr.cx) / intr.fx) ** 2).astype(np.float32),
+        index=index,
+        angle_min=angle_min,
+        angle_max=angle_max,
+        angle_increment=inc,
     )
 
 

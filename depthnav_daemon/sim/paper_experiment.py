@@ -4,9 +4,9 @@ Four boxes 40, 15, 3 and 1 cm high stand in front of the sensor at four poses (0
 (0.8 m, 40 deg), (1.2 m, 50 deg), (1.2 m, 60 deg); the ground margin e_g runs from 0 to 20 cm. For
 ``paper`` e_g is the depth margin of eq. 5; for ``exact`` it is the height above the floor below
 which points count as floor (``min_obstacle_height_m``). A box counts as detected when a bin within
-its bearings reports a range within 5 cm of its true front face. "False bins" counts bins that report
-an obstacle away from every box: the floor, or a box drawn at the wrong bearing (the paper's tilt
-compensation only rescales depth, so off-centre boxes move toward the centre line; issue #17).
+its bearings reports a range within 5 cm of its true front face. "False bins" counts bins that
+report an obstacle away from every box: the floor, or a box drawn at the wrong bearing (the paper's
+tilt compensation only rescales depth, so off-centre boxes move toward the centre line; issue #17).
 """
 
 from __future__ import annotations
@@ -26,6 +26,8 @@ POSES = ((0.45, 15.0), (0.8, 40.0), (1.2, 50.0), (1.2, 60.0))
 MARGINS_M = (0.0, 0.02, 0.05, 0.10, 0.15, 0.20)
 BEARINGS_DEG = (20.0, 7.0, -7.0, -20.0)  # left to right, one box each; spans never overlap
 BOX_SIZE_M = 0.12
+
+DETECTED_WITHIN_M = 0.05  # a bin reporting a box this close to its true front face
 
 
 @dataclass(frozen=True, slots=True)
@@ -89,7 +91,11 @@ def _score(scan, scene: Scene, method: str, mount: Mount, margin: float) -> Row:
         if span.size:
             near_any |= (angles > span.min() - 0.03) & (angles < span.max() + 0.03)
         with np.errstate(invalid="ignore"):
-            ok = in_box & np.isfinite(scan.ranges) & (np.abs(scan.ranges - truth) < 0.05)
+            ok = (
+                in_box
+                & np.isfinite(scan.ranges)
+                & (np.abs(scan.ranges - truth) < DETECTED_WITHIN_M)
+            )
         detected.append(bool(ok.any()))
     false_bins = int((np.isfinite(scan.ranges) & ~near_any).sum())
     return Row(method, mount.height_m, mount.tilt_deg, margin, tuple(detected), false_bins)
@@ -97,7 +103,10 @@ def _score(scan, scene: Scene, method: str, mount: Mount, margin: float) -> Row:
 
 def format_table(rows: list[Row]) -> str:
     """Markdown table: one line per pose and margin, detected boxes per method, floor false hits."""
-    head = "| pose (h, tilt) | e_g | paper: 40/15/3/1 cm | paper false bins | exact: 40/15/3/1 cm | exact false bins |"
+    head = (
+        "| pose (h, tilt) | e_g | paper: 40/15/3/1 cm | paper false bins "
+        "| exact: 40/15/3/1 cm | exact false bins |"
+    )
     lines = [head, "|---|---:|:---:|---:|:---:|---:|"]
     by_key = {(r.method, r.height_m, r.tilt_deg, r.margin_m): r for r in rows}
     for height_m, tilt_deg in POSES:
@@ -106,7 +115,8 @@ def format_table(rows: list[Row]) -> str:
             e = by_key[("exact", height_m, tilt_deg, margin)]
             mark = lambda r: " ".join("Y" if d else "-" for d in r.detected)  # noqa: E731
             lines.append(
-                f"| ({height_m:.2f} m, {tilt_deg:.0f} deg) | {margin * 100:.0f} cm | {mark(p)} | {p.false_bins} "
+                f"| ({height_m:.2f} m, {tilt_deg:.0f} deg) | {margin * 100:.0f} cm | {mark(p)} "
+                f"| {p.false_bins} "
                 f"| {mark(e)} | {e.false_bins} |"
             )
     return "\n".join(lines)

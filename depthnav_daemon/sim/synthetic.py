@@ -1,4 +1,5 @@
-"""Synthetic depth scenes with exact ground truth: floor, boxes, walls, table tops, steps down, holes.
+"""Synthetic depth scenes with exact ground truth: floor, boxes, walls, table tops, steps down
+and holes.
 
 The world frame is the level frame at the sensor's foot: x forward, y left, z up, floor at z = 0,
 sensor optical centre at (0, 0, height_m). A scene is ray-cast for a camera at any height, tilt and
@@ -118,7 +119,8 @@ class SyntheticView:
         depth_mm: (H, W) uint16 sensor output, millimetres, 0 = no reading (noise applied).
         depth_true_m: (H, W) float64 exact optical-axis depth of the hit, +inf where nothing is hit.
         points_m: (H, W, 3) float64 exact hit points in the world frame, NaN where nothing is hit.
-        height_m: (H, W) float64 exact height of the hit above the floor (negative in holes), NaN none.
+        height_m: (H, W) float64 exact height of the hit above the floor (negative in holes), NaN
+            none.
         label: (H, W) int16, LABEL_* per pixel.
     """
 
@@ -141,7 +143,8 @@ def _box_local(box: Box, origin: F64, dirs: F64) -> tuple[F64, F64]:
 
 
 def _slab(o: F64, d: F64, lo: F64, hi: F64) -> tuple[F64, F64]:
-    """Entry and exit ray parameters of an axis-aligned box, per ray (..., ); entry > exit = miss."""
+    """Entry and exit ray parameters of an axis-aligned box, per ray (..., ); entry > exit =
+    miss."""
     with np.errstate(divide="ignore", invalid="ignore"):
         inv = 1.0 / d
         t1 = (lo - o) * inv
@@ -280,7 +283,8 @@ def _apply_noise(z: F64, noise: KinectNoise, rng: np.random.Generator, max_range
 def _ray_rect_2d(
     bearings: F64, x0: F64, x1: F64, y0: F64, y1: F64, origin: F64, yaw_rad: float
 ) -> F64:
-    """Horizontal distance from ``origin`` (2,) along each bearing (N,) to a rectangle; +inf = miss."""
+    """Horizontal distance from ``origin`` (2,) along each bearing (N,) to a rectangle; +inf =
+    miss."""
     c, s = math.cos(yaw_rad), math.sin(yaw_rad)
     d = np.stack([np.cos(bearings), np.sin(bearings)], axis=-1)
     rot = np.array([[c, s], [-s, c]])
@@ -317,7 +321,8 @@ def truth_obstacle_ranges(
 
 
 def truth_drop_ranges(scene: Scene, bearings_rad: F64) -> F64:
-    """True horizontal range to the nearest drop-off (hole or step edge) per bearing, (N,), +inf none."""
+    """True horizontal range to the nearest drop-off (hole or step edge) per bearing, (N,), +inf
+    none."""
     best = np.full(np.shape(bearings_rad), np.inf)
     for hole in scene.holes:
         r = _ray_rect_2d(

@@ -29,6 +29,7 @@ if TYPE_CHECKING:
 log = logging.getLogger(__name__)
 
 _SCHEME = re.compile(r"[a-z][a-z0-9+.-]*\Z")
+MAX_PORT = 65535
 
 
 @dataclass(frozen=True)
@@ -188,7 +189,7 @@ def parse_host_port(spec: SinkSpec, default_host: str, default_port: int | None)
                 hint=f"write {spec.scheme}://HOST:PORT, e.g. {spec.scheme}://127.0.0.1:5600",
             )
         return host, default_port
-    if not port_text.isdigit() or not 1 <= int(port_text) <= 65535:
+    if not port_text.isdigit() or not 1 <= int(port_text) <= MAX_PORT:
         raise ConfigError(f"port {port_text!r} in sink spec {spec.text!r} is not 1..65535")
     return host, int(port_text)
 

@@ -4,9 +4,10 @@ Spec: ``stdout`` (no target, no options). Each line is flushed as soon as it is 
 consumer (or journald) sees every frame at once. A consumer that stops reading (stalled, not
 closed) must not freeze the frame loop and with it every other output: lines are written by a
 writer thread, ``write()`` waits for each at most STALL_S, and while one is still stuck the next
-ones are skipped (counted, logged; the consumer sees the gap in ``seq``). Logs must go to stderr: ``open()`` refuses to run
-when a logging handler writes to stdout, since that would corrupt the stream. A closed reader
-(``depthnav run ... | head -1``) ends the sink with a SinkError rather than a traceback.
+ones are skipped (counted, logged; the consumer sees the gap in ``seq``). Logs must go to stderr:
+``open()`` refuses to run when a logging handler writes to stdout, since that would corrupt the
+stream. A closed reader (``depthnav run ... | head -1``) ends the sink with a SinkError rather than
+a traceback.
 """
 
 from __future__ import annotations

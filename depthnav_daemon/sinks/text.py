@@ -1,10 +1,11 @@
 """``text``: one human-readable line per frame on stdout, for a person at a terminal.
 
 Spec: ``text[?every=N]`` (print every Nth frame, default 1). For programs use ``stdout`` (JSON).
-A line reads, for example::
+A line reads, for example (one line, cut here at "|")::
 
-    #3  mount 0.550 m, tilt 15.0 deg, roll 0.0 deg (floor)  |  right 1.17 m @ -21 deg  ahead 1.98 m  \
-left 1.45 m @ 21 deg  |  drop-off 1.95 m @ 0 deg (12 blocks)
+    #3  mount 0.550 m, tilt 15.0 deg, roll 0.0 deg (floor)
+        |  right 1.17 m @ -21 deg  ahead 1.98 m  left 1.45 m @ 21 deg
+        |  drop-off 1.95 m @ 0 deg (12 blocks)
 
 "right/ahead/left" are the nearest obstacles in the scan's right third, middle third and left
 third of bearings; "clear" means valid readings and nothing within range, "no data" no reading.
@@ -71,7 +72,8 @@ class TextSink(StdoutSink):
         third = (scan.angle_max - scan.angle_min) / 3.0
         a0, a1 = scan.angle_min + third, scan.angle_min + 2 * third
         parts = [
-            f"#{frame.seq}  mount {m.height_m:.3f} m, tilt {m.tilt_deg:.1f} deg, roll {m.roll_deg:.1f} deg "
+            f"#{frame.seq}  mount {m.height_m:.3f} m, tilt {m.tilt_deg:.1f} deg, "
+            f"roll {m.roll_deg:.1f} deg "
             f"({result.mount_source})",
             f"right {nearest(scan, -math.inf, a0)}  ahead {nearest(scan, a0, a1)}  "
             f"left {nearest(scan, a1, math.inf)}",

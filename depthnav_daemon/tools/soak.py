@@ -72,7 +72,8 @@ class SoakReport:
             f"frames requested      {self.frames_requested}",
             f"frames processed      {self.frames_processed}",
             f"stdout JSON lines     {self.stdout_lines} (out of order: {self.stdout_out_of_order})",
-            f"UDP datagrams         {self.udp_received} distinct seqs (missing: {self.udp_missing})",
+            f"UDP datagrams         {self.udp_received} distinct seqs "
+            f"(missing: {self.udp_missing})",
             f"MAVLink bytes         {self.mavlink_bytes}",
             f".rrd bytes            {self.rrd_bytes}",
             f"duration              {self.duration_s:.1f} s ({self.fps:.0f} frames/s)",
@@ -111,6 +112,102 @@ def _udp_receiver(bufsize: int) -> socket.socket:
     return sock
 
 
+class _Receivers:
+    """The UDP and MAVLink receivers of a soak: which seqs arrived, how many bytes, in threads."""
+
+    def __init__(self, frames: int) -> None:
+        self.frames = frames
+        self.udp, self.mav = _udp_receiver(UDP_BUFFER), _udp_receiver(1 << 20)
+        self.seen = bytearray(frames)
+        self.counts = {"lines": 0, "order": 0, "mav": 0}
+        self._done = threading.Event()
+        self._threads = [
+            threading.Thread(target=self._receive_udp, daemon=True),
+            threading.Thread(target=self._receive_mavlink, daemon=True),
+        ]
+
+    def start(self) -> None:
+        for t in self._threads:
+            t.start()
+
+    def stop(self) -> None:
+        self._done.set()
+        for t in self._threads:
+            t.join(timeout=5)
+        self.udp.close()
+        self.mav.close()
+
+    def _receive_udp(self) -> None:
+        while not self._done.is_set():
+            try:
+                data = self.udp.recv(65535)
+            except TimeoutError:
+                continue
+            seq = json.loads(data)["seq"]
+            if 0 <= seq < self.frames:
+                self.seen[seq] = 1
+
+    def _receive_mavlink(self) -> None:
+        while not self._done.is_set():
+            try:
+                self.counts["mav"] += len(self.mav.recv(65535))
+            except TimeoutError:
+                continue
+
+
+def _sample_rss(
+    proc: subprocess.Popen[str], rx: _Receivers, report: SoakReport, sample_s: float
+) -> None:
+    """(lines so far, VmRSS MB) every ``sample_s`` while the daemon runs."""
+    next_at = time.monotonic()
+    while proc.poll() is None:
+        rss = vm_rss_mb(proc.pid)
+        if rss is not None:
+            report.samples.append((rx.counts["lines"], rss))
+        next_at += sample_s
+        time.sleep(max(0.0, next_at - time.monotonic()))
+
+
+def _read_json_lines(
+    proc: subprocess.Popen[str], rx: _Receivers, t0: float, timeout_s: float
+) -> None:
+    """Count the daemon's JSON lines and those out of order; kill it after ``timeout_s``."""
+    assert proc.stdout is not None
+    expected = 0
+    for line in proc.stdout:
+        if not line.startswith("{"):
+            continue  # the text sink's summary lines
+        seq = json.loads(line)["seq"]
+        if seq != expected:
+            rx.counts["order"] += 1
+        expected = seq + 1
+        rx.counts["lines"] += 1
+        if time.monotonic() - t0 > timeout_s:
+            proc.kill()
+            break
+
+
+def _summarise(report: SoakReport, rx: _Receivers, rrd: Path, stderr: str) -> None:
+    """Fill the report's counts, rate and memory figures from what was received and logged."""
+    report.stdout_lines = rx.counts["lines"]
+    report.stdout_out_of_order = rx.counts["order"]
+    report.mavlink_bytes = rx.counts["mav"]
+    report.udp_received = sum(rx.seen)
+    report.udp_missing = report.frames_requested - report.udp_received
+    report.fps = report.stdout_lines / report.duration_s if report.duration_s else 0.0
+    report.rrd_bytes = rrd.stat().st_size if rrd.exists() else 0
+    for text in stderr.splitlines():
+        if text.endswith("frames processed") or "frames processed;" in text:
+            report.frames_processed = int(text.split("INFO:")[1].split()[0])
+    warm = [rss for n, rss in report.samples if n >= report.warmup_frames]
+    if warm:
+        report.rss_warm_mb, report.rss_end_mb = warm[0], warm[-1]
+        report.rss_max_mb = max(warm)
+        report.rss_growth_mb = report.rss_end_mb - report.rss_warm_mb
+    if report.exit_code != 0:
+        log.error("the daemon exited with %s: %s", report.exit_code, stderr[-2000:])
+
+
 def run_soak(
     frames: int,
     *,
@@ -139,117 +236,36 @@ def run_soak(
     report = SoakReport(frames, warmup_frames=min(warmup, frames))
     own_dir = workdir is None
     work = Path(tempfile.mkdtemp(prefix="depthnav-soak-")) if own_dir else Path(workdir)
-    udp, mav = _udp_receiver(UDP_BUFFER), _udp_receiver(1 << 20)
+    rx = _Receivers(frames)
     rrd = work / "soak.rrd"
     report.sinks = [
         "stdout",
         "text?every=1000",
-        f"udp://127.0.0.1:{udp.getsockname()[1]}",
+        f"udp://127.0.0.1:{rx.udp.getsockname()[1]}",
         "null",
         f"rerun:{rrd}?every={rrd_every}&image=0",
-        f"mavlink+udp://127.0.0.1:{mav.getsockname()[1]}",
+        f"mavlink+udp://127.0.0.1:{rx.mav.getsockname()[1]}",
     ]
-    seen = bytearray(frames)
-    done = threading.Event()
-    counts = {"lines": 0, "order": 0, "mav": 0}
-
-    def receive_udp() -> None:
-        while not done.is_set():
-            try:
-                data = udp.recv(65535)
-            except TimeoutError:
-                continue
-            seq = json.loads(data)["seq"]
-            if 0 <= seq < frames:
-                seen[seq] = 1
-
-    def receive_mavlink() -> None:
-        while not done.is_set():
-            try:
-                counts["mav"] += len(mav.recv(65535))
-            except TimeoutError:
-                continue
-
-    cmd = [
-        sys.executable,
-        "-m",
-        "depthnav_daemon",
-        "run",
-        "--device",
-        device,
-        "--max-frames",
-        str(frames),
-        "--set",
-        "daemon.pose_every_frames=30",
-    ]
+    cmd = [sys.executable, "-m", "depthnav_daemon", "run", "--device", device]
+    cmd += ["--max-frames", str(frames), "--set", "daemon.pose_every_frames=30"]
     for spec in report.sinks:
         cmd += ["--sink", spec]
     err_path = work / "daemon.stderr"
-    threads = [
-        threading.Thread(target=receive_udp, daemon=True),
-        threading.Thread(target=receive_mavlink, daemon=True),
-    ]
-    for t in threads:
-        t.start()
+    rx.start()
     t0 = time.monotonic()
     with open(err_path, "w") as err:
         proc = subprocess.Popen(
             cmd, stdout=subprocess.PIPE, stderr=err, text=True, cwd=ROOT, bufsize=1 << 16
         )
-
-    def sample() -> None:
-        next_at = time.monotonic()
-        while proc.poll() is None:
-            rss = vm_rss_mb(proc.pid)
-            if rss is not None:
-                report.samples.append((counts["lines"], rss))
-            next_at += sample_s
-            time.sleep(max(0.0, next_at - time.monotonic()))
-
-    sampler = threading.Thread(target=sample, daemon=True)
+    sampler = threading.Thread(target=_sample_rss, args=(proc, rx, report, sample_s), daemon=True)
     sampler.start()
-    assert proc.stdout is not None
-    expected = 0
-    for line in proc.stdout:
-        if not line.startswith("{"):
-            continue  # the text sink's summary lines
-        seq = json.loads(line)["seq"]
-        if seq != expected:
-            counts["order"] += 1
-        expected = seq + 1
-        counts["lines"] += 1
-        if time.monotonic() - t0 > timeout_s:
-            proc.kill()
-            break
+    _read_json_lines(proc, rx, t0, timeout_s)
     report.exit_code = proc.wait()
     report.duration_s = time.monotonic() - t0
     sampler.join(timeout=5)
     time.sleep(1.0)  # the last datagrams are on their way
-    done.set()
-    for t in threads:
-        t.join(timeout=5)
-    udp.close()
-    mav.close()
-    report.stdout_lines, report.stdout_out_of_order, report.mavlink_bytes = (
-        counts["lines"],
-        counts["order"],
-        counts["mav"],
-    )
-    report.udp_received = sum(seen)
-    report.udp_missing = frames - report.udp_received
-    report.fps = report.stdout_lines / report.duration_s if report.duration_s else 0.0
-    report.rrd_bytes = rrd.stat().st_size if rrd.exists() else 0
-    stderr = err_path.read_text()
-    for text in stderr.splitlines():
-        if text.endswith("frames processed") or "frames processed;" in text:
-            report.frames_processed = int(text.split("INFO:")[1].split()[0])
-    warm = [rss for n, rss in report.samples if n >= report.warmup_frames]
-    if warm:
-        report.rss_warm_mb, report.rss_end_mb = warm[0], warm[-1]
-        report.rss_max_mb = max(warm)
-        report.rss_growth_mb = report.rss_end_mb - report.rss_warm_mb
-    if report.exit_code != 0:
-        log.error("the daemon exited with %s: %s", report.exit_code, stderr[-2000:])
+    rx.stop()
+    _summarise(report, rx, rrd, err_path.read_text())
     if own_dir:
         for path in work.iterdir():
             path.unlink()

@@ -151,6 +151,8 @@ class OniSummary:
 
 PROPERTY_TYPES = {INT_PROPERTY, REAL_PROPERTY, 0x05, GENERAL_PROPERTY}
 MAX_NAME = 256
+U32 = 4  # bytes of a length field
+PRINTABLE = range(0x20, 0x7F)  # plain ASCII, no control characters
 MAX_SIDE = 8192  # pixels, as drivers.base.Intrinsics
 
 
@@ -160,15 +162,15 @@ def _name(fields: bytes, path: Path, pos: int) -> tuple[str, int]:
     libOniFile crashes (SIGSEGV, found by tests/faults/test_native_fuzz.py) on a property whose
     name is not plain ASCII, so anything else is rejected here, before it reaches the player.
     """
-    if len(fields) < 4:
+    if len(fields) < U32:
         raise RecordingError(f"{path}: corrupt record at byte {pos} (no name)")
     (length,) = struct.unpack_from("<I", fields)
     raw = fields[4 : 4 + length]
     if (
-        not 2 <= length <= MAX_NAME
+        not 1 < length <= MAX_NAME  # at least one character and its NUL
         or len(raw) != length
         or raw[-1:] != b"\0"
-        or not all(0x20 <= c < 0x7F for c in raw[:-1])
+        or not all(c in PRINTABLE for c in raw[:-1])
     ):
         raise RecordingError(f"{path}: corrupt record at byte {pos} (bad name)")
     return raw[:-1].decode("ascii"), 4 + length
@@ -193,67 +195,23 @@ def check_oni(path: Path) -> OniSummary:
         raise RecordingError(f"{path}: cannot read it ({exc.strerror})") from None
     depth: dict[int, dict[str, object]] = {}  # node id -> codec, mode
     with fh:
-        head = fh.read(FILE_HEADER.size)
-        if len(head) < FILE_HEADER.size or not head.startswith(MAGIC_FILE):
-            raise RecordingError(f"{path}: not an .oni file (no NI10 header)")
-        version = struct.unpack_from("<BBHI", head, 4)
-        if version < (1, 0, 1, 0):
-            raise RecordingError(
-                f"{path}: .oni version {'.'.join(map(str, version))} is too old; "
-                "OpenNI2 reads 1.0.1.0 and later"
-            )
+        _check_file_header(fh.read(FILE_HEADER.size), path)
         pos, frames, has_end = FILE_HEADER.size, 0, False
         while pos + RECORD_HEADER.size <= size:
             fh.seek(pos)
             magic, rtype, node, fields, payload, _ = RECORD_HEADER.unpack(
                 fh.read(RECORD_HEADER.size)
             )
-            if magic != MAGIC_RECORD:
-                if magic == 0 and has_end:
-                    break  # the OpenNI recorder leaves zero padding after END
-                raise RecordingError(f"{path}: corrupt record at byte {pos} (bad magic {magic:#x})")
-            if rtype not in KNOWN_TYPES or fields < RECORD_HEADER.size:
-                raise RecordingError(f"{path}: corrupt record at byte {pos} (type {rtype:#x})")
-            if pos + fields + payload > size:
-                raise RecordingError(
-                    f"{path}: truncated: record at byte {pos} needs {fields + payload} bytes, "
-                    f"the file ends at {size}",
-                    hint="the recording was cut short; re-record it",
-                )
+            if magic == 0 and has_end:
+                break  # the OpenNI recorder leaves zero padding after END
+            _check_record(path, pos, size, magic, rtype, fields + payload)
             if rtype == NODE_ADDED or rtype in PROPERTY_TYPES:
-                body = fh.read(fields - RECORD_HEADER.size)
-                name, at = _name(body, path, pos)
-                if rtype == NODE_ADDED:
-                    if len(body) < at + 8:
-                        raise RecordingError(f"{path}: corrupt NODE_ADDED record at byte {pos}")
-                    node_type, codec = struct.unpack_from("<I4s", body, at)
-                    if node_type == NODE_TYPE_DEPTH:
-                        depth[node] = {"codec": codec, "mode": None}
-                elif name == "xnMapOutputMode" and node in depth:
-                    if len(body) < at + 16:
-                        raise RecordingError(f"{path}: corrupt xnMapOutputMode at byte {pos}")
-                    width, height = struct.unpack_from("<II", body, at + 4)
-                    if not (1 <= width <= MAX_SIDE and 1 <= height <= MAX_SIDE):
-                        raise RecordingError(
-                            f"{path}: depth resolution {width}x{height} is out of range "
-                            f"(1..{MAX_SIDE} pixels each way)"
-                        )
-                    depth[node]["mode"] = (width, height)
+                _check_node_record(
+                    fh.read(fields - RECORD_HEADER.size), path, pos, rtype, node, depth
+                )
             elif rtype == NEW_DATA:
                 frames += 1
-                info = depth.get(node)
-                if info is not None:
-                    if info["mode"] is None:
-                        raise RecordingError(
-                            f"{path}: depth frame at byte {pos} before the stream's resolution "
-                            "(no xnMapOutputMode record)"
-                        )
-                    width, height = info["mode"]  # type: ignore[misc]
-                    if info["codec"] == b"NONE" and payload != width * height * 2:
-                        raise RecordingError(
-                            f"{path}: depth frame at byte {pos} holds {payload} bytes, "
-                            f"a {width}x{height} frame needs {width * height * 2}"
-                        )
+                _check_depth_frame(depth.get(node), path, pos, payload)
             elif rtype == END:
                 has_end = True
                 break
@@ -263,3 +221,68 @@ def check_oni(path: Path) -> OniSummary:
     if not depth:
         raise RecordingError(f"{path}: has no depth stream")
     return OniSummary(len(depth), frames, has_end)
+
+
+def _check_file_header(head: bytes, path: Path) -> None:
+    if len(head) < FILE_HEADER.size or not head.startswith(MAGIC_FILE):
+        raise RecordingError(f"{path}: not an .oni file (no NI10 header)")
+    version = struct.unpack_from("<BBHI", head, 4)
+    if version < (1, 0, 1, 0):
+        raise RecordingError(
+            f"{path}: .oni version {'.'.join(map(str, version))} is too old; "
+            "OpenNI2 reads 1.0.1.0 and later"
+        )
+
+
+def _check_record(path: Path, pos: int, size: int, magic: int, rtype: int, nbytes: int) -> None:
+    """A record header that is sane and whose record fits in the file."""
+    if magic != MAGIC_RECORD:
+        raise RecordingError(f"{path}: corrupt record at byte {pos} (bad magic {magic:#x})")
+    if rtype not in KNOWN_TYPES or nbytes < RECORD_HEADER.size:
+        raise RecordingError(f"{path}: corrupt record at byte {pos} (type {rtype:#x})")
+    if pos + nbytes > size:
+        raise RecordingError(
+            f"{path}: truncated: record at byte {pos} needs {nbytes} bytes, "
+            f"the file ends at {size}",
+            hint="the recording was cut short; re-record it",
+        )
+
+
+def _check_node_record(
+    body: bytes, path: Path, pos: int, rtype: int, node: int, depth: dict[int, dict[str, object]]
+) -> None:
+    """A NODE_ADDED or property record: notes depth nodes and their resolution in ``depth``."""
+    name, at = _name(body, path, pos)
+    if rtype == NODE_ADDED:
+        if len(body) < at + 8:
+            raise RecordingError(f"{path}: corrupt NODE_ADDED record at byte {pos}")
+        node_type, codec = struct.unpack_from("<I4s", body, at)
+        if node_type == NODE_TYPE_DEPTH:
+            depth[node] = {"codec": codec, "mode": None}
+    elif name == "xnMapOutputMode" and node in depth:
+        if len(body) < at + 16:
+            raise RecordingError(f"{path}: corrupt xnMapOutputMode at byte {pos}")
+        width, height = struct.unpack_from("<II", body, at + 4)
+        if not (1 <= width <= MAX_SIDE and 1 <= height <= MAX_SIDE):
+            raise RecordingError(
+                f"{path}: depth resolution {width}x{height} is out of range "
+                f"(1..{MAX_SIDE} pixels each way)"
+            )
+        depth[node]["mode"] = (width, height)
+
+
+def _check_depth_frame(info: dict[str, object] | None, path: Path, pos: int, payload: int) -> None:
+    """A frame of a depth node (``info``; None for other nodes) that the player can copy."""
+    if info is None:
+        return
+    if info["mode"] is None:
+        raise RecordingError(
+            f"{path}: depth frame at byte {pos} before the stream's resolution "
+            "(no xnMapOutputMode record)"
+        )
+    width, height = info["mode"]  # type: ignore[misc]
+    if info["codec"] == b"NONE" and payload != width * height * 2:
+        raise RecordingError(
+            f"{path}: depth frame at byte {pos} holds {payload} bytes, "
+            f"a {width}x{height} frame needs {width * height * 2}"
+        )

@@ -30,13 +30,14 @@ import numpy as np
 import numpy.typing as npt
 from PIL import Image, UnidentifiedImageError
 
-from drivers.base import Frame, Intrinsics
+from drivers.base import MM_PER_M, UINT16_MAX, Frame, Intrinsics
 from drivers.errors import RecordingError
 
 log = logging.getLogger(__name__)
 
 SIDECAR = "camera.toml"
 INDEX = "depth.txt"
+MAX_SCALE = 1e6  # depth units per metre
 
 
 def is_png_folder(folder: Path) -> bool:
@@ -106,7 +107,7 @@ def sidecar_scale(folder: Path, side: dict[str, Any]) -> float:
     if (
         isinstance(value, bool)
         or not isinstance(value, (int, float))
-        or not (math.isfinite(value) and 1.0 <= value <= 1e6)
+        or not (math.isfinite(value) and 1.0 <= value <= MAX_SCALE)
     ):
         raise RecordingError(
             f"{folder / SIDECAR}: depth_scale = {value!r} is not a number in 1..1000000",
@@ -127,9 +128,9 @@ def read_depth_png(path: Path, scale: float) -> npt.NDArray[np.uint16]:
         raise RecordingError(
             f"{path}: not a readable PNG ({exc})", hint="the file is corrupt or truncated"
         ) from None
-    if raw.ndim != 2 or raw.min() < 0 or raw.max() > 65535:
+    if raw.ndim != 2 or raw.min() < 0 or raw.max() > UINT16_MAX:  # noqa: PLR2004 - (H, W)
         raise RecordingError(f"{path}: not a single-channel 16-bit depth image")
-    if scale == 1000.0:
+    if scale == MM_PER_M:
         return raw.astype(np.uint16)
     mm = np.rint(raw.astype(np.float64) * (1000.0 / scale))
     return np.clip(mm, 0, 65535).astype(np.uint16)
@@ -166,7 +167,7 @@ def write_png_folder(
     for frame in frames:
         intr = frame.intrinsics
         units = np.rint(frame.depth_mm.astype(np.float64) * (scale / 1000.0))
-        if units.max(initial=0) > 65535:
+        if units.max(initial=0) > UINT16_MAX:
             raise RecordingError(
                 f"{out}: frame {frame.seq} has depth beyond 16 bits at scale {scale:g}"
             )

@@ -27,6 +27,7 @@ PID_K4W_CAMERA = 0x02BF
 BCD_MODEL_1414 = 0x010B
 LED = {"off": 0, "green": 1, "red": 2, "yellow": 3, "blink_green": 4, "blink_red_yellow": 6}
 TILT_LIMIT_DEG = 31.0
+STATE_BYTES = 10  # the motor device's state report (drivers.md)
 NOT_FOUND = "no Kinect found (045e:02ae/02b0): plugged in? udev rules? run `depthnav devices`"
 
 
@@ -41,7 +42,7 @@ class MotorState:
 
 def parse_state(buf: bytes) -> MotorState:
     """Decode the 10-byte reply to request 0x32."""
-    if len(buf) < 10:
+    if len(buf) < STATE_BYTES:
         raise DriverError(f"Kinect motor sent {len(buf)} state bytes, expected 10")
     _, x, y, z, tilt_raw, status = struct.unpack(">hhhhbB", bytes(buf[:10]))
     return MotorState(

@@ -36,6 +36,7 @@ GRAMMAR = "serialtilt:PORT[?protocol=line|mavlink&baud=N]"
 LINE = re.compile(rb"\$(TILT,([-+]?\d+(?:\.\d*)?),([-+]?\d+(?:\.\d*)?))\*([0-9A-Fa-f]{2})")
 MAX_LINE = 128
 MAVLINK_ATTITUDE = 30
+MAX_TILT_DEG, MAX_ROLL_DEG = 90.0, 180.0  # a reading outside is garbled
 
 
 def nmea_checksum(body: bytes) -> int:
@@ -60,7 +61,7 @@ def parse_line(line: bytes) -> tuple[float, float] | None:
     if nmea_checksum(match.group(1)) != int(match.group(4), 16):
         return None
     tilt, roll = float(match.group(2)), float(match.group(3))
-    if abs(tilt) > 90.0 or abs(roll) > 180.0:
+    if abs(tilt) > MAX_TILT_DEG or abs(roll) > MAX_ROLL_DEG:
         return None
     return tilt, roll
 

@@ -38,7 +38,8 @@ def ramp_frames(
 
 
 def kinect_exact_frames(n: int = 3, intr: Intrinsics = VGA, seed: int = 11) -> list[Frame]:
-    """VGA frames whose depths are all exact 11-bit disparity depths, so every format is lossless."""
+    """VGA frames whose depths are all exact 11-bit disparity depths, so every format is
+    lossless."""
     rng = np.random.default_rng(seed)
     table = disparity_to_mm_table()
     raw = rng.integers(300, 1050, size=(n, intr.height, intr.width))
@@ -65,7 +66,7 @@ def run_isolated(
         "PYTHONPATH": str(REPO),
         **(env or {}),
     }
-    return subprocess.run(  # noqa: PLW1510 - callers check returncode and show stderr
+    return subprocess.run(
         [sys.executable, "-c", code, *args],
         capture_output=True,
         text=True,

@@ -47,8 +47,9 @@ try:
         f = driver.read_frame(5.0)
         if f is None:
             out["end"] = "none"; break
-        out["frames"].append({"seq": f.seq, "equal": bool(np.array_equal(f.depth_mm, expected[f.seq].depth_mm)),
-                              "accel": f.accel_mps2, "tilt": None if f.tilt is None else [f.tilt.angle_deg, f.tilt.status],
+        equal = bool(np.array_equal(f.depth_mm, expected[f.seq].depth_mm))
+        tilt = None if f.tilt is None else [f.tilt.angle_deg, f.tilt.status]
+        out["frames"].append({"seq": f.seq, "equal": equal, "accel": f.accel_mps2, "tilt": tilt,
                               "shape": list(f.depth_mm.shape)})
 except DriverError as exc:
     out["error"] = [type(exc).__name__, str(exc), exc.hint]

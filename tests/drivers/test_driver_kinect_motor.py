@@ -1,4 +1,5 @@
-"""Kinect motor device over pyusb (real pyusb code, emulated 045e:02b0) and the accelerometer axes."""
+"""Kinect motor device over pyusb (real pyusb code, emulated 045e:02b0) and the accelerometer
+axes."""
 
 from __future__ import annotations
 
@@ -46,7 +47,8 @@ def test_counts_round_trip():
 
 
 def test_parse_state_decodes_big_endian_counts_tilt_and_status():
-    # Bytes from drivers.md: x=-12, y=805, z=140 (BE int16), tilt -20 half-degrees, status 4 (moving).
+    # Bytes from drivers.md: x=-12, y=805, z=140 (BE int16), tilt -20 half-degrees, status 4 =
+    # moving
     state = parse_state(bytes([0, 0, 0xFF, 0xF4, 0x03, 0x25, 0x00, 0x8C, 0xEC, 0x04]))
     assert state.raw_counts == (-12, 805, 140)
     assert state.tilt.angle_deg == -10.0 and state.tilt.status == "moving"

@@ -38,9 +38,10 @@ try:
             if f is None:
                 out.append(None); break
             want = expected[(f.seq + offset) % len(expected)].depth_mm
-            out.append({"seq": f.seq, "t": f.timestamp_s, "equal": bool(np.array_equal(f.depth_mm, want)),
-                        "intr": [f.intrinsics.width, f.intrinsics.height, f.intrinsics.fx, f.intrinsics.fy,
-                                 f.intrinsics.cx, f.intrinsics.cy]})
+            i = f.intrinsics
+            equal = bool(np.array_equal(f.depth_mm, want))
+            out.append({"seq": f.seq, "t": f.timestamp_s, "equal": equal,
+                        "intr": [i.width, i.height, i.fx, i.fy, i.cx, i.cy]})
     print(json.dumps({"frames": out}))
 except drivers.DriverError as exc:
     print(json.dumps({"error": type(exc).__name__, "message": str(exc), "hint": exc.hint}))
@@ -88,8 +89,9 @@ def test_dummy_device_smoke():
 import drivers
 with drivers.opened(drivers.create_driver("openni://Dummy")) as d:
     frames = [d.read_frame(3.0) for _ in range(3)]
-print([f.depth_mm.shape for f in frames], int(frames[0].depth_mm[0].min()), int(frames[0].depth_mm[0].max()),
-      frames[0].intrinsics.width)
+row = frames[0].depth_mm[0]
+shapes = [f.depth_mm.shape for f in frames]
+print(shapes, int(row.min()), int(row.max()), frames[0].intrinsics.width)
 """
     proc = run_isolated(code)
     assert proc.returncode == 0, proc.stderr[-2000:]  # a segfault would be -11

@@ -23,7 +23,7 @@ WAIT_S = 30.0  # generous bound for a slow, noisy 2-core machine; tests return a
 
 def depthnav(*args: str, timeout: float = 120, **kw: object) -> subprocess.CompletedProcess[str]:
     """Run the CLI to the end, as a user does."""
-    return subprocess.run(  # noqa: PLW1510 - callers check the code and show stderr
+    return subprocess.run(
         [sys.executable, "-m", "depthnav_daemon", *args],
         capture_output=True,
         text=True,

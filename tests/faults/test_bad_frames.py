@@ -128,7 +128,8 @@ def depth_of(kind: str | int, intr: Intrinsics, seed: int) -> np.ndarray:
     seed=st.integers(0, 9),
 )
 def test_extreme_frames_give_defined_results(kinds, seed: int) -> None:
-    """Zeros, saturation, noise, NaN/inf/zero accelerometer and a resolution switching mid-stream."""
+    """Zeros, saturation, noise, NaN/inf/zero accelerometer and a resolution switching
+    mid-stream."""
     frames = [
         Frame(
             i,

@@ -72,7 +72,8 @@ def one_line(exc: BaseException, *names: str) -> str:
 def clean(
     call: Callable[[], object], errors: tuple[type[BaseException], ...], *names: str
 ) -> object:
-    """Run ``call``; it returns, or raises one of ``errors`` with a one-line message naming the input."""
+    """Run ``call``; it returns, or raises one of ``errors`` with a one-line message naming the
+    input."""
     try:
         return call()
     except errors as exc:
@@ -514,7 +515,8 @@ LINE_BYTES = st.one_of(
     chunks=st.lists(LINE_BYTES, max_size=8), newline=st.sampled_from([b"\n", b"\r\n", b"", b"\r"])
 )
 def test_fuzz_serial_line_protocol(chunks: list[bytes], newline: bytes) -> None:
-    """Noise, split and malformed ``$TILT`` lines: never raises, only plausible readings published."""
+    """Noise, split and malformed ``$TILT`` lines: never raises, only plausible readings
+    published."""
     src = SerialTiltSource("loop://")
     feed = src._line_feeder()
     for chunk in chunks:

@@ -62,7 +62,8 @@ def base_oni(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 
 def accepted_mutants(base: Path, out: Path, count: int, seed: int) -> list[Path]:
-    """``count`` mutants of ``base`` (1-4 bytes changed, mostly in the headers) that check_oni accepts."""
+    """``count`` mutants of ``base`` (1-4 bytes changed, mostly in the headers) that check_oni
+    accepts."""
     data = base.read_bytes()
     r = random.Random(seed)
     found: list[Path] = []
@@ -112,7 +113,8 @@ def test_mutated_oni_files_never_crash_the_native_player(
 def test_non_ascii_property_name_is_rejected_before_libonifile(
     base_oni: Path, tmp_path: Path
 ) -> None:
-    """Found by the mutation test: one byte of a property name set to 0x8b made libOniFile SIGSEGV."""
+    """Found by the mutation test: one byte of a property name set to 0x8b made libOniFile
+    SIGSEGV."""
     data = bytearray(base_oni.read_bytes())
     data[data.index(b"xnIsGenerating") + 4] = 0x8B
     bad = tmp_path / "bad_name.oni"

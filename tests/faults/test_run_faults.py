@@ -461,7 +461,8 @@ def test_usb_unplug_errno_19_reconnects_with_backoff(caplog: pytest.LogCaptureFi
 
 
 def test_fakenect_recording_that_ends(tmp_path: Path) -> None:
-    """The real fakenect library in the child process: the run ends at the end, stdout is pure JSON."""
+    """The real fakenect library in the child process: the run ends at the end, stdout is pure
+    JSON."""
     from drivers.formats.fakenect import write_fakenect
     from drivers.kinect.freenect import find_library
 

@@ -113,7 +113,7 @@ def test_yaml_tags_are_not_executed(tmp_path: Path) -> None:
     marker = tmp_path / "pwned"
     cfg = tmp_path / "params.yaml"
     cfg.write_text(f"range_min: !!python/object/apply:os.system ['touch {marker}']\n")
-    with pytest.raises(ConfigError, match="params.yaml"):
+    with pytest.raises(ConfigError, match=r"params\.yaml"):
         build_config([cfg])
     assert not marker.exists()
 

@@ -1,4 +1,5 @@
-"""SIGTERM and SIGINT at any point of a run, a recording and an .rrd: clean exit, nothing half-written.
+"""SIGTERM and SIGINT at any point of a run, a recording and an .rrd: a clean exit and nothing
+half-written.
 
 Real subprocesses and real signals. "Start-up" is measured from the moment depthnav's own code
 runs (its SIGTERM handler shows in /proc/PID/status): a signal before that reaches the Python
@@ -80,7 +81,7 @@ def test_sigkill_while_recording_leaves_no_recording_that_looks_complete(tmp_pat
     if out.exists() and (out / "recording.toml").exists():
         assert len(read_recording(out).depth_mm) == 600  # it had finished: then it is complete
     else:
-        with pytest.raises(Exception, match="not a depthnav recording|no such"):
+        with pytest.raises(Exception, match=r"not a depthnav recording|no such"):
             read_recording(out)
 
 

@@ -32,7 +32,8 @@ def random_boxes_in_view(
     max_range_m: float = 3.5,
     height_range_m: tuple[float, float] = (0.12, 0.6),
 ) -> Scene:
-    """Boxes standing on floor the camera sees, between min and max horizontal range, not overlapping."""
+    """Boxes standing on floor the camera sees, between min and max horizontal range, not
+    overlapping."""
     boxes: list[Box] = []
     for _ in range(400):
         if len(boxes) == count:

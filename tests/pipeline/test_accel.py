@@ -33,7 +33,7 @@ def test_level_and_rolled() -> None:
     ("tilt_deg", "roll_deg"), [(0, 0), (30, 0), (-20, 5), (45, -12), (70, 30), (10, 44)]
 )
 def test_recovers_the_mount_that_cam_to_level_defines(tilt_deg: float, roll_deg: float) -> None:
-    # "up" in the level frame (0, 0, g), expressed in the camera frame by the inverse of cam_to_level
+    # "up" in the level frame (0, 0, g), in the camera frame by the inverse of cam_to_level
     rot = cam_to_level(math.radians(tilt_deg), math.radians(roll_deg))
     accel = rot.T @ np.array([0.0, 0.0, G_MPS2])
     assert tilt_roll_from_accel(accel) == pytest.approx((tilt_deg, roll_deg), abs=1e-9)

@@ -42,7 +42,8 @@ def run(
 def block_footprints_m(
     intr: Intrinsics, mount: Mount, blocks: np.ndarray, bs: int, centre: np.ndarray
 ) -> np.ndarray:
-    """(K,) largest floor distance from each block's reported point to its corner pixels' floor points.
+    """(K,) largest floor distance from each block's reported point to its corner pixels' floor
+    points.
 
     The floor point of a pixel is where its ray meets z = -h in the level frame (independent of the
     stage's code: straight from level_rays). A corner above the horizon gives +inf.
@@ -86,7 +87,8 @@ STEP_MOUNTS = [
     "mount", STEP_MOUNTS, ids=lambda m: f"h{m.height_m}_t{m.tilt_deg:.0f}_r{m.roll_deg:.0f}"
 )
 def test_step_down_found_at_its_floor_position_and_range(mount: Mount, drop_m: float) -> None:
-    # the step edge sits where the image centre column meets the floor at 70 % of the used rows' depth
+    # the step edge sits where the image's centre column meets the floor at 70 % of the depth
+    # of the used rows
     rays = level_rays(ASYM_640, mount.tilt_rad, mount.roll_rad)
     d = rays[int(ASYM_640.height * 0.55), int(ASYM_640.cx)]
     edge_m = round(mount.height_m / -d[2] * d[0], 2)
@@ -155,7 +157,8 @@ def test_paper_method_finds_a_step_but_exact_is_the_one_that_ignores_roll_and_no
     res = run(view, CliffParams(method="paper"))
     assert len(res.points_m) >= 10
     assert_points_on_drop_offs(view, res)
-    # the paper's per-row floor ignores roll: on a rolled flat floor one side reads "below the floor"
+    # the paper's per-row floor ignores roll: on a rolled flat floor, one side of the image reads
+    # "below the floor"
     rolled = Mount(0.55, 15.0, 8.0)
     flat = render(Scene(), ASYM_640, rolled)
     assert len(run(flat, CliffParams(method="paper")).points_m) > 0
@@ -284,7 +287,7 @@ def test_sample_selector_is_the_same_rows_as_the_index(idx: list[int]) -> None:
     np.testing.assert_array_equal(np.arange(480)[_selector(a)], a)
 
 
-# --- real Kinect v2 floor (CMU Panoptic, non-commercial: read in place, never copied) --------------
+# --- real Kinect v2 floor (CMU Panoptic, non-commercial: read in place, never copied) -------------
 
 SHARED = Path(__file__).resolve().parents[2].parent / "shared"
 CMU = SHARED / "data" / "real" / "cmu_panoptic_kinoptic_10view"
@@ -330,7 +333,8 @@ def test_real_floor_has_no_cliff_and_a_drop_cut_into_it_is_found() -> None:
 def paper_blocks(
     depth_mm: np.ndarray, intr: Intrinsics, h: float, tilt_deg: float, p: CliffParams
 ) -> set:
-    """Eq. 6-8 block by block with the math module, as cliff_detector's loop (rows from the bottom)."""
+    """Eq. 6-8 block by block with the math module, as cliff_detector's loop (rows from the
+    bottom)."""
     a = math.radians(tilt_deg)
     fov = math.atan(intr.cy / intr.fy) + math.atan((intr.height - 1 - intr.cy) / intr.fy)
     bs = p.block_size

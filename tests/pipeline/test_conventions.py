@@ -1,4 +1,5 @@
-"""Convention pins (DEVELOPERS.md): units, pixel-centre origin, RDF axes, tilt and roll signs, bearings.
+"""Convention pins (DEVELOPERS.md): units, pixel-centre origin, RDF axes, tilt and roll signs
+and bearings.
 
 Each expected number is derived by hand in the comment beside it.
 """
@@ -28,7 +29,8 @@ def test_pixel_centre_origin_and_rdf_axes() -> None:
 
 
 def test_level_frame_is_flu_with_tilt_down_and_roll_left_up() -> None:
-    # no tilt or roll: camera forward (z) -> level x, camera right (x) -> level -y, camera down -> level -z
+    # no tilt or roll: camera forward (z) -> level x, camera right (x) -> level -y,
+    # camera down -> level -z
     r = cam_to_level(0.0, 0.0)
     np.testing.assert_allclose(r @ [0, 0, 1], [1, 0, 0], atol=1e-12)
     np.testing.assert_allclose(r @ [1, 0, 0], [0, -1, 0], atol=1e-12)
@@ -44,8 +46,8 @@ def test_level_frame_is_flu_with_tilt_down_and_roll_left_up() -> None:
 
 
 def test_tilted_camera_sees_the_floor_where_trigonometry_says() -> None:
-    # h = 0.8 m, tilt 30 deg down: the principal ray meets the floor at x = 0.8 / tan(30) = 1.3856 m,
-    # at optical depth z = 0.8 / sin(30) = 1.6 m
+    # h = 0.8 m, tilt 30 deg down: the principal ray meets the floor at x = 0.8 / tan(30) = 1.3856
+    # m, at optical depth z = 0.8 / sin(30) = 1.6 m
     intr = ASYM_640
     view = render(Scene(), intr, Mount(0.8, 30.0, 0.0))
     v, u = round(intr.cy), round(intr.cx)
@@ -64,7 +66,8 @@ def test_roll_left_up_lowers_the_horizon_on_the_left_of_the_image() -> None:
 
 
 def test_scan_bearings_are_counter_clockwise_from_forward() -> None:
-    # a box 2 m ahead and 0.5 m to the LEFT (+y) must appear at a positive bearing atan2(0.5, 2) = 14.04 deg
+    # a box 2 m ahead and 0.5 m to the LEFT (+y) must appear at a positive bearing:
+    # atan2(0.5, 2) = 14.04 deg
     mount = Mount(0.5, 10.0, 0.0)
     box = Box(2.05, 0.5, 0.1, 0.1, 0.6)
     view = render(Scene(boxes=(box,)), ASYM_640, mount)
@@ -85,7 +88,8 @@ def test_depth_units_uint16_mm_equal_float32_m() -> None:
     b = depth_to_scan(m, intr, Mount(0.5, 0.0, 0.0), p).ranges
     np.testing.assert_array_equal(a, b)
     # a level sensor, wall 1.5 m ahead; with cx = 1.5 the nearest pixel centres sit half a pixel off
-    # the axis, (u - cx)/fx = 0.25, so the nearest horizontal range is 1.5 * hypot(1, 0.25) = 1.5462 m
+    # the axis, (u - cx)/fx = 0.25, so the nearest horizontal range is
+    # 1.5 * hypot(1, 0.25) = 1.5462 m
     assert np.nanmin(a) == pytest.approx(1.5 * math.hypot(1.0, 0.25), abs=1e-3)
 
 

@@ -56,7 +56,8 @@ def reference_exact_scan(
 ) -> np.ndarray:
     """The exact scan by its definition: per row, each bin takes the min over its columns (numpy).
 
-    Uses the stage's per-pixel thresholds and bin map (what the scan *means*), not its kernel tables.
+    Uses the stage's per-pixel thresholds and bin map (what the scan *means*), not its kernel
+    tables.
     """
     t = scan_mod._exact_table(intr, mount, params)
     rows = scan_mod.scan_rows(intr, params)
@@ -130,8 +131,8 @@ def test_three_kernel_thresholds_classify_every_depth_as_the_four(
     # every depth at and around every threshold, and the ends of the uint16 range
     edges = np.stack([t.zlo_mm, t.zhi_mm, t.near_lo_mm, t.near_hi_mm]).astype(np.int64)
     for delta in (-1, 0, 1):
-        for d in [*(edges + delta), np.zeros_like(edges[0]), np.full_like(edges[0], 65535)]:
-            d = np.clip(d, 0, 65535)
+        for raw in [*(edges + delta), np.zeros_like(edges[0]), np.full_like(edges[0], 65535)]:
+            d = np.clip(raw, 0, 65535)
             close = (t.near_lo_mm <= d) & (d <= t.near_hi_mm)
             obstacle = (t.zlo_mm <= d) & (d <= t.zhi_mm) & ~close
             assert np.array_equal((t.k_lo <= d) & (d <= t.k_mid), close)
@@ -147,7 +148,8 @@ def numpy_bin_map(
     inc: float,
     n: int,
 ) -> tuple[np.ndarray, ...]:
-    """The bin map as numpy computed it before it was compiled (the reference for bin_map_kernel)."""
+    """The bin map as numpy computed it before it was compiled (the reference for
+    bin_map_kernel)."""
     hs, ws = centre.shape
     bidx = np.floor((centre - angle_min) / inc + 0.5).astype(np.int64)
     ii, jj = np.nonzero(sane)
@@ -205,7 +207,7 @@ def test_bin_map_kernel_equals_numpy(mount: Mount, col_step: int) -> None:
     sane = (hi_b - lo_b) < math.pi
     inc = float(np.median(hi_b - lo_b))
     angle_min = float(lo_b[sane].min()) + inc / 2
-    n = int(math.ceil((float(hi_b[sane].max()) - float(lo_b[sane].min())) / inc))
+    n = math.ceil((float(hi_b[sane].max()) - float(lo_b[sane].min())) / inc)
     got = scan_mod._bin_map(centre, lo_b, hi_b, sane, angle_min, inc, n)
     want = numpy_bin_map(centre, lo_b, hi_b, sane, angle_min, inc, n)
     for g, w in zip(got, want, strict=True):

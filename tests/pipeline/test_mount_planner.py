@@ -20,8 +20,9 @@ from drivers.base import Intrinsics
 
 
 def test_eq15_by_hand() -> None:
-    # Kinect: theta = 43 deg; h = 0.55 m, tilt 15 deg down: lower edge 21.5 + 15 = 36.5 deg below the
-    # horizon, d_m = 0.55 tan(90 - 36.5) = 0.55 * 1.351422 = 0.74328 m; at h1 = 0.2 m: 0.35 * 1.351422
+    # Kinect: theta = 43 deg; h = 0.55 m, tilt 15 deg down: lower edge 21.5 + 15 = 36.5 deg below
+    # the horizon, d_m = 0.55 tan(90 - 36.5) = 0.55 * 1.351422 = 0.74328 m;
+    # at h1 = 0.2 m: 0.35 * 1.351422
     got = lower_dead_zone_m(0.55, 15.0, 43.0, [0.0, 0.2])
     np.testing.assert_allclose(got, [0.74328, 0.47300], atol=1e-5)
     # level sensor, same FOV: 0.55 tan(68.5 deg) = 0.55 * 2.538648 = 1.39626 m
@@ -38,9 +39,11 @@ def test_eq16_by_hand() -> None:
     np.testing.assert_allclose(
         max_visible_height_m(0.55, 15.0, 43.0, [0.0, 2.0]), [0.55, 0.77787], atol=1e-5
     )
-    # tilt 30: the upper edge points 8.5 deg DOWN (sgn negative): 0.55 - 2 * tan 8.5 = 0.55 - 0.29890
+    # tilt 30: the upper edge points 8.5 deg DOWN (sgn negative):
+    # 0.55 - 2 * tan 8.5 = 0.55 - 0.29890
     assert float(max_visible_height_m(0.55, 30.0, 43.0, 2.0)) == pytest.approx(0.25110, abs=1e-5)
-    # lowest point seen at 2 m with tilt 15: 0.55 - 2 tan 36.5 = 0.55 - 2 * 0.739961 < 0: the floor is seen
+    # lowest point seen at 2 m with tilt 15: 0.55 - 2 tan 36.5 = 0.55 - 2 * 0.739961 < 0,
+    # so the floor is seen
     assert float(min_visible_height_m(0.55, 15.0, 43.0, 2.0)) == pytest.approx(-0.929922, abs=1e-5)
 
 

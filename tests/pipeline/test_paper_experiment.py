@@ -1,4 +1,5 @@
-"""The figs. 11-12 experiment: the exact scan's detection depends on box height only, never on pose."""
+"""The figs. 11-12 experiment: the exact scan's detection depends on box height only, never on
+pose."""
 
 from __future__ import annotations
 

@@ -24,8 +24,8 @@ def load_png_mm(path: Path, units_per_m: float) -> np.ndarray:
 
 @pytest.mark.parametrize("method", ["exact", "paper"])
 def test_tum_desk_frame_runs_through_the_scan(method: str) -> None:
-    # TUM fr1 Kinect v1, 5000 units per metre; the README gives intrinsics 517.3/516.5/318.6/255.3 and a
-    # camera about 0.83 m over the desk top, pitched ~31 deg down
+    # TUM fr1 Kinect v1, 5000 units per metre; the README gives intrinsics 517.3/516.5/318.6/255.3
+    # and a camera about 0.83 m over the desk top, pitched ~31 deg down
     depth = load_png_mm(SHARED / "tum_desk_pair_slambook" / "1_depth.png", 5000.0)
     intr = Intrinsics(640, 480, 517.3, 516.5, 318.6, 255.3)
     scan = depth_to_scan(depth, intr, Mount(0.83, 31.0, 0.0), ScanParams(method=method))

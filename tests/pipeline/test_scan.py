@@ -28,7 +28,8 @@ PARAMS = ScanParams(
 
 
 def seen_bins(view: SyntheticView, scan: LaserScan, params: ScanParams) -> np.ndarray:
-    """Bins whose bearing some box pixel (in the height and range band) actually shows, (N,) bool."""
+    """Bins whose bearing some box pixel (in the height and range band) actually shows, (N,)
+    bool."""
     pts = view.points_m
     box = view.label >= LABEL_BOX0
     h = view.height_m
@@ -50,7 +51,8 @@ def seen_bins(view: SyntheticView, scan: LaserScan, params: ScanParams) -> np.nd
 def check_against_truth(
     view: SyntheticView, scan: LaserScan, params: ScanParams, rel_tol: float, abs_tol: float
 ) -> int:
-    """Assert every bin that sees a box is within tolerance, and no other bin reports an obstacle."""
+    """Assert every bin that sees a box is within tolerance, and no other bin reports an
+    obstacle."""
     half = scan.angle_increment * 1.5  # the bin plus the half-pixel footprint on either side
     lo, hi = truth_obstacle_interval(
         view.scene, scan.angles, half, params.min_obstacle_height_m, params.max_obstacle_height_m
@@ -131,7 +133,8 @@ def test_exact_scan_any_resolution(size: tuple[int, int]) -> None:
 
 
 def test_exact_scan_has_no_empty_bins_from_binning() -> None:
-    """A wall across the view fills every bin that sees it, at any tilt and roll (the original leaves gaps)."""
+    """A wall across the view fills every bin that sees it, at any tilt and roll (the original
+    leaves gaps)."""
     wall_params = ScanParams(range_min_m=0.1, max_obstacle_height_m=3.0)
     for mount in (Mount(0.5, 0.0, 0.0), Mount(1.2, 45.0, 8.0), Mount(0.3, 10.0, -10.0)):
         view = render(Scene(boxes=(Box(1.5, 0.0, 0.2, 40.0, 3.0),)), ASYM_640, mount)
@@ -248,7 +251,8 @@ def test_paper_scan_matches_independent_eq_1_to_5(features: tuple[bool, bool]) -
 
 
 def test_paper_scan_keeps_the_originals_empty_bins() -> None:
-    """The original's truncating column->bin map leaves NaN bins even on a full wall (for comparison)."""
+    """The original's truncating column->bin map leaves NaN bins even on a full wall (for
+    comparison)."""
     mount = Mount(0.5, 0.0, 0.0)
     view = render(Scene(boxes=(Box(1.5, 0.0, 0.2, 40.0, 3.0),)), ASYM_640, mount)
     scan = depth_to_scan(view.depth_mm, ASYM_640, mount, ScanParams(method="paper"))

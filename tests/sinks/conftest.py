@@ -28,10 +28,12 @@ SCENE = Scene(
     holes=(step_down(2.2, 0.3),),
 )
 
+MOUNT = Mount(0.5, 12.0, 1.5)  # a little roll, so swapped signs show
+
 
 def make_pair(
     seq: int,
-    mount: Mount = Mount(0.5, 12.0, 1.5),
+    mount: Mount = MOUNT,
     *,
     scene: Scene = SCENE,
     intr: Intrinsics = ASYM_640,
