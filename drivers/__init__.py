@@ -35,7 +35,7 @@ __all__ = [
 
 DRIVERS: dict[str, tuple[str, str]] = {  # scheme -> (module, class); imported only when used
     "kinect": ("drivers.kinect.driver", "KinectDriver"),
-    "openni": ("drivers.openni", "OpenNIDriver"),
+    "openni": ("drivers.openni.driver", "OpenNIDriver"),
     "replay": ("drivers.replay", "ReplayDriver"),
 }
 ALIASES = {"xtion": "openni://"}

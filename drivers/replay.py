@@ -8,7 +8,7 @@ PATH is one of (detected when opened):
 - a folder of 16-bit PNG depth images (see drivers/formats/png_folder.py; ``scale`` units per metre,
   default from ``camera.toml`` or 5000; intrinsics from ``camera.toml`` or ``fx, fy, cx, cy``);
 - a fakenect recording (``INDEX.txt``; disparity converted with ``const_shift``, default 200);
-- an ``.oni`` file, played by OpenNI2's libOniFile (see drivers/openni.py).
+- an ``.oni`` file, played by OpenNI2's libOniFile (see drivers/openni/).
 
 Options: ``rate`` realtime (default; sleep to the recorded timestamps) or max (no sleeping);
 ``loop`` 1 to start again at the end (timestamps keep increasing); ``fps`` frame rate for sources
@@ -252,7 +252,7 @@ class ReplayDriver:
         if self._is_open:
             raise DriverError(f"replay {self.path} is already open")
         if self.path.suffix.lower() == ".oni" and self.path.is_file():
-            from drivers.openni import OpenNIDriver  # only .oni replay needs OpenNI2
+            from drivers.openni.driver import OpenNIDriver  # only .oni replay needs OpenNI2
 
             self._inner = OpenNIDriver.for_file(
                 self.path,

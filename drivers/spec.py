@@ -6,6 +6,7 @@ options with :func:`check_options`, which rejects unknown keys and lists the val
 
 from __future__ import annotations
 
+import math
 import re
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
@@ -117,12 +118,37 @@ def bool_option(spec: Spec, key: str, default: bool) -> bool:
     """An on/off option: 1/0, true/false, yes/no, on/off."""
     if key not in spec.options:
         return default
-    value = spec.options[key].lower()
+    value = spec.options[key].strip().lower()
     if value in ("1", "true", "yes", "on"):
         return True
     if value in ("0", "false", "no", "off"):
         return False
     raise DeviceSpecError(f"option {key}={value!r} in {spec.text!r} is not 0 or 1")
+
+
+def number_option(
+    spec: Spec, key: str, default: float, low: float, high: float, *, integer: bool = False
+) -> float:
+    """A finite numeric option within [low, high] (an integer when ``integer``), or ``default``.
+
+    Raises:
+        DeviceSpecError: not a number, not finite, not an integer when required, or out of range.
+    """
+    if key not in spec.options:
+        return default
+    raw = spec.options[key].strip()
+    try:
+        value = int(raw, 10) if integer else float(raw)
+    except ValueError:
+        kind = "an integer" if integer else "a number"
+        raise DeviceSpecError(
+            f"option {key}={raw!r} in {spec.text!r} is not {kind} (accepted: {low:g}..{high:g})"
+        ) from None
+    if not (math.isfinite(value) and low <= value <= high):
+        raise DeviceSpecError(
+            f"option {key}={raw!r} in {spec.text!r} is out of range (accepted: {low:g}..{high:g})"
+        )
+    return value
 
 
 def float_option(

@@ -117,7 +117,16 @@ def test_pipeline_imports_only_itself_errors_and_driver_types() -> None:
     assert _violations(PACKAGE / "pipeline", allowed) == []
 
 
-STAGE_MODULES = ("scan", "scan_paper", "cliff", "pose", "mount_planner")
+STAGE_MODULES = (
+    "scan",
+    "scan_paper",
+    "scan_table",
+    "cliff",
+    "cliff_table",
+    "pose",
+    "pose_fit",
+    "mount_planner",
+)
 
 
 def test_sinks_never_import_stage_code() -> None:

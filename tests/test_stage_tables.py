@@ -8,8 +8,7 @@ import numpy as np
 import pytest
 
 from depthnav_daemon.daemon.stage_tables import KEEP_READY, StageTables
-from depthnav_daemon.pipeline import StageParams, prepare
-from depthnav_daemon.pipeline import scan as scan_mod
+from depthnav_daemon.pipeline import StageParams, prepare, scan_table
 from depthnav_daemon.pipeline.cliff import CliffParams, detect_cliffs
 from depthnav_daemon.pipeline.geometry import Mount
 from depthnav_daemon.pipeline.scan import ScanParams, depth_to_scan
@@ -86,11 +85,11 @@ def test_prepare_builds_exactly_the_tables_a_frame_uses() -> None:
     mount = Mount(0.55, 14.31, 0.7)  # a mount no other test builds
     scan, cliff = ScanParams(), CliffParams(block_size=8, row_step=2, col_step=2)
     prepare(INTR, mount, StageParams(scan=scan, cliff=cliff))
-    before = scan_mod._exact_table.cache_info()
+    before = scan_table.exact_table.cache_info()
     depth = np.full((INTR.height, INTR.width), 1500, dtype=np.uint16)
     s = depth_to_scan(depth, INTR, mount, scan)
     detect_cliffs(depth, INTR, mount, cliff, s.angle_min, s.angle_increment, s.ranges.size)
-    after = scan_mod._exact_table.cache_info()
+    after = scan_table.exact_table.cache_info()
     assert after.misses == before.misses and after.hits > before.hits
 
 

@@ -22,8 +22,8 @@ from depthnav_daemon.pipeline.scan import (
     ScanParams,
     depth_to_scan,
     obstacle_pixels,
-    scan_rows,
 )
+from depthnav_daemon.pipeline.scan_table import scan_rows
 
 if TYPE_CHECKING:
     from depthnav_daemon.pipeline.pose import PoseEstimate

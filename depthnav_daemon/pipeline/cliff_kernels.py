@@ -12,9 +12,7 @@ from __future__ import annotations
 import numpy as np
 
 from depthnav_daemon.pipeline._jit import kernel
-
-CODE_BITS = 15  # packed codes: low 15 bits a sample column, the bits above a bin or a sample row
-CODE_MASK = (1 << CODE_BITS) - 1
+from depthnav_daemon.pipeline.scan_kernels import CODE_BITS, CODE_MASK
 
 
 @kernel

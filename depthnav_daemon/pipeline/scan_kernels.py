@@ -51,8 +51,12 @@ def run_ends(
 I32 = NDArray[np.int32]
 
 
-COL_BITS = 15  # a flush code: column | run-ends flag << 15 | bin << 16 (columns and bins < 32768)
-MAX_CODE_INDEX = (1 << COL_BITS) - 1
+# Packed int32 codes of the scan and cliff kernels: the low CODE_BITS bits hold a column; the bits
+# above hold a bin or a sample row (a flush code: column | run-ends flag << 15 | bin << 16).
+# Columns and bins stay below 32768.
+CODE_BITS = 15
+CODE_MASK = (1 << CODE_BITS) - 1
+MAX_CODE_INDEX = CODE_MASK
 
 
 def run_flush_codes(
@@ -89,8 +93,8 @@ def run_flush_codes(
     last = within == span[k] - 1
     code = (
         rs_col[k].astype(np.int64)
-        | (last.astype(np.int64) << COL_BITS)
-        | ((lo[k] + within) << (COL_BITS + 1))
+        | (last.astype(np.int64) << CODE_BITS)
+        | ((lo[k] + within) << (CODE_BITS + 1))
     )
     return fl_start, code.astype(np.int32)
 
@@ -142,12 +146,12 @@ def exact_scan_kernel(depth, rows, near_lo, near_hi, obst_hi, kr, fl_start, fl_c
             acc[j] = min(acc[j], v)
         for e in range(fl_start[i], fl_start[i + 1]):
             x = fl_code[e]
-            c = x & 0x7FFF
-            b = x >> 16
+            c = x & CODE_MASK
+            b = x >> (CODE_BITS + 1)
             a = acc[c]
             o = out[b]
             out[b] = a if a < o else o
-            if x & 0x8000:
+            if x & (1 << CODE_BITS):  # the run ends here
                 acc[c] = inf
     nan = np.float32(np.nan)
     for b in range(out.shape[0]):

@@ -8,18 +8,21 @@ flushes and is safe to call twice.
 
 from __future__ import annotations
 
+import functools
 import logging
 import math
 import re
 import time
-from collections.abc import Iterable
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Protocol, runtime_checkable
+from typing import TYPE_CHECKING, Any, Protocol, TypeVar, runtime_checkable
 
 from depthnav_daemon.errors import ConfigError
 from drivers.errors import DeviceSpecError
 from drivers.spec import Spec, parse_spec
-from drivers.spec import check_options as check_driver_options
+from drivers.spec import bool_option as spec_bool_option
+from drivers.spec import check_options as spec_check_options
+from drivers.spec import number_option as spec_number_option
 
 if TYPE_CHECKING:
     from depthnav_daemon.pipeline import Result
@@ -30,6 +33,7 @@ log = logging.getLogger(__name__)
 
 _SCHEME = re.compile(r"[a-z][a-z0-9+.-]*\Z")
 MAX_PORT = 65535
+T = TypeVar("T")
 
 
 @dataclass(frozen=True)
@@ -100,59 +104,23 @@ def parse_sink_spec(text: str) -> SinkSpec:
         raise ConfigError(str(exc), hint=exc.hint) from None
 
 
-def check_options(spec: SinkSpec, valid: Iterable[str], grammar: str) -> None:
-    """Reject options the sink does not know, listing the valid ones.
+def _config_errors(fn: Callable[..., T]) -> Callable[..., T]:
+    """``fn`` from drivers.spec, raising ConfigError (the sinks' error) for a bad option."""
 
-    Raises:
-        ConfigError: naming the unknown option and the valid ones; the hint quotes ``grammar``.
-    """
-    try:
-        check_driver_options(spec, valid, grammar, kind="sink ")
-    except DeviceSpecError as exc:
-        raise ConfigError(str(exc), hint=exc.hint) from None
+    @functools.wraps(fn)
+    def wrapper(*args: Any, **kwargs: Any) -> T:
+        try:
+            return fn(*args, **kwargs)
+        except DeviceSpecError as exc:
+            raise ConfigError(str(exc), hint=exc.hint) from None
 
-
-def number_option(
-    spec: SinkSpec, key: str, default: float, low: float, high: float, *, integer: bool = False
-) -> float:
-    """A numeric option within [low, high] (an integer when ``integer``), or ``default``.
-
-    Raises:
-        ConfigError: not a number, not finite, not an integer when required, or out of range.
-    """
-    if key not in spec.options:
-        return default
-    raw = spec.options[key].strip()
-    try:
-        value = int(raw, 10) if integer else float(raw)
-    except ValueError:
-        kind = "an integer" if integer else "a number"
-        raise ConfigError(
-            f"option {key}={raw!r} in sink spec {spec.text!r} is not {kind} "
-            f"(accepted: {low:g}..{high:g})"
-        ) from None
-    if not (math.isfinite(value) and low <= value <= high):
-        raise ConfigError(
-            f"option {key}={raw!r} in sink spec {spec.text!r} is out of range "
-            f"(accepted: {low:g}..{high:g})"
-        )
-    return value
+    return wrapper
 
 
-def bool_option(spec: SinkSpec, key: str, default: bool) -> bool:
-    """An on/off option: 1/0, true/false, yes/no, on/off.
-
-    Raises:
-        ConfigError: any other value.
-    """
-    if key not in spec.options:
-        return default
-    value = spec.options[key].strip().lower()
-    if value in ("1", "true", "yes", "on"):
-        return True
-    if value in ("0", "false", "no", "off"):
-        return False
-    raise ConfigError(f"option {key}={value!r} in sink spec {spec.text!r} is not 0 or 1")
+# the device specs' option helpers, one family for both (sink messages say "sink")
+check_options = _config_errors(functools.partial(spec_check_options, kind="sink "))
+number_option = _config_errors(spec_number_option)
+bool_option = _config_errors(spec_bool_option)
 
 
 def parse_host_port(spec: SinkSpec, default_host: str, default_port: int | None) -> tuple[str, int]:

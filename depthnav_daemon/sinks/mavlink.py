@@ -30,15 +30,10 @@ floor(cm) clipped to [min_distance, max_distance]; -inf (closer than range_min) 
 from __future__ import annotations
 
 import logging
-import math
 import socket
 import threading
 import time
-from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
-
-import numpy as np
-import numpy.typing as npt
 
 from depthnav_daemon.errors import ConfigError, SinkError
 from depthnav_daemon.sinks.base import (
@@ -50,10 +45,15 @@ from depthnav_daemon.sinks.base import (
     number_option,
     parse_host_port,
 )
+from depthnav_daemon.sinks.mavlink_sectors import (
+    Schedule,
+    merge_cliff,
+    obstacle_sectors,
+)
 
 if TYPE_CHECKING:
     from depthnav_daemon.pipeline import Result
-    from depthnav_daemon.pipeline.scan import LaserScan
+    from depthnav_daemon.sinks.mavlink_sectors import Sectors
     from drivers.base import Frame
 
 log = logging.getLogger(__name__)
@@ -63,8 +63,6 @@ GRAMMAR = (
     "mavlink+udp://HOST:PORT[?rate=HZ&stale=S&sysid=N&compid=N&sensor=KIND&cliff=0|1]"
 )
 COMMON_OPTIONS = ("rate", "stale", "sysid", "compid", "sensor", "cliff")
-SECTORS = 72
-UNKNOWN = 65535  # UINT16_MAX: no data in this sector
 SENSOR_TYPES = {  # option value -> MAV_DISTANCE_SENSOR
     "laser": 0,
     "ultrasound": 1,
@@ -75,161 +73,9 @@ SENSOR_TYPES = {  # option value -> MAV_DISTANCE_SENSOR
 MAV_COMP_ID_OBSTACLE_AVOIDANCE = 196
 MAV_FRAME_BODY_FRD = 12
 DEFAULT_UDP = ("127.0.0.1", 14550)
-HEARTBEAT_PERIOD_S = 1.0
 WRITE_TIMEOUT_S = 0.25  # serial write; a blocked port drops a message instead of stalling
 JOIN_TIMEOUT_S = 0.8  # close(): WRITE_TIMEOUT_S plus margin, inside the daemon's 1 s stop
 MESSAGE_BYTES = 180  # a packed MAVLink 2 OBSTACLE_DISTANCE, for the baud-rate check
-
-
-@dataclass(frozen=True, slots=True)
-class Sectors:
-    """One OBSTACLE_DISTANCE payload.
-
-    Attributes:
-        distances_cm: (72,) uint16, element 0 = left-most sector (see the module docstring).
-        increment_f_deg: sector width, degrees, clockwise.
-        angle_offset_deg: bearing of element 0's centre, degrees clockwise from forward (FRD).
-        min_cm, max_cm: the sensor's range limits, centimetres.
-    """
-
-    distances_cm: npt.NDArray[np.uint16]
-    increment_f_deg: float
-    angle_offset_deg: float
-    min_cm: int
-    max_cm: int
-
-
-def range_limits_cm(scan: LaserScan) -> tuple[int, int]:
-    """(min_distance, max_distance) in cm for a scan; min >= 1 because ArduPilot drops 0."""
-    min_cm = max(1, round(scan.range_min * 100.0))
-    max_cm = min(UNKNOWN - 2, max(min_cm + 1, round(scan.range_max * 100.0)))
-    return min_cm, max_cm
-
-
-def bins_to_cm(ranges: np.ndarray, min_cm: int, max_cm: int) -> npt.NDArray[np.float64]:
-    """REP 117 ranges (N,) metres -> per-bin distances in cm (float, NaN = no data)."""
-    r = np.asarray(ranges, dtype=np.float64)
-    with np.errstate(invalid="ignore"):
-        cm = np.clip(np.floor(r * 100.0), min_cm, max_cm)  # floor: report an obstacle slightly near
-    cm[r == np.inf] = max_cm + 1
-    cm[r == -np.inf] = min_cm
-    cm[np.isnan(r)] = np.nan
-    return cm
-
-
-def _footprints_deg(scan: LaserScan) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]:
-    """Clockwise-degree footprint [lo, hi) of every bin of a CCW scan, (N,) each."""
-    m = int(scan.ranges.size)
-    inc = abs(float(scan.angle_increment)) if m > 1 else 0.0
-    if inc == 0.0 or not math.isfinite(inc):
-        inc = math.radians(1.0)  # a single bin: give it a nominal 1 degree footprint
-    theta = scan.angle_min + float(scan.angle_increment) * np.arange(m)
-    return -np.degrees(theta + inc / 2.0), -np.degrees(theta - inc / 2.0)
-
-
-def _pool_min(
-    out: npt.NDArray[np.float64],
-    lo: np.ndarray,
-    hi: np.ndarray,
-    cm: np.ndarray,
-    left: float,
-    width: float,
-) -> None:
-    """out[j] = min(out[j], cm of bins whose footprint [lo, hi) overlaps sector j); NaN skipped."""
-    n = out.size
-    eps = 1e-6  # footprints that only touch a sector boundary do not count as overlapping
-    first = np.floor((lo - left) / width + eps).astype(np.int64)
-    last = np.ceil((hi - left) / width - eps).astype(np.int64) - 1
-    last = np.maximum(last, first)
-    keep = ~np.isnan(cm) & (last >= 0) & (first <= n - 1)
-    first, last, cm = np.clip(first[keep], 0, n - 1), np.clip(last[keep], 0, n - 1), cm[keep]
-    span = last - first + 1
-    idx = np.repeat(first, span) + (
-        np.arange(int(span.sum())) - np.repeat(np.cumsum(span) - span, span)
-    )
-    np.minimum.at(out, idx, np.repeat(cm, span))
-
-
-def obstacle_sectors(scan: LaserScan, n: int = SECTORS) -> Sectors:
-    """Pool a scan into ``n`` clockwise sectors over its field of view (module docstring).
-
-    Args:
-        scan: the REP 117 scan, counter-clockwise bearings (radians).
-        n: number of sectors (72 for OBSTACLE_DISTANCE).
-
-    Returns:
-        The payload; every sector is the minimum over the scan bins overlapping it.
-    """
-    min_cm, max_cm = range_limits_cm(scan)
-    out = np.full(n, float(UNKNOWN))
-    if scan.ranges.size == 0:
-        return Sectors(out.astype(np.uint16), 1.0, 0.0, min_cm, max_cm)
-    lo, hi = _footprints_deg(scan)
-    left = float(lo.min())
-    width = (float(hi.max()) - left) / n
-    _pool_min(out, lo, hi, bins_to_cm(scan.ranges, min_cm, max_cm), left, width)
-    return Sectors(out.astype(np.uint16), width, left + width / 2.0, min_cm, max_cm)
-
-
-def merge_cliff(obstacles: Sectors, cliff_scan: LaserScan) -> Sectors:
-    """Obstacle sectors with the drop-offs of a cliff scan folded in (sector-wise minimum).
-
-    Only detections count (finite ranges, and -inf = a drop-off closer than range_min): the cliff
-    scan's "no drop-off" (+inf) or "no data" (NaN) leave the obstacle scan's verdict unchanged.
-    Drop-offs outside the obstacle sectors' field of view or beyond max_distance are not reported.
-    """
-    out = obstacles.distances_cm.astype(np.float64)
-    if cliff_scan.ranges.size:
-        r = np.asarray(cliff_scan.ranges, dtype=np.float64)
-        cm = bins_to_cm(r, obstacles.min_cm, obstacles.max_cm)
-        cm[~(np.isfinite(r) | (r == -np.inf))] = np.nan
-        with np.errstate(invalid="ignore"):
-            # a drop-off beyond the obstacle scan's max range is out of this message's range
-            cm[np.floor(r * 100.0) > obstacles.max_cm] = np.nan
-        lo, hi = _footprints_deg(cliff_scan)
-        left = obstacles.angle_offset_deg - obstacles.increment_f_deg / 2.0
-        _pool_min(out, lo, hi, cm, left, obstacles.increment_f_deg)
-    return Sectors(
-        out.astype(np.uint16),
-        obstacles.increment_f_deg,
-        obstacles.angle_offset_deg,
-        obstacles.min_cm,
-        obstacles.max_cm,
-    )
-
-
-def _advance(due: float, period: float, now: float) -> float:
-    """Next due time: one period on (keeping the phase), or one period from now if that passed."""
-    nxt = due + period
-    return nxt if nxt > now else now + period
-
-
-class Schedule:
-    """When the sender thread sends: HEARTBEAT every second, OBSTACLE_DISTANCE every ``period_s``.
-
-    A late tick (a slow machine, a blocked serial write) sends once and moves on; it never bursts
-    to catch up, so the link never carries a backlog of stale scans.
-    """
-
-    def __init__(self, period_s: float, start_s: float) -> None:
-        self.period_s = period_s
-        self.next_heartbeat = start_s
-        self.next_obstacles = start_s
-
-    def due(self, now: float) -> tuple[bool, bool]:
-        """(send a heartbeat, send obstacles) at monotonic time ``now``; advances the schedule."""
-        heartbeat = now >= self.next_heartbeat
-        if heartbeat:
-            self.next_heartbeat = _advance(self.next_heartbeat, HEARTBEAT_PERIOD_S, now)
-        obstacles = now >= self.next_obstacles
-        if obstacles:
-            self.next_obstacles = _advance(self.next_obstacles, self.period_s, now)
-        return heartbeat, obstacles
-
-    @property
-    def next_wakeup(self) -> float:
-        """Monotonic time of the next send."""
-        return min(self.next_heartbeat, self.next_obstacles)
 
 
 class _SerialLink:

@@ -21,16 +21,10 @@ import numpy as np
 import numpy.typing as npt
 
 from drivers.errors import DeviceOpenError, DriverNotAvailable, OpenFailure
+from drivers.native import NATIVE_LIB_DIRS
 
 log = logging.getLogger(__name__)
 
-LIB_DIRS = (
-    "/usr/lib/x86_64-linux-gnu",
-    "/usr/lib/aarch64-linux-gnu",
-    "/usr/lib/arm-linux-gnueabihf",
-    "/usr/lib",
-    "/usr/local/lib",
-)
 LIB_NAME = "libfreenect.so.0.5"
 WIDTH, HEIGHT = 640, 480
 
@@ -80,7 +74,7 @@ DEPTH_CB = ctypes.CFUNCTYPE(None, ctypes.c_void_p, ctypes.c_void_p, ctypes.c_uin
 
 def find_library(fakenect: bool = False) -> Path | None:
     """The real libfreenect (or Debian's fakenect build), or None."""
-    for folder in LIB_DIRS:
+    for folder in NATIVE_LIB_DIRS:
         path = Path(folder) / ("fakenect" if fakenect else "") / LIB_NAME
         if path.exists():
             return path

@@ -10,7 +10,7 @@ from drivers.formats.oni import write_oni
 from drivers.formats.png_folder import write_png_folder
 from drivers.formats.recording_writer import write_recording
 from drivers.kinect.freenect import find_library as find_freenect
-from drivers.openni import find_library as find_openni
+from drivers.openni.native import find_library as find_openni
 from tests.drivers.driverkit import contract_report_isolated, kinect_exact_frames, skip_without
 
 

@@ -15,7 +15,7 @@ import pytest
 
 from drivers.errors import RecordingError
 from drivers.formats.oni import check_oni, write_oni
-from drivers.openni import find_library
+from drivers.openni.native import find_library
 from tests.drivers.driverkit import SMALL, ramp_frames, run_isolated, skip_without
 
 

@@ -19,7 +19,7 @@ import pytest
 from drivers.base import Frame, Intrinsics
 from drivers.errors import RecordingError
 from drivers.formats.oni import check_oni, write_oni
-from drivers.openni import find_library
+from drivers.openni.native import find_library
 from tests.drivers.driverkit import skip_without
 
 from .kit import ROOT, depthnav, one_error_line

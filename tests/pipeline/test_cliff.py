@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 
 from depthnav_daemon.errors import ConfigError, FrameError
-from depthnav_daemon.pipeline.cliff import CliffParams, CliffResult, _selector, detect_cliffs
+from depthnav_daemon.pipeline.cliff import CliffParams, CliffResult, detect_cliffs
+from depthnav_daemon.pipeline.cliff_table import _selector
 from depthnav_daemon.pipeline.geometry import Mount, level_rays
 from depthnav_daemon.pipeline.scan import ScanParams, scan_layout
 from depthnav_daemon.sim.synthetic import (

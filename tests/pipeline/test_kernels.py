@@ -14,9 +14,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from depthnav_daemon.pipeline import cliff as cliff_mod
-from depthnav_daemon.pipeline import pose as pose_mod
-from depthnav_daemon.pipeline import pose_kernels
+from depthnav_daemon.pipeline import cliff_table, pose_kernels, scan_table
+from depthnav_daemon.pipeline import pose_fit as pose_mod
 from depthnav_daemon.pipeline import scan as scan_mod
 from depthnav_daemon.pipeline.cliff import CliffParams, detect_cliffs
 from depthnav_daemon.pipeline.geometry import Mount, cam_to_level
@@ -59,18 +58,18 @@ def reference_exact_scan(
     Uses the stage's per-pixel thresholds and bin map (what the scan *means*), not its kernel
     tables.
     """
-    t = scan_mod._exact_table(intr, mount, params)
-    rows = scan_mod.scan_rows(intr, params)
+    t = scan_table.exact_table(intr, mount, params)
+    rows = scan_table.scan_rows(intr, params)
     cols = slice(0, intr.width, params.col_step)
     v = np.arange(intr.height, dtype=np.float64)[rows][:, None]
     u = np.arange(intr.width, dtype=np.float64)[cols][None, :]
     rot = cam_to_level(mount.tilt_rad, mount.roll_rad)
     half = params.col_step / 2.0
-    b_l = scan_mod._bearing(intr, rot, u - half, v)
-    b_r = scan_mod._bearing(intr, rot, u + half, v)
+    b_l = scan_table._bearing(intr, rot, u - half, v)
+    b_r = scan_table._bearing(intr, rot, u + half, v)
     lo_b, hi_b = np.minimum(b_l, b_r), np.maximum(b_l, b_r)
-    centre = scan_mod._bearing(intr, rot, u + 0.0 * v, v + 0.0 * u)
-    g_lo, g_hi, _, _ = scan_mod._bin_map(
+    centre = scan_table._bearing(intr, rot, u + 0.0 * v, v + 0.0 * u)
+    g_lo, g_hi, _, _ = scan_table._bin_map(
         centre, lo_b, hi_b, (hi_b - lo_b) < math.pi, t.angle_min, t.angle_increment, t.n_bins
     )
     d = depth[rows][:, cols]
@@ -127,7 +126,7 @@ def test_exact_scan_kernel_equals_per_row_binning(mount: Mount, params: ScanPara
 def test_three_kernel_thresholds_classify_every_depth_as_the_four(
     mount: Mount, params: ScanParams
 ) -> None:
-    t = scan_mod._exact_table(SMALL, mount, params)
+    t = scan_table.exact_table(SMALL, mount, params)
     # every depth at and around every threshold, and the ends of the uint16 range
     edges = np.stack([t.zlo_mm, t.zhi_mm, t.near_lo_mm, t.near_hi_mm]).astype(np.int64)
     for delta in (-1, 0, 1):
@@ -200,15 +199,15 @@ def test_bin_map_kernel_equals_numpy(mount: Mount, col_step: int) -> None:
     u = np.arange(intr.width, dtype=np.float64)[::col_step][None, :]
     rot = cam_to_level(mount.tilt_rad, mount.roll_rad)
     half = col_step / 2.0
-    b_l = scan_mod._bearing(intr, rot, u - half, v)
-    b_r = scan_mod._bearing(intr, rot, u + half, v)
+    b_l = scan_table._bearing(intr, rot, u - half, v)
+    b_r = scan_table._bearing(intr, rot, u + half, v)
     lo_b, hi_b = np.minimum(b_l, b_r), np.maximum(b_l, b_r)
-    centre = scan_mod._bearing(intr, rot, u + 0.0 * v, v + 0.0 * u)
+    centre = scan_table._bearing(intr, rot, u + 0.0 * v, v + 0.0 * u)
     sane = (hi_b - lo_b) < math.pi
     inc = float(np.median(hi_b - lo_b))
     angle_min = float(lo_b[sane].min()) + inc / 2
     n = math.ceil((float(hi_b[sane].max()) - float(lo_b[sane].min())) / inc)
-    got = scan_mod._bin_map(centre, lo_b, hi_b, sane, angle_min, inc, n)
+    got = scan_table._bin_map(centre, lo_b, hi_b, sane, angle_min, inc, n)
     want = numpy_bin_map(centre, lo_b, hi_b, sane, angle_min, inc, n)
     for g, w in zip(got, want, strict=True):
         np.testing.assert_array_equal(g, w)
@@ -218,7 +217,7 @@ def test_bin_map_kernel_equals_numpy(mount: Mount, col_step: int) -> None:
 def test_exact_scan_pixels_feeding_no_bin_leak_into_no_run(mount: Mount) -> None:
     # looking down past the vertical, footprints that straddle the +-pi seam feed no bin; their
     # readings must not reach the next run of their column
-    t = scan_mod._exact_table(SMALL, mount, ScanParams())
+    t = scan_table.exact_table(SMALL, mount, ScanParams())
     assert ((t.fl_code >> 16) == t.n_bins).any()  # the case exists for these mounts
     rng = np.random.default_rng(7)
     for depth in (
@@ -266,7 +265,7 @@ def reference_cliffs(
     Returns:
         (found blocks (nbr, nbc) bool, cliff scan (n,) float32).
     """
-    t = cliff_mod._cliff_table(intr, mount, params, *layout)
+    t = cliff_table.cliff_table(intr, mount, params, *layout)
     rows = np.sort(t.rows)[::-1]  # bottom-up: block row 0 (the lowest) first, as the original
     assert np.array_equal(np.sort(t.rows), np.unique(t.rows))
     bottom_up = np.argsort(-t.rows, kind="stable")
@@ -282,10 +281,10 @@ def reference_cliffs(
     u = t.cols.astype(np.float64)[None, :]
     v = rows.astype(np.float64)[:, None]
     e = params.col_step / 2.0
-    lx, ly, _ = cliff_mod._floor_hits(intr, rot, u - e, v)
-    rx, ry, _ = cliff_mod._floor_hits(intr, rot, u + e, v)
+    lx, ly, _ = cliff_table._floor_hits(intr, rot, u - e, v)
+    rx, ry, _ = cliff_table._floor_hits(intr, rot, u + e, v)
     b_l, b_r = np.arctan2(ly, lx), np.arctan2(ry, rx)
-    first, last = cliff_mod._sample_bins(
+    first, last = cliff_table._sample_bins(
         np.minimum(b_l, b_r), np.maximum(b_l, b_r), *layout[:2], layout[2]
     )
     out = np.full(layout[2], np.nan, dtype=np.float32)
@@ -449,7 +448,7 @@ def test_cliff_scan_samples_outside_the_layout_leak_into_no_run(mount: Mount) ->
     # inside a block row, so a run covering no bin is followed by one that covers bins
     params = CliffParams(block_size=8, row_step=1, col_step=1, block_points_thresh=2)
     layout = (-0.15, 0.004, 76)
-    t = cliff_mod._cliff_table(SMALL, mount, params, *layout)
+    t = cliff_table.cliff_table(SMALL, mount, params, *layout)
     assert ((t.ev_code >> 16) == layout[2]).any()  # runs covering no bin exist
     rng = np.random.default_rng(3)
     depth = rng.integers(0, 9000, size=(SMALL.height, SMALL.width)).astype(np.uint16)

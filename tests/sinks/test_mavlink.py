@@ -19,13 +19,8 @@ from hypothesis import strategies as st
 from depthnav_daemon.errors import ConfigError, SinkError
 from depthnav_daemon.pipeline.scan import LaserScan
 from depthnav_daemon.sinks import create_sink
-from depthnav_daemon.sinks.mavlink import (
-    UNKNOWN,
-    MavlinkSink,
-    Schedule,
-    merge_cliff,
-    obstacle_sectors,
-)
+from depthnav_daemon.sinks.mavlink import MavlinkSink
+from depthnav_daemon.sinks.mavlink_sectors import UNKNOWN, Schedule, merge_cliff, obstacle_sectors
 
 mavlink2 = pytest.importorskip("pymavlink.dialects.v20.common")
 
