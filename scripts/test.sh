@@ -3,6 +3,9 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 bash scripts/install.sh
+# lint first: the project's own ruff config, pinned in the dev extra
+.venv/bin/ruff check --quiet .
+.venv/bin/ruff format --check --quiet .
 # the native sensor libraries were just installed: their tests must run, not skip
 export DEPTHNAV_REQUIRE_NATIVE=1
 exec .venv/bin/python -m pytest -q "$@"

@@ -15,6 +15,7 @@ from depthnav_daemon.commands.common import (
     install_stop_handlers,
     load_config,
     progress_bar,
+    stopped_code,
 )
 from depthnav_daemon.errors import ConfigError
 
@@ -26,12 +27,24 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
         raise ConfigError(f"--frames={args.frames} is out of range (accepted: 1 or more)")
     stop = threading.Event()
     got = install_stop_handlers(stop)  # before the heavy imports: see install_stop_handlers
-    from depthnav_daemon.commands.calibration import calibrate, format_text, write_mount
+    from depthnav_daemon.commands.calibration import (
+        NoFramesError,
+        calibrate,
+        format_text,
+        write_mount,
+    )
 
     cfg = load_config(args, args.device)
-    result = calibrate(
-        cfg, args.frames, stop, progress=progress_bar("calibrating") if not args.json else None
-    )
+    try:
+        result = calibrate(
+            cfg, args.frames, stop, progress=progress_bar("calibrating") if not args.json else None
+        )
+    except NoFramesError:
+        if "signal" not in got:
+            raise
+        # a stop before the first frame is a clean stop, not a failed calibration
+        log.warning("stopped before the first frame: nothing was calibrated")
+        return stopped_code(got)
     if got.get("signal") == signal.SIGINT:
         return EXIT_INTERRUPTED
     if args.json:

@@ -22,6 +22,10 @@ from depthnav_daemon.pipeline.pose import estimate_pose
 from drivers import create_driver, iter_frames, opened
 
 
+class NoFramesError(DepthnavError):
+    """The device gave no frame before the calibration ended."""
+
+
 @dataclass(frozen=True, slots=True)
 class Calibration:
     """The mount estimated over several frames: medians, spreads (standard deviations) and
@@ -74,7 +78,7 @@ def calibrate(
                 break
     need = max(1, math.ceil(read / 3))
     if read == 0:
-        raise DepthnavError(
+        raise NoFramesError(
             f"{cfg.device} gave no frames", hint="check the device with depthnav devices"
         )
     if len(good) < need:

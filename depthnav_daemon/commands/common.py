@@ -96,6 +96,11 @@ def progress_bar(label: str, unit: str = "frames") -> Callable[[int, int], None]
     return show
 
 
+def stopped_code(got: dict[str, int]) -> int:
+    """The exit code of a command stopped by the signal in ``got``: 130 for SIGINT, else 0."""
+    return EXIT_INTERRUPTED if got.get("signal") == signal.SIGINT else EXIT_OK
+
+
 def mib(n_bytes: int) -> int:
     """Bytes in whole MiB, rounded up (so a finished count equals its total)."""
     return -(-n_bytes // (1 << 20))

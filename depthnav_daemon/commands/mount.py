@@ -1,4 +1,5 @@
-"""``depthnav mount``: dead zones and the highest visible obstacle per distance, as text and a PNG."""
+"""``depthnav mount``: dead zones and the highest visible obstacle per distance, as text and a
+PNG."""
 
 from __future__ import annotations
 
@@ -14,6 +15,7 @@ from depthnav_daemon.pipeline.geometry import Mount, check_range
 from depthnav_daemon.pipeline.mount_planner import lower_dead_zone_m, max_visible_height_m
 
 # vertical field of view of the depth image, degrees (vendor data sheets)
+MAX_DISTANCE_M = 100.0
 SENSOR_VFOV_DEG = {
     "kinect": 43.0,
     "xtion": 45.0,
@@ -30,7 +32,7 @@ def _distances(text: str) -> list[float]:
         raise ConfigError(
             f"--distances-m={text!r} is not a comma-separated list of numbers"
         ) from None
-    if not values or any(not (0 < v <= 100) for v in values):
+    if not values or any(not (0 < v <= MAX_DISTANCE_M) for v in values):
         raise ConfigError(f"--distances-m={text!r} is out of range (accepted: numbers in 0..100 m)")
     return values
 
@@ -56,7 +58,8 @@ def mount_report(
     ds = _distances(distances)
     dead = float(lower_dead_zone_m(height_m, tilt_deg, vfov_deg))
     lines = [
-        f"sensor height {height_m:.2f} m, tilt {tilt_deg:.1f} deg down, vertical FOV {vfov_deg:.1f} deg",
+        f"sensor height {height_m:.2f} m, tilt {tilt_deg:.1f} deg down, "
+        f"vertical FOV {vfov_deg:.1f} deg",
         f"lower dead zone (floor not seen): {_fmt(dead)}  (eq. 15)",
         "",
         f"{'distance m':>10}  {'highest obstacle seen m':>24}  (eq. 16)",

@@ -9,11 +9,11 @@ import sys
 import threading
 
 from depthnav_daemon.commands.common import (
-    EXIT_INTERRUPTED,
     EXIT_OK,
     install_stop_handlers,
     mib,
     progress_bar,
+    stopped_code,
 )
 from depthnav_daemon.errors import ConfigError
 
@@ -26,6 +26,7 @@ def cmd_record(args: argparse.Namespace) -> int:
     stop = threading.Event()
     got = install_stop_handlers(stop)  # before the heavy imports: see install_stop_handlers
     from drivers import create_driver, iter_frames, opened
+    from drivers.errors import RecordingError
     from drivers.formats.recording_writer import write_recording
 
     driver = create_driver(args.device)
@@ -62,14 +63,21 @@ def cmd_record(args: argparse.Namespace) -> int:
         signal.signal(signal.SIGINT, while_compressing)
         signal.signal(signal.SIGTERM, while_compressing)
 
-    with opened(driver):
-        n = write_recording(
-            args.out,
-            frames(),
-            description=args.description,
-            device=args.device,
-            progress=took,
-            progress_compress=compressed,
-        )
+    try:
+        with opened(driver):
+            n = write_recording(
+                args.out,
+                frames(),
+                description=args.description,
+                device=args.device,
+                progress=took,
+                progress_compress=compressed,
+            )
+    except RecordingError:
+        if "signal" not in got or taken[0]:
+            raise
+        # a stop before the first frame is a clean stop, not a failed recording
+        log.warning("stopped before the first frame: nothing was recorded into %s", args.out)
+        return stopped_code(got)
     log.info("recorded %d frames into %s", n, args.out)
-    return EXIT_INTERRUPTED if got.get("signal") == signal.SIGINT else EXIT_OK
+    return stopped_code(got) if "signal" in got else EXIT_OK

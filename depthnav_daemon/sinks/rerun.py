@@ -125,6 +125,7 @@ def blueprint() -> Any:
 RRD_MAGIC = b"RRF2"
 RRD_FILE_HEADER = 12  # magic, version, options
 RRD_MESSAGE_HEADER = struct.Struct("<QQ")  # message kind, payload length
+MAX_MESSAGE_KIND = 255
 
 
 def trim_partial_message(path: str) -> int | None:
@@ -146,7 +147,7 @@ def trim_partial_message(path: str) -> int | None:
             while pos + RRD_MESSAGE_HEADER.size <= size:
                 fh.seek(pos)
                 kind, length = RRD_MESSAGE_HEADER.unpack(fh.read(RRD_MESSAGE_HEADER.size))
-                if kind > 255:  # not a message header: an unknown layout, leave the file alone
+                if kind > MAX_MESSAGE_KIND:  # not a message header: an unknown layout, leave it
                     return None
                 if pos + RRD_MESSAGE_HEADER.size + length > size:
                     break

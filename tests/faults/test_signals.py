@@ -17,7 +17,7 @@ import pytest
 
 from drivers.formats.recording import read_recording
 
-from .kit import ENDLESS, FIXTURE, finish, json_lines, read_lines, start, wait_until_ours
+from .kit import ENDLESS, FIXTURE, WAIT_S, finish, json_lines, read_lines, start, wait_until_ours
 
 CODES = {signal.SIGTERM: 0, signal.SIGINT: 130}
 
@@ -50,7 +50,12 @@ def test_signal_while_recording_keeps_every_frame_read(tmp_path: Path, sig: int)
         "record", "--device", ENDLESS, "--frames", "100000", str(out), stderr_path=err_path
     )
     wait_until_ours(proc)
-    time.sleep(1.0)  # some realtime frames are in memory by now
+    # wait for a frame on disk, not for a time: a loaded machine may take seconds to read one
+    deadline = time.monotonic() + WAIT_S
+    while not any(p.stat().st_size for p in out.glob("*.partial") if p.is_file()):
+        assert proc.poll() is None, err_path.read_text()
+        assert time.monotonic() < deadline, "no frame was recorded within the bound"
+        time.sleep(0.05)
     code, _, _ = finish(proc, sig)
     err = err_path.read_text()
     assert code == CODES[sig], err

@@ -16,7 +16,7 @@ from depthnav_daemon.pipeline.scan import ScanParams, depth_to_scan
 from depthnav_daemon.sim.synthetic import Scene, render
 from drivers.base import KINECT_V1
 
-SHARED = Path(__file__).resolve().parents[1].parent / "shared"
+SHARED = Path(__file__).resolve().parents[2].parent / "shared"
 SHIPPED = SHARED / "reference" / "original_params"
 
 # what each shipped file says, in depthnav's names (copied by hand from the YAML files)

@@ -9,7 +9,7 @@ import pytest
 from depthnav_daemon.config.loader import Config, build_config, config_to_dict, valid_keys
 from depthnav_daemon.errors import ConfigError
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def test_default_toml_equals_the_code_defaults() -> None:

@@ -20,7 +20,7 @@ from drivers import create_driver
 from drivers.base import DeviceInfo, Frame
 from drivers.errors import DeviceLost, FrameTimeout
 
-FIXTURE = Path(__file__).resolve().parents[1] / "fixtures" / "corridor_step"
+FIXTURE = Path(__file__).resolve().parents[2] / "fixtures" / "corridor_step"
 SPEC = f"replay:{FIXTURE}?rate=max"
 
 
