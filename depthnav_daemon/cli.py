@@ -14,10 +14,20 @@ import signal
 import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
+from types import FrameType
 from typing import Any
 
 from depthnav_daemon import __version__
-from depthnav_daemon.commands.common import EXIT_FAIL, EXIT_INTERRUPTED, EXIT_OK, EXIT_USAGE
+from depthnav_daemon.commands.common import (
+    EXIT_FAIL,
+    EXIT_INTERRUPTED,
+    EXIT_OK,
+    EXIT_USAGE,
+    STOP_SIGNALS,
+    note_stop_signal,
+    stop_signal_received,
+    stopped_code,
+)
 from depthnav_daemon.errors import DepthnavError
 from drivers.errors import DeviceSpecError, DriverError
 
@@ -229,7 +239,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parser.parse_args(argv)
     configure_logging(args.verbose, args.quiet)
     try:
-        return int(_handler(args.handler)(args))
+        command = _handler(args.handler)
+        if stop_signal_received() is not None:  # noted while the command was being imported
+            raise _EarlyStop(stop_signal_received())
+        return int(command(args))
     except (DepthnavError, DriverError) as exc:
         log.debug("traceback", exc_info=args.verbose >= TRACEBACK_VERBOSITY)
         sys.stderr.write(
@@ -254,40 +267,71 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 class _EarlyStop(BaseException):
-    """SIGTERM before the command installed its graceful stop (start-up, imports, config)."""
+    """A stop signal before the command installed its graceful stop (start-up, config)."""
 
 
-def _stop_early(signum: int, _frame: object) -> None:
-    raise _EarlyStop(signum)
+def _importing(frame: FrameType | None) -> bool:
+    """True if ``frame`` runs inside the import machinery (any frame up the stack)."""
+    while frame is not None:
+        if frame.f_code.co_filename.startswith("<frozen importlib"):
+            return True
+        frame = frame.f_back
+    return False
+
+
+def _stop_early(signum: int, frame: FrameType | None) -> None:
+    """A stop signal during start-up: noted, then raised where raising is safe.
+
+    Inside the import machinery an exception may be swallowed (importlib's module-lock weakref
+    callback printed 'Exception ignored in ... _get_module_lock ... KeyboardInterrupt' and the
+    command ran on, in 2 of 200 runs); there the signal is only noted, and acted on when the
+    import is done (main()) or the command installs its handlers (install_stop_handlers).
+    """
+    note_stop_signal(signum)
+    if not _importing(frame):
+        raise _EarlyStop(signum)
+
+
+def _note_only(signum: int, _frame: FrameType | None) -> None:
+    note_stop_signal(signum)
 
 
 def entry_point() -> None:
     """Console-script entry: exit with main()'s code.
 
     Until a command installs its own handlers (which finish the current frame and close every
-    sink), SIGTERM ends start-up at once with exit code 0 and SIGINT with 130, never with a
-    traceback: nothing has been opened or written yet at that point.
+    sink), SIGTERM and SIGHUP end start-up with exit code 0 and SIGINT with 130, never with a
+    traceback: nothing has been opened or written yet at that point. A run stopped by a signal
+    ends without the interpreter's teardown (about a second of freeing the kernels' objects)
+    once every sink is closed and every stream flushed, so a stop takes well under a second.
     """
-    signal.signal(signal.SIGTERM, _stop_early)
-    signal.signal(signal.SIGINT, signal.default_int_handler)  # KeyboardInterrupt from here on
+    for sig in STOP_SIGNALS:
+        signal.signal(sig, _stop_early)
     try:
         code = main()
-    except _EarlyStop:
-        code = EXIT_OK
+    except _EarlyStop as stop:
+        code = stopped_code({"signal": stop.args[0]})
     except KeyboardInterrupt:
         code = EXIT_INTERRUPTED
-    _exit_now_if_a_viewer_is_stuck(code)
+    for sig in STOP_SIGNALS:  # everything is closed: a late signal changes nothing
+        signal.signal(sig, _note_only)
+    received = stop_signal_received()
+    if received is not None and code == EXIT_OK:
+        code = stopped_code({"signal": received})  # noted during an import, never raised
+    _exit_now_if_a_viewer_is_stuck(code, force=received is not None)
     sys.exit(code)
 
 
-def _exit_now_if_a_viewer_is_stuck(code: int) -> None:
-    """End the process at once when a rerun viewer thread is stuck (see abandoned_viewers()).
+def _exit_now_if_a_viewer_is_stuck(code: int, force: bool = False) -> None:
+    """End the process at once when a rerun viewer thread is stuck (see abandoned_viewers()), or
+    when ``force`` (a stop signal ended the command).
 
     Every sink is closed by now; only the interpreter's teardown is skipped, which would wait 5 s
     for the gone viewer and could abort (SIGABRT, 'terminate called without an active exception').
     """
     rerun_sink = sys.modules.get("depthnav_daemon.sinks.rerun")
-    if rerun_sink is None or not rerun_sink.abandoned_viewers():
+    stuck = rerun_sink is not None and rerun_sink.abandoned_viewers()
+    if not (stuck or force):
         return
     logging.shutdown()
     for stream in (sys.stdout, sys.stderr):

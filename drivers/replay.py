@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import os
 import threading
 import time
 from collections.abc import Iterator
@@ -34,6 +35,7 @@ import numpy.typing as npt
 
 from drivers.base import KINECT_V1, DeviceInfo, Driver, Frame, Intrinsics, TiltState
 from drivers.errors import DeviceSpecError, DriverError, RecordingError
+from drivers.files import check_path_length
 from drivers.formats import fakenect, png_folder
 from drivers.formats.recording import (
     Recording,
@@ -155,7 +157,8 @@ class ReplayDriver:
     def _open_depthnav(self) -> Recording | RecordingStream:
         """The recording decoded in memory when it fits CACHE_MAX_BYTES, else a frame stream."""
         if recording_depth_nbytes(self.path) <= CACHE_MAX_BYTES:
-            return read_recording(self.path, default_fps=self.fps)
+            # the cap again: the member decoded is the one whose size was just read
+            return read_recording(self.path, default_fps=self.fps, max_depth_bytes=CACHE_MAX_BYTES)
         return open_recording_stream(self.path, default_fps=self.fps)
 
     def _depthnav_items(self) -> tuple[Iterator[Item], Intrinsics, str]:
@@ -179,22 +182,7 @@ class ReplayDriver:
         scale = self.scale or png_folder.sidecar_scale(self.path, side)
         frames = png_folder.list_frames(self.path, self.fps)
         first = png_folder.read_depth_png(frames[0][1], scale)
-        base = None
-        table = side.get("intrinsics")
-        if isinstance(table, dict):
-            try:
-                base = Intrinsics(
-                    first.shape[1],
-                    first.shape[0],
-                    float(table["fx"]),
-                    float(table["fy"]),
-                    float(table["cx"]),
-                    float(table["cy"]),
-                )
-            except (KeyError, TypeError, ValueError) as exc:
-                raise RecordingError(
-                    f"{self.path / png_folder.SIDECAR}: bad [intrinsics]: {exc}"
-                ) from None
+        base = png_folder.sidecar_intrinsics(self.path, side, first.shape)
         intr = self._intrinsics_with(base, first.shape)
 
         def items() -> Iterator[Item]:
@@ -251,7 +239,12 @@ class ReplayDriver:
         """Check the recording and get ready to replay it."""
         if self._is_open:
             raise DriverError(f"replay {self.path} is already open")
-        if self.path.suffix.lower() == ".oni" and self.path.is_file():
+        check_path_length(self.path)  # a 300-byte name: one line, not OSError errno 36
+        if (
+            self.path.suffix.lower() == ".oni"
+            and os.path.lexists(self.path)
+            and not self.path.is_dir()
+        ):
             from drivers.openni.driver import OpenNIDriver  # only .oni replay needs OpenNI2
 
             self._inner = OpenNIDriver.for_file(

@@ -6,7 +6,6 @@ options with :func:`check_options`, which rejects unknown keys and lists the val
 
 from __future__ import annotations
 
-import math
 import re
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
@@ -14,6 +13,7 @@ from urllib.parse import unquote
 
 from drivers.base import Intrinsics
 from drivers.errors import DeviceSpecError
+from drivers.values import NumberError, short_repr, to_number
 
 _SCHEME = re.compile(r"[a-z][a-z0-9+.-]*\Z")
 
@@ -56,7 +56,7 @@ def parse_spec(
     scheme = scheme.lower()
     if not _SCHEME.match(scheme):
         raise DeviceSpecError(
-            f"{kind} spec {text!r} does not start with a scheme",
+            f"{kind} spec {short_repr(text)} does not start with a scheme",
             hint="write scheme[://target][?key=value&...], "
             f"e.g. {examples.rsplit(', ', maxsplit=1)[-1]}",
         )
@@ -71,11 +71,13 @@ def parse_spec(
             key = unquote(key).strip().lower()
             if not key or not eq:
                 raise DeviceSpecError(
-                    f"option {part!r} in {kind} spec {text!r} is not key=value",
+                    f"option {short_repr(part)} in {kind} spec {short_repr(text)} is not key=value",
                     hint="separate options with '&', e.g. ?key=value&other=value",
                 )
             if key in options:
-                raise DeviceSpecError(f"option {key!r} is given twice in {kind} spec {text!r}")
+                raise DeviceSpecError(
+                    f"option {short_repr(key)} is given twice in {kind} spec {short_repr(text)}"
+                )
             options[key] = unquote(value)
     return Spec(text=text, scheme=scheme, target=unquote(target), options=options)
 
@@ -97,7 +99,8 @@ def check_options(spec: Spec, valid: Iterable[str], grammar: str, kind: str = ""
         if key not in allowed:
             names = ", ".join(sorted(allowed)) or "none"
             raise DeviceSpecError(
-                f"unknown option {key!r} for {kind}{spec.scheme!r} in {spec.text!r}; "
+                f"unknown option {short_repr(key)} for {kind}{short_repr(spec.scheme)} in "
+                f"{short_repr(spec.text)}; "
                 f"valid options: {names}",
                 hint=f"the {spec.scheme} spec is {grammar}",
             )
@@ -109,7 +112,8 @@ def choice_option(spec: Spec, key: str, choices: Iterable[str], default: str) ->
     allowed = list(choices)
     if value not in allowed:
         raise DeviceSpecError(
-            f"option {key}={value!r} in {spec.text!r} is not one of {', '.join(allowed)}"
+            f"option {key}={short_repr(value)} in {short_repr(spec.text)} is not one of "
+            f"{', '.join(allowed)}"
         )
     return value
 
@@ -123,7 +127,9 @@ def bool_option(spec: Spec, key: str, default: bool) -> bool:
         return True
     if value in ("0", "false", "no", "off"):
         return False
-    raise DeviceSpecError(f"option {key}={value!r} in {spec.text!r} is not 0 or 1")
+    raise DeviceSpecError(
+        f"option {key}={short_repr(value)} in {short_repr(spec.text)} is not 0 or 1"
+    )
 
 
 def number_option(
@@ -131,24 +137,22 @@ def number_option(
 ) -> float:
     """A finite numeric option within [low, high] (an integer when ``integer``), or ``default``.
 
+    The value must be plain ASCII digits (drivers.values.to_number): ``5²``, ``٥٦٠٠``, ``1_000``,
+    ``nan``, ``inf`` and a 400-digit number are refused with one line.
+
     Raises:
         DeviceSpecError: not a number, not finite, not an integer when required, or out of range.
     """
     if key not in spec.options:
         return default
-    raw = spec.options[key].strip()
+    raw = spec.options[key]
     try:
-        value = int(raw, 10) if integer else float(raw)
-    except ValueError:
-        kind = "an integer" if integer else "a number"
+        return to_number(raw, integer=integer, low=low, high=high)
+    except NumberError as exc:
         raise DeviceSpecError(
-            f"option {key}={raw!r} in {spec.text!r} is not {kind} (accepted: {low:g}..{high:g})"
+            f"option {key}={short_repr(raw)} in {short_repr(spec.text)} {exc}"
+            + ("" if "accepted" in str(exc) else f" (accepted: {low:g}..{high:g})")
         ) from None
-    if not (math.isfinite(value) and low <= value <= high):
-        raise DeviceSpecError(
-            f"option {key}={raw!r} in {spec.text!r} is out of range (accepted: {low:g}..{high:g})"
-        )
-    return value
 
 
 def float_option(
@@ -157,28 +161,14 @@ def float_option(
     """A finite number option within [low, high]."""
     if key not in spec.options:
         return default
-    raw = spec.options[key]
-    try:
-        value = float(raw)
-    except ValueError:
-        raise DeviceSpecError(f"option {key}={raw!r} in {spec.text!r} is not a number") from None
-    if not low <= value <= high:  # also false for NaN
-        raise DeviceSpecError(f"option {key}={raw!r} in {spec.text!r} is outside {low:g}..{high:g}")
-    return value
+    return float(number_option(spec, key, 0.0, low, high))
 
 
 def int_option(spec: Spec, key: str, default: int, low: int = 0, high: int = 2**31) -> int:
     """An integer option within [low, high]."""
     if key not in spec.options:
         return default
-    raw = spec.options[key]
-    try:
-        value = int(raw)
-    except ValueError:
-        raise DeviceSpecError(f"option {key}={raw!r} in {spec.text!r} is not an integer") from None
-    if not low <= value <= high:
-        raise DeviceSpecError(f"option {key}={raw!r} in {spec.text!r} is outside {low}..{high}")
-    return value
+    return int(number_option(spec, key, 0, low, high, integer=True))
 
 
 INTRINSICS_OPTIONS = ("fx", "fy", "cx", "cy")

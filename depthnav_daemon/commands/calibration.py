@@ -14,12 +14,15 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import tomli_w
+import tomlkit
+import tomlkit.exceptions
 
 from depthnav_daemon.config.loader import Config
 from depthnav_daemon.errors import ConfigError, DepthnavError
 from depthnav_daemon.pipeline.pose import estimate_pose
 from drivers import create_driver, iter_frames, opened
+from drivers.files import read_text
+from drivers.values import short_text
 
 
 class NoFramesError(DepthnavError):
@@ -124,26 +127,64 @@ def format_text(c: Calibration) -> str:
 
 
 def write_mount(path: Path, c: Calibration) -> None:
-    """Set the [mount] section of a TOML config file (created if missing), atomically."""
-    data: dict[str, Any] = {}
-    if path.exists():
-        try:
-            data = tomllib.loads(path.read_text())
-        except (tomllib.TOMLDecodeError, OSError, UnicodeDecodeError) as exc:
-            raise ConfigError(
-                f"{path} is not a TOML file I can update: {exc}",
-                hint="name a new file or fix this one",
-            ) from None
-    data["mount"] = {
-        "height_m": round(c.height_m, 4),
-        "tilt_deg": round(c.tilt_deg, 3),
-        "roll_deg": round(c.roll_deg, 3),
-    }
-    folder = path.resolve().parent
+    """Set the [mount] section of a TOML config file (created if missing), atomically.
+
+    The file is edited with tomlkit, which keeps the user's comments, key order and formatting
+    (only the three mount keys change). A symlink is written through: its target is replaced (in
+    the target's folder, keeping its permissions) and the link stays a link.
+
+    Raises:
+        ConfigError: the file is not TOML, not UTF-8, not a regular file, or [mount] is not a
+            table.
+        DepthnavError: the file cannot be written (the old one is left as it was).
+    """
+    target = Path(os.path.realpath(path))  # through every symlink to the file itself
+    doc = _read_document(path, target)
+    mount = doc.get("mount")
+    if mount is None:
+        mount = tomlkit.table()
+        doc["mount"] = mount
+    elif not isinstance(mount, dict):
+        raise ConfigError(
+            f"{path}: 'mount' is not a table, cannot set [mount] in it",
+            hint="name a new file or fix this one",
+        )
+    mount["height_m"] = round(c.height_m, 4)
+    mount["tilt_deg"] = round(c.tilt_deg, 3)
+    mount["roll_deg"] = round(c.roll_deg, 3)
+    _replace(path, target, tomlkit.dumps(doc).encode("utf-8"))
+
+
+def _read_document(path: Path, target: Path) -> tomlkit.TOMLDocument:
+    """The config to update as a tomlkit document (an empty one when the file does not exist)."""
+    if not os.path.lexists(target):
+        return tomlkit.document()
+    text = read_text(target, what="config file", error=_not_updatable(path))
+    try:
+        tomllib.loads(text)  # the reader's verdict first: tomlkit accepts a few things it refuses
+        return tomlkit.parse(text)
+    except (tomllib.TOMLDecodeError, tomlkit.exceptions.TOMLKitError) as exc:
+        raise _not_updatable(path)(f"{path}: {short_text(str(exc))}") from None
+    except (RecursionError, ValueError):
+        raise _not_updatable(path)(f"{path}: nested too deeply or a number too long") from None
+
+
+def _not_updatable(path: Path) -> Callable[..., ConfigError]:
+    def error(message: str, hint: str | None = None) -> ConfigError:
+        return ConfigError(
+            f"{message.rstrip('.')}; not a TOML file I can update",
+            hint=hint or "name a new file or fix this one",
+        )
+
+    return error
+
+
+def _replace(path: Path, target: Path, data: bytes) -> None:
+    """Write ``data`` to ``target`` through a temporary file in its folder, renamed over it."""
     try:
         # the new file keeps the old one's permissions (mkstemp makes 0600), or the umask's
-        mode = path.stat().st_mode & 0o7777 if path.exists() else 0o666 & ~_umask()
-        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=folder)
+        mode = target.stat().st_mode & 0o7777 if target.exists() else 0o666 & ~_umask()
+        fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", dir=target.parent)
     except OSError as exc:
         raise DepthnavError(
             f"cannot write {path}: {exc.strerror or exc}",
@@ -151,11 +192,11 @@ def write_mount(path: Path, c: Calibration) -> None:
         ) from None
     try:
         with os.fdopen(fd, "wb") as fh:
-            tomli_w.dump(data, fh)
+            fh.write(data)
             fh.flush()
             os.fsync(fh.fileno())
         os.chmod(tmp, mode)
-        os.replace(tmp, path)
+        os.replace(tmp, target)
     except OSError as exc:  # a full disk: the old file stays as it was
         Path(tmp).unlink(missing_ok=True)
         raise DepthnavError(

@@ -51,30 +51,51 @@ def load_config(args: argparse.Namespace, device: str | None) -> Config:
     return build_config(args.config, args.set, overrides(args, device))
 
 
+# SIGHUP (the terminal closed, a service manager) stops as cleanly as SIGTERM
+STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
+_received: dict[str, int] = {}  # the first stop signal of this process, whoever caught it
+
+
+def note_stop_signal(signum: int) -> None:
+    """Remember that a stop signal came (the first one counts for the exit code)."""
+    _received.setdefault("signal", signum)
+
+
+def stop_signal_received() -> int | None:
+    """The first stop signal this process got, or None."""
+    return _received.get("signal")
+
+
 def install_stop_handlers(stop: threading.Event) -> dict[str, int]:
-    """SIGINT and SIGTERM set ``stop``; returns a dict that records which signal came.
+    """SIGINT, SIGTERM and SIGHUP set ``stop``; returns a dict that records which signal came.
 
     Commands install these before their heavy imports (numpy, numba, the kernels): a
     KeyboardInterrupt raised inside an import ended the process with -SIGINT instead of 130 in
     ~1 of 30 runs signalled 0.1-0.3 s into start-up; a stop flag set during the imports is seen
-    by the command as soon as they finish.
+    by the command as soon as they finish. A stop signal that came earlier, while the CLI was
+    starting (cli.entry_point notes it), sets ``stop`` at once.
     """
     got: dict[str, int] = {}
 
     def handler(signum: int, _frame: object) -> None:
+        note_stop_signal(signum)
         got["signal"] = signum
         stop.set()
 
-    signal.signal(signal.SIGINT, handler)
-    signal.signal(signal.SIGTERM, handler)
+    for sig in STOP_SIGNALS:
+        signal.signal(sig, handler)
+    early = stop_signal_received()
+    if early is not None:
+        got["signal"] = early
+        stop.set()
     return got
 
 
 def progress_bar(label: str, unit: str = "frames") -> Callable[[int, int], None]:
     """A one-line progress bar on stderr when it is a terminal; log lines otherwise.
 
-    The log lines come at every quarter of ``total`` crossed and at the end, also for callers
-    that skip values (compression reports every few MiB).
+    The log lines come at the first unit, at every quarter of ``total`` crossed and at the end,
+    also for callers that skip values (compression reports every few MiB).
     """
     tty = sys.stderr.isatty()
     last = [0]
@@ -89,7 +110,7 @@ def progress_bar(label: str, unit: str = "frames") -> Callable[[int, int], None]
                 f"\r{label} [{'#' * filled}{'.' * (width - filled)}] {done}/{total} {unit}{end}"
             )
             sys.stderr.flush()
-        elif done == total or done // step > last[0] // step:
+        elif done in (1, total) or done // step > last[0] // step:  # the first: it started
             log.info("%s: %d/%d %s", label, done, total, unit)
         last[0] = done
 

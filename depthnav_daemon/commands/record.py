@@ -10,8 +10,10 @@ import threading
 
 from depthnav_daemon.commands.common import (
     EXIT_OK,
+    STOP_SIGNALS,
     install_stop_handlers,
     mib,
+    note_stop_signal,
     progress_bar,
     stopped_code,
 )
@@ -20,9 +22,26 @@ from depthnav_daemon.errors import ConfigError
 log = logging.getLogger(__name__)
 
 
+def _utf8(text: str) -> bool:
+    """True if ``text`` can be written as UTF-8 (command-line bytes that were not UTF-8 come in
+    as lone surrogates, which cannot)."""
+    try:
+        text.encode("utf-8")
+    except UnicodeEncodeError:
+        return False
+    return True
+
+
 def cmd_record(args: argparse.Namespace) -> int:
     if args.frames < 1:
         raise ConfigError(f"--frames={args.frames} is out of range (accepted: 1 or more)")
+    # checked before a frame is read: the metadata is written last, after every frame
+    if not _utf8(args.description):
+        raise ConfigError(
+            "--description is not UTF-8 text", hint="write it in a UTF-8 terminal or locale"
+        )
+    # a device path that is not UTF-8 still records; recording.toml names it with U+FFFD
+    device_text = args.device.encode("utf-8", "surrogateescape").decode("utf-8", "replace")
     stop = threading.Event()
     got = install_stop_handlers(stop)  # before the heavy imports: see install_stop_handlers
     from drivers import create_driver, iter_frames, opened
@@ -45,6 +64,7 @@ def cmd_record(args: argparse.Namespace) -> int:
         compressing(mib(done), mib(total))
 
     def while_compressing(signum: int, _frame: object) -> None:
+        note_stop_signal(signum)
         if got.get("abandon"):
             log.warning("recording abandoned: nothing is written to %s", args.out)
             raise KeyboardInterrupt  # write_recording removes its partial files
@@ -60,8 +80,8 @@ def cmd_record(args: argparse.Namespace) -> int:
                 break
             yield frame
         driver.close()  # the device is not needed while the frames are compressed
-        signal.signal(signal.SIGINT, while_compressing)
-        signal.signal(signal.SIGTERM, while_compressing)
+        for sig in STOP_SIGNALS:
+            signal.signal(sig, while_compressing)
 
     try:
         with opened(driver):
@@ -69,7 +89,7 @@ def cmd_record(args: argparse.Namespace) -> int:
                 args.out,
                 frames(),
                 description=args.description,
-                device=args.device,
+                device=device_text,
                 progress=took,
                 progress_compress=compressed,
             )

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import os
 import tomllib
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -21,6 +22,8 @@ from depthnav_daemon.pipeline.cliff import CliffParams
 from depthnav_daemon.pipeline.geometry import Mount, check_int, check_range
 from depthnav_daemon.pipeline.pose import PoseParams
 from depthnav_daemon.pipeline.scan import ScanParams
+from drivers.files import check_path_length, read_toml
+from drivers.values import NumberError, short_repr, short_text, to_number
 
 log = logging.getLogger(__name__)
 
@@ -77,7 +80,7 @@ class DaemonParams:
         check_int("daemon.jump_confirmations", self.jump_confirmations, 1, 1000)
         if self.tilt_source not in TILT_SOURCES:
             raise ConfigError(
-                f"daemon.tilt_source={self.tilt_source!r} is not known "
+                f"daemon.tilt_source={short_repr(self.tilt_source)} is not known "
                 f"(accepted: {', '.join(TILT_SOURCES)})"
             )
         check_range("daemon.frame_timeout_s", self.frame_timeout_s, 0.01, 60.0, " s")
@@ -125,23 +128,38 @@ def _field_types(cls: type) -> dict[str, Any]:
     return {f.name: f.default for f in dataclasses.fields(cls)}
 
 
+MAX_TEXT_CHARS = 4096  # a device spec, sink spec or name; longer text is not one
+
+
 def _coerce(key: str, value: Any, default: Any) -> Any:
-    """Check a value against the type of the field's default; ints are accepted for floats."""
+    """Check a value against the type of the field's default; ints are accepted for floats.
+
+    Numbers go through drivers.values.to_number: finite, and at most 1e300 (floats) or 2**63
+    (integers) in size, so a 400-digit integer is one ConfigError line, not an OverflowError from
+    the range checks that follow.
+    """
     if isinstance(default, bool):
         if isinstance(value, bool):
             return value
-    elif isinstance(default, int):
-        if isinstance(value, int) and not isinstance(value, bool):
-            return value
-    elif isinstance(default, float):
-        if isinstance(value, (int, float)) and not isinstance(value, bool):
-            return float(value)
+    elif isinstance(default, (int, float)):
+        wanted_int = isinstance(default, int)
+        if isinstance(value, int if wanted_int else (int, float)) and not isinstance(value, bool):
+            try:
+                return to_number(value, integer=wanted_int)
+            except NumberError as exc:
+                raise ConfigError(f"{key}={short_repr(value)} {exc}") from None
     elif isinstance(default, str):
         if isinstance(value, str):
+            if len(value) > MAX_TEXT_CHARS:
+                raise ConfigError(
+                    f"{key}={short_repr(value)} is longer than {MAX_TEXT_CHARS} characters"
+                )
             return value
     else:
         return value
-    raise ConfigError(f"{key}={value!r} has the wrong type (accepted: {type(default).__name__})")
+    raise ConfigError(
+        f"{key}={short_repr(value)} has the wrong type (accepted: {type(default).__name__})"
+    )
 
 
 def _merge(base: dict[str, Any], overlay: Mapping[str, Any], origin: str) -> None:
@@ -152,24 +170,31 @@ def _merge(base: dict[str, Any], overlay: Mapping[str, Any], origin: str) -> Non
             continue
         if key not in SECTIONS:
             raise ConfigError(
-                f"{origin}: unknown key {key!r}",
+                f"{short_text(origin)}: unknown key {short_repr(key)}",
                 hint=f"valid top-level keys and sections: {', '.join([*TOP_LEVEL, *SECTIONS])}",
             )
         if not isinstance(value, Mapping):
-            raise ConfigError(f"{origin}: {key!r} must be a table of keys, got {value!r}")
+            raise ConfigError(
+                f"{short_text(origin)}: {key!r} must be a table of keys, got {short_repr(value)}"
+            )
         known = _field_types(SECTIONS[key])
         for sub, v in value.items():
             if sub not in known:
                 raise ConfigError(
-                    f"{origin}: unknown key '{key}.{sub}'",
+                    f"{short_text(origin)}: unknown key {short_repr(f'{key}.{sub}')}",
                     hint=f"valid keys in [{key}]: {', '.join(known)}",
                 )
             base.setdefault(key, {})[sub] = v
 
 
 def read_config_file(path: Path) -> dict[str, Any]:
-    """One config file as a nested dict: TOML, or a depth_nav_tools ROS parameter file (.yaml)."""
-    if not path.is_file():
+    """One config file as a nested dict: TOML, or a depth_nav_tools ROS parameter file (.yaml).
+
+    Read through drivers.files: a regular UTF-8 file of at most 1 MiB (a FIFO, a device, a folder
+    or a 300-byte name is one ConfigError line), parsed with its nesting and numbers bounded.
+    """
+    check_path_length(path, _config_file_error)
+    if not os.path.lexists(path):
         raise ConfigError(
             f"config file {path} does not exist", hint="check the path given to --config"
         )
@@ -180,13 +205,11 @@ def read_config_file(path: Path) -> dict[str, Any]:
         for warning in ros.warnings:
             log.warning("%s: %s", path, warning)
         return {section: dict(values) for section, values in ros.values.items() if values}
-    try:
-        with path.open("rb") as fh:
-            return tomllib.load(fh)
-    except tomllib.TOMLDecodeError as exc:
-        raise ConfigError(f"config file {path} is not valid TOML: {exc}") from None
-    except OSError as exc:
-        raise ConfigError(f"config file {path} cannot be read: {exc.strerror}") from None
+    return read_toml(path, what="config file", error=_config_file_error)
+
+
+def _config_file_error(message: str, hint: str | None = None) -> ConfigError:
+    return ConfigError(f"config file {message}", hint=hint)
 
 
 def parse_set(item: str) -> dict[str, Any]:
@@ -195,18 +218,22 @@ def parse_set(item: str) -> dict[str, Any]:
     key = key.strip()
     if not sep or not key:
         raise ConfigError(
-            f"--set {item!r} is not key=value", hint="e.g. --set scan.range_max_m=4.0"
+            f"--set {short_repr(item)} is not key=value", hint="e.g. --set scan.range_max_m=4.0"
         )
     try:
         value = tomllib.loads(f"v = {text.strip()}")["v"]
     except tomllib.TOMLDecodeError:
         value = text.strip()
+    except RecursionError:
+        raise ConfigError(f"--set {short_repr(key)}: the value is nested too deeply") from None
+    except ValueError:  # an integer over Python's 4300-digit limit (tomllib's int() raises)
+        raise ConfigError(f"--set {short_repr(key)}: the value has too many digits") from None
     if key in TOP_LEVEL:
         return {key: value}
     section, dot, sub = key.partition(".")
     if not dot or section not in SECTIONS:
         raise ConfigError(
-            f"--set {key!r}: unknown key", hint=f"valid keys: {', '.join(valid_keys())}"
+            f"--set {short_repr(key)}: unknown key", hint=f"valid keys: {', '.join(valid_keys())}"
         )
     return {section: {sub: value}}
 
@@ -237,8 +264,8 @@ def config_from_dict(data: Mapping[str, Any]) -> Config:
         if isinstance(sinks, str):
             sinks = [sinks]
         if not isinstance(sinks, (list, tuple)) or not all(isinstance(s, str) for s in sinks):
-            raise ConfigError(f"sinks={sinks!r} must be a list of sink specs")
-        kwargs["sinks"] = tuple(sinks)
+            raise ConfigError(f"sinks={short_repr(sinks)} must be a list of sink specs")
+        kwargs["sinks"] = tuple(_coerce("sinks", s, "") for s in sinks)
     for section, cls in SECTIONS.items():
         values = data.get(section, {})
         defaults = _field_types(cls)

@@ -20,7 +20,7 @@ one-line ConfigError naming the file and key.
 
 from __future__ import annotations
 
-import math
+import os
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -32,6 +32,8 @@ from depthnav_daemon.pipeline.cliff import CliffParams
 from depthnav_daemon.pipeline.geometry import Mount
 from depthnav_daemon.pipeline.pose import PoseParams
 from depthnav_daemon.pipeline.scan import ScanParams
+from drivers.files import read_text
+from drivers.values import NumberError, short_repr, short_text, to_number
 
 NODES = ("laserscan_kinect", "cliff_detector", "depth_sensor_pose")
 
@@ -162,7 +164,7 @@ def _split(doc: Any, where: str, node: str | None) -> tuple[str, int, dict[str, 
         if node is not None:
             found = [f for f in found if f[0] == node]
         if len(found) != 1:
-            names = ", ".join(str(k) for k in sections)
+            names = short_text(", ".join(short_text(str(k), 40) for k in list(sections)[:8]), 200)
             raise ConfigError(
                 f"{where}: expected the parameters of one depth_nav_tools node, found sections: "
                 f"{names} "
@@ -176,15 +178,14 @@ def _split(doc: Any, where: str, node: str | None) -> tuple[str, int, dict[str, 
 def _convert(value: Any, kind: str, where: str, key: str) -> object:
     if kind == "bool":
         if not isinstance(value, bool):
-            raise ConfigError(f"{where}: {key}={value!r} is not true/false")
+            raise ConfigError(f"{where}: {key}={short_repr(value)} is not true/false")
         return value
-    if isinstance(value, bool) or not isinstance(value, (int, float)):
-        raise ConfigError(f"{where}: {key}={value!r} is not a number")
-    if kind == "int":
-        if isinstance(value, float) and not (math.isfinite(value) and value.is_integer()):
-            raise ConfigError(f"{where}: {key}={value!r} is not an integer")
-        return int(value)
-    return float(value)
+    if isinstance(value, str):  # YAML text is not a number, even when it reads like one
+        raise ConfigError(f"{where}: {key}={short_repr(value)} is not a number")
+    try:
+        return to_number(value, integer=kind == "int")
+    except NumberError as exc:
+        raise ConfigError(f"{where}: {key}={short_repr(value)} {exc}") from None
 
 
 def _validate(values: dict[str, dict[str, object]], where: str) -> None:
@@ -217,7 +218,7 @@ def load_ros_params(path: str | Path, node: str | None = None) -> RosParams:
     where = str(p)
     if node is not None and node not in NODES:
         raise ConfigError(
-            f"node={node!r} is not a depth_nav_tools node (accepted: {', '.join(NODES)})"
+            f"node={short_repr(node)} is not a depth_nav_tools node (accepted: {', '.join(NODES)})"
         )
     name, version, params = _split(_read_yaml(p), where, node)
     mapping = _MAP[name]
@@ -241,18 +242,64 @@ def load_ros_params(path: str | Path, node: str | None = None) -> RosParams:
     return RosParams(values, name, version, warnings)
 
 
+MAX_YAML_DEPTH = 64  # nesting levels; a parameter file has three
+
+
+class _YamlRefusedError(Exception):
+    """A document refused while it is composed (its nesting or an alias)."""
+
+
+class _BoundedLoader(yaml.SafeLoader):
+    """yaml.SafeLoader with nesting bounded and aliases of lists and mappings refused.
+
+    A billion-laughs document (each list nine aliases of the one before) is small on disk, cheap
+    to parse (aliases are shared nodes) and explodes in whatever walks it: an error message
+    formatting it took 8.4 GB and 160 s. A parameter file needs no aliases of collections;
+    aliases of single values (``*speed``) are still accepted.
+    """
+
+    _depth = 0
+
+    def compose_node(self, parent: Any, index: Any) -> Any:
+        if self.check_event(yaml.AliasEvent):
+            anchor = self.peek_event().anchor
+            node = self.anchors.get(anchor)
+            if isinstance(node, yaml.CollectionNode):
+                raise _YamlRefusedError(
+                    f"alias *{short_text(anchor, 40)} repeats a list or mapping "
+                    "(aliases of collections are not accepted)"
+                )
+            return super().compose_node(parent, index)
+        self._depth += 1
+        try:
+            if self._depth > MAX_YAML_DEPTH:
+                raise _YamlRefusedError(f"nested deeper than {MAX_YAML_DEPTH} levels")
+            return super().compose_node(parent, index)
+        finally:
+            self._depth -= 1
+
+
 def _read_yaml(p: Path) -> object:
-    """The parsed YAML document of ``p`` (ConfigError: unreadable or not YAML)."""
+    """The parsed YAML document of ``p`` (ConfigError: unreadable, not UTF-8, not YAML, nested
+    too deeply, a collection alias, a number over Python's 4300-digit limit)."""
+    if not os.path.lexists(p):
+        raise ConfigError(f"{p}: cannot read (no such file)", hint="check the path")
+    text = read_text(p, what="parameter file", error=ConfigError)
+    loader = _BoundedLoader(text)
     try:
-        text = p.read_text(encoding="utf-8")
-    except OSError as e:
-        raise ConfigError(f"{p}: cannot read ({e.strerror or e})") from None
-    try:
-        return yaml.safe_load(text)
+        return loader.get_single_data()
+    except _YamlRefusedError as e:
+        raise ConfigError(f"{p}: not accepted as YAML: {e}") from None
     except yaml.YAMLError as e:
         mark = getattr(e, "problem_mark", None)
         at = f" at line {mark.line + 1}" if mark is not None else ""
         raise ConfigError(f"{p}: not valid YAML{at}") from None
+    except RecursionError:
+        raise ConfigError(f"{p}: not valid YAML (nested too deeply)") from None
+    except ValueError:  # a number over Python's 4300-digit limit, an impossible date
+        raise ConfigError(f"{p}: not valid YAML (a value that cannot be read)") from None
+    finally:
+        loader.dispose()
 
 
 def _node_notes(

@@ -39,6 +39,7 @@ from depthnav_daemon.pipeline.scan_table import exact_table
 from drivers.base import Intrinsics
 
 METHODS = ("exact", "paper")
+MIN_ANGLE_INCREMENT_DEG = 0.001  # finer gives more bins than the kernels hold (scan_table.MAX_BINS)
 
 
 @dataclass(frozen=True, slots=True)
@@ -106,6 +107,11 @@ class ScanParams:
         check_int("scan.row_step", self.row_step, 1, 64)
         check_int("scan.col_step", self.col_step, 1, 64)
         check_range("scan.angle_increment_deg", self.angle_increment_deg, 0.0, 10.0, " deg")
+        if 0.0 < self.angle_increment_deg < MIN_ANGLE_INCREMENT_DEG:  # 5e-324: 0 rad, a / 0
+            raise ConfigError(
+                f"scan.angle_increment_deg={self.angle_increment_deg!r} is out of range "
+                f"(accepted: 0 = the centre pixel's width, or {MIN_ANGLE_INCREMENT_DEG:g}..10 deg)"
+            )
         check_int("scan.scan_height", self.scan_height, 1, 8192)
         check_int("scan.depth_img_row_step", self.depth_img_row_step, 1, 256)
         check_range("scan.ground_margin_m", self.ground_margin_m, 0.0, 10.0, " m")

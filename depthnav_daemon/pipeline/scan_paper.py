@@ -14,6 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
+from depthnav_daemon.errors import ConfigError
 from depthnav_daemon.pipeline.geometry import (
     F32,
     Mount,
@@ -43,6 +44,11 @@ class _PaperTable:
 
 @functools.lru_cache(maxsize=16)
 def _paper_table(intr: Intrinsics, mount: Mount, params: ScanParams) -> _PaperTable:
+    if intr.width < 2:  # noqa: PLR2004 - the bins span the first to the last column
+        raise ConfigError(
+            f"scan.method='paper' needs an image at least 2 pixels wide, this one is {intr.width}",
+            hint="use scan.method = 'exact' for this sensor",
+        )
     rows = scan_rows(intr, params)
     delta = paper_row_angles_rad(intr)[rows]
     alpha = mount.tilt_rad

@@ -9,6 +9,7 @@ flushes and is safe to call twice.
 from __future__ import annotations
 
 import functools
+import ipaddress
 import logging
 import math
 import re
@@ -23,6 +24,7 @@ from drivers.spec import Spec, parse_spec
 from drivers.spec import bool_option as spec_bool_option
 from drivers.spec import check_options as spec_check_options
 from drivers.spec import number_option as spec_number_option
+from drivers.values import short_repr
 
 if TYPE_CHECKING:
     from depthnav_daemon.pipeline import Result
@@ -33,6 +35,9 @@ log = logging.getLogger(__name__)
 
 _SCHEME = re.compile(r"[a-z][a-z0-9+.-]*\Z")
 MAX_PORT = 65535
+_PORT = re.compile(r"[0-9]{1,5}\Z")  # ASCII digits only
+_LABEL = re.compile(r"(?!-)[A-Za-z0-9_-]{1,63}(?<!-)\Z")
+MAX_HOST_CHARS = 253
 T = TypeVar("T")
 
 
@@ -123,8 +128,38 @@ number_option = _config_errors(spec_number_option)
 bool_option = _config_errors(spec_bool_option)
 
 
+def check_host(host: str, spec: SinkSpec) -> str:
+    """``host`` if it is an IP address or a valid host name, else one ConfigError line.
+
+    A name must encode with IDNA and have labels of 1..63 letters, digits, '-' or '_' (at most
+    253 characters): ``a..b`` or a 64-character label made the idna codec raise UnicodeError
+    when the sink opened.
+    """
+    try:
+        ipaddress.ip_address(host)
+    except ValueError:
+        pass
+    else:
+        return host
+    try:
+        ascii_name = host.encode("idna").decode("ascii")
+    except UnicodeError:
+        ascii_name = ""
+    labels = ascii_name.removesuffix(".").split(".")
+    if not ascii_name or len(ascii_name) > MAX_HOST_CHARS or not all(map(_LABEL.match, labels)):
+        raise ConfigError(
+            f"host {short_repr(host)} in sink spec {short_repr(spec.text)} is not a valid "
+            "host name or IP address",
+            hint="e.g. 127.0.0.1, ::1 or robot.local (labels of 1..63 letters, digits, '-')",
+        )
+    return host
+
+
 def parse_host_port(spec: SinkSpec, default_host: str, default_port: int | None) -> tuple[str, int]:
     """``HOST:PORT``, ``:PORT``, ``PORT``, ``HOST``, ``[v6addr]:PORT`` or "" from the spec's target.
+
+    The port is ASCII digits only (Python's int() also reads '٥٦٠٠' as 5600); the host is
+    checked by check_host.
 
     Args:
         spec: the parsed spec.
@@ -132,33 +167,38 @@ def parse_host_port(spec: SinkSpec, default_host: str, default_port: int | None)
         default_port: used when the port is absent; None makes the port required.
 
     Raises:
-        ConfigError: a missing or invalid port.
+        ConfigError: a missing or invalid port, an invalid host.
     """
     target = spec.target.strip().rstrip("/")
     host, port_text = target, ""
     if target.startswith("["):  # [::1]:5600
         end = target.find("]")
         if end < 0:
-            raise ConfigError(f"unclosed '[' in sink spec {spec.text!r}")
+            raise ConfigError(f"unclosed '[' in sink spec {short_repr(spec.text)}")
         host, rest = target[1:end], target[end + 1 :]
         if rest:
             if not rest.startswith(":"):
-                raise ConfigError(f"expected ':PORT' after ']' in sink spec {spec.text!r}")
+                raise ConfigError(
+                    f"expected ':PORT' after ']' in sink spec {short_repr(spec.text)}"
+                )
             port_text = rest[1:]
     elif target.count(":") == 1:
         host, port_text = target.split(":")
-    elif target.isdigit():  # udp:5600
+    elif _PORT.match(target):  # udp:5600
         host, port_text = "", target
-    host = host.strip() or default_host
+    host = check_host(host.strip() or default_host, spec)
     if not port_text:
         if default_port is None:
             raise ConfigError(
-                f"sink spec {spec.text!r} has no port",
+                f"sink spec {short_repr(spec.text)} has no port",
                 hint=f"write {spec.scheme}://HOST:PORT, e.g. {spec.scheme}://127.0.0.1:5600",
             )
         return host, default_port
-    if not port_text.isdigit() or not 1 <= int(port_text) <= MAX_PORT:
-        raise ConfigError(f"port {port_text!r} in sink spec {spec.text!r} is not 1..65535")
+    if not _PORT.match(port_text) or not 1 <= int(port_text) <= MAX_PORT:
+        raise ConfigError(
+            f"port {short_repr(port_text)} in sink spec {short_repr(spec.text)} is not 1..65535",
+            hint="a port is ASCII digits, e.g. 5600",
+        )
     return host, int(port_text)
 
 

@@ -4,7 +4,9 @@ Spec: ``stdout`` (no target, no options). Each line is flushed as soon as it is 
 consumer (or journald) sees every frame at once. A consumer that stops reading (stalled, not
 closed) must not freeze the frame loop and with it every other output: lines are written by a
 writer thread, ``write()`` waits for each at most STALL_S, and while one is still stuck the next
-ones are skipped (counted, logged; the consumer sees the gap in ``seq``). Logs must go to stderr:
+ones are skipped (counted, logged; the consumer sees the gap in ``seq``). When stdout is a regular
+file and the disk fills in the middle of a line, the part written is cut off again (the file ends
+with the last whole line; nothing else wrote to it since). Logs must go to stderr:
 ``open()`` refuses to run when a logging handler writes to stdout, since that would corrupt the
 stream. A closed reader (``depthnav run ... | head -1``) ends the sink with a SinkError rather than
 a traceback.
@@ -13,10 +15,12 @@ a traceback.
 from __future__ import annotations
 
 import contextlib
+import fcntl
 import io
 import logging
 import os
 import queue
+import stat
 import sys
 import threading
 import time
@@ -97,16 +101,24 @@ class StdoutSink:
     def _writer(self) -> None:
         """Write whole lines to the fd; a stalled reader blocks this thread, not the frame loop."""
         assert self._queue is not None and self._fd is not None
+        fd = self._fd
+        regular = _is_regular(fd)
         while True:
             data = self._queue.get()
             if data is None:
                 return
+            start = _end_of(fd) if regular else None
+            written = 0
             try:
                 view = memoryview(data)
                 while view:
-                    view = view[os.write(self._fd, view) :]
+                    n = os.write(fd, view)
+                    written += n
+                    view = view[n:]
             except BaseException as exc:
                 self._error = exc
+                if written and start is not None:
+                    _cut_back(fd, start, written)
             self._done.set()
 
     def write(self, frame: Frame, result: Result) -> None:
@@ -208,6 +220,36 @@ class StdoutSink:
                 os.close(devnull)
             except (OSError, ValueError):
                 log.debug("could not redirect stdout to /dev/null", exc_info=True)
+
+
+def _is_regular(fd: int) -> bool:
+    try:
+        return stat.S_ISREG(os.fstat(fd).st_mode)
+    except OSError:
+        return False
+
+
+def _end_of(fd: int) -> int | None:
+    """Where the next write to a regular file lands: its end (O_APPEND) or the fd's offset."""
+    try:
+        if fcntl.fcntl(fd, fcntl.F_GETFL) & os.O_APPEND:
+            return os.fstat(fd).st_size
+        return os.lseek(fd, 0, os.SEEK_CUR)
+    except OSError:
+        return None
+
+
+def _cut_back(fd: int, start: int, written: int) -> None:
+    """Remove the part of a line a full disk cut short, so the file ends with a whole line.
+
+    Only when the file ends exactly where that part does (nobody else wrote to it since)."""
+    try:
+        if os.fstat(fd).st_size == start + written:
+            os.ftruncate(fd, start)
+            if not fcntl.fcntl(fd, fcntl.F_GETFL) & os.O_APPEND:
+                os.lseek(fd, start, os.SEEK_SET)
+    except OSError:
+        log.debug("could not remove a half-written line from stdout", exc_info=True)
 
 
 def _all_handlers() -> list[logging.Handler]:

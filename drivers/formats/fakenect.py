@@ -26,7 +26,9 @@ import numpy.typing as npt
 
 from drivers.base import Frame
 from drivers.errors import RecordingError
+from drivers.files import INDEX_MAX_BYTES, check_folder, check_regular, read_bytes
 from drivers.kinect.axes import camera_to_accel_counts
+from drivers.values import NumberError, short_repr, to_number
 
 log = logging.getLogger(__name__)
 
@@ -35,7 +37,7 @@ PGM_HEADER = b"P5 640 480 65535\n"
 NO_DISPARITY = 2047
 MAX_MM = 10000
 ACCEL_DUMP = struct.Struct("<hhhbxi")
-_NAME = re.compile(r"([dra])-(\d+(?:\.\d*)?)-(\d+)(?:-.*)?\.(pgm|ppm|dump)\Z")
+_NAME = re.compile(r"([dra])-([0-9]+(?:\.[0-9]*)?)-([0-9]+)(?:-.*)?\.(pgm|ppm|dump)\Z")
 
 # Kinect 360 zero-plane constants as libfreenect reads them from the device; typical values.
 CONST_SHIFT = 200.0
@@ -99,47 +101,62 @@ class Entry:
     path: Path
 
 
+MAX_DUMP_BYTES = 4096  # an accelerometer dump has 12; a bigger file is not read whole
+
+
 def read_index(folder: Path) -> list[Entry]:
-    """Parse and check INDEX.txt; every named file must exist."""
+    """Parse and check INDEX.txt; every named file must exist and be a regular file."""
+    check_folder(folder)  # kinect?fakenect=/dev/zero: one line, not NotADirectoryError
     index = folder / "INDEX.txt"
+    if not os.path.lexists(index):
+        raise RecordingError(f"{folder}: not a fakenect recording (no INDEX.txt)")
+    data = read_bytes(index, what="fakenect index", max_bytes=INDEX_MAX_BYTES)
     try:
-        lines = index.read_text(encoding="ascii").splitlines()
-    except FileNotFoundError:
-        raise RecordingError(f"{folder}: not a fakenect recording (no INDEX.txt)") from None
+        lines = data.decode("ascii").splitlines()
     except UnicodeDecodeError:
         raise RecordingError(f"{index}: not a text file") from None
     entries = []
     for number, line in enumerate(lines, 1):
         name = line.strip()
-        if not name:
-            continue
-        match = _NAME.match(name)
-        if not match or "/" in name:
-            raise RecordingError(
-                f"{index}:{number}: {name!r} is not a fakenect file name "
-                "(d-/r-/a-<time>-<ts>.<ext>)"
-            )
-        path = folder / name
-        if not path.is_file():
-            raise RecordingError(
-                f"{index}:{number}: names {name}, which is missing",
-                hint="the recording is incomplete",
-            )
-        entries.append(Entry(match.group(1), float(match.group(2)), int(match.group(3)), path))
+        if name:
+            entries.append(_entry(folder, index, number, name))
     if not any(e.kind == "d" for e in entries):
         raise RecordingError(f"{index}: lists no depth frames (d-*.pgm)")
     return entries
 
 
+def _entry(folder: Path, index: Path, number: int, name: str) -> Entry:
+    """One INDEX.txt line: a fakenect file name whose time and timestamp are sane numbers."""
+    match = _NAME.match(name)
+    try:
+        if not match or "/" in name:
+            raise NumberError("")
+        time_s = float(to_number(match.group(2), low=0.0, high=1e12))
+        device_ts = int(to_number(match.group(3), integer=True, low=0, high=2**64 - 1))
+    except NumberError:
+        raise RecordingError(
+            f"{index}:{number}: {short_repr(name)} is not a fakenect file name "
+            "(d-/r-/a-<time>-<ts>.<ext>)"
+        ) from None
+    path = folder / name
+    if not os.path.lexists(path):
+        raise RecordingError(
+            f"{index}:{number}: names {name}, which is missing",
+            hint="the recording is incomplete",
+        )
+    check_regular(path)
+    return Entry(match.group(1), time_s, device_ts, path)
+
+
 def read_depth_pgm(path: Path) -> npt.NDArray[np.uint16]:
     """Read one fakenect depth file as (480, 640) raw disparity."""
-    data = path.read_bytes()
+    expected = len(PGM_HEADER) + WIDTH * HEIGHT * 2
+    data = read_bytes(path, what="fakenect depth file", max_bytes=expected)
     if not data.startswith(PGM_HEADER):
         raise RecordingError(
             f"{path}: header is not {PGM_HEADER[:-1].decode()!r}; "
             "only 640x480 11-bit depth is supported"
         )
-    expected = len(PGM_HEADER) + WIDTH * HEIGHT * 2
     if len(data) != expected:
         raise RecordingError(
             f"{path}: {len(data)} bytes, expected {expected} (truncated or corrupt)"
@@ -152,7 +169,7 @@ def read_depth_pgm(path: Path) -> npt.NDArray[np.uint16]:
 
 def read_accel_dump(path: Path) -> tuple[int, int, int, int, int] | None:
     """(x, y, z counts, tilt half-degrees, status) from an a-*.dump; None if the size is wrong."""
-    data = path.read_bytes()
+    data = read_bytes(path, what="accelerometer dump", max_bytes=MAX_DUMP_BYTES)
     if len(data) != ACCEL_DUMP.size:
         log.warning("%s: %d bytes, expected %d; ignoring it", path, len(data), ACCEL_DUMP.size)
         return None

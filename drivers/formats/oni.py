@@ -21,6 +21,8 @@ import numpy as np
 
 from drivers.base import Frame
 from drivers.errors import RecordingError
+from drivers.files import open_input
+from drivers.limits import image_size_problem
 
 MAGIC_FILE = b"NI10"
 MAGIC_RECORD = 0x0052494E
@@ -186,13 +188,8 @@ def check_oni(path: Path) -> OniSummary:
     Raises:
         RecordingError: not an .oni file, a broken or truncated record, or no depth frames.
     """
-    try:
-        size = path.stat().st_size
-        fh = open(path, "rb")
-    except FileNotFoundError:
-        raise RecordingError(f"{path}: no such file", hint="check the path") from None
-    except OSError as exc:
-        raise RecordingError(f"{path}: cannot read it ({exc.strerror})") from None
+    fh = open_input(path, what=".oni file")  # a FIFO would block libOniFile's own open
+    size = os.fstat(fh.fileno()).st_size
     depth: dict[int, dict[str, object]] = {}  # node id -> codec, mode
     with fh:
         _check_file_header(fh.read(FILE_HEADER.size), path)
@@ -268,6 +265,9 @@ def _check_node_record(
                 f"{path}: depth resolution {width}x{height} is out of range "
                 f"(1..{MAX_SIDE} pixels each way)"
             )
+        problem = image_size_problem(width, height)
+        if problem:
+            raise RecordingError(f"{path}: depth stream of {problem}")
         depth[node]["mode"] = (width, height)
 
 

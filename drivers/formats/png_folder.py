@@ -19,9 +19,8 @@ from __future__ import annotations
 
 import itertools
 import logging
-import math
 import os
-import tomllib
+import struct
 from collections.abc import Iterable, Iterator
 from pathlib import Path
 from typing import Any
@@ -32,6 +31,9 @@ from PIL import Image, UnidentifiedImageError
 
 from drivers.base import MM_PER_M, UINT16_MAX, Frame, Intrinsics
 from drivers.errors import RecordingError
+from drivers.files import INDEX_MAX_BYTES, check_regular, open_input, read_bytes, read_toml
+from drivers.limits import image_size_problem
+from drivers.values import NumberError, short_repr, short_text, to_number
 
 log = logging.getLogger(__name__)
 
@@ -40,41 +42,58 @@ INDEX = "depth.txt"
 MAX_SCALE = 1e6  # depth units per metre
 
 
+MAX_PNG_BYTES = 256 << 20  # a 8192x8192 16-bit PNG is 128 MiB uncompressed
+_PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+_IHDR = struct.Struct(">I4sII")  # chunk length, b"IHDR", width, height
+
+
 def is_png_folder(folder: Path) -> bool:
     """True if the folder looks like a PNG depth folder."""
     return (
-        (folder / INDEX).is_file() or any(folder.glob("*.png")) or any(folder.glob("depth/*.png"))
+        os.path.lexists(folder / INDEX)
+        or any(folder.glob("*.png"))
+        or any(folder.glob("depth/*.png"))
     )
+
+
+def _index_line(index: Path, number: int, text: str, folder: Path) -> tuple[float, Path]:
+    """(timestamp_s, image path) of one ``depth.txt`` line, both checked."""
+    parts = text.split()
+    if len(parts) < 2:  # noqa: PLR2004 - timestamp and file name
+        raise RecordingError(
+            f"{index}:{number}: expected '<timestamp_s> <file.png>', got {short_repr(text)}"
+        )
+    try:
+        stamp = float(to_number(parts[0], low=-1e12, high=1e12))
+    except NumberError as exc:
+        raise RecordingError(
+            f"{index}:{number}: timestamp {short_repr(parts[0])} {exc}",
+            hint="timestamps are finite numbers of seconds",
+        ) from None
+    path = folder / parts[1]
+    if not path.resolve().is_relative_to(folder.resolve()):  # ../, /abs or a symlink out
+        raise RecordingError(
+            f"{index}:{number}: {short_text(parts[1], 80)} is outside the recording folder",
+            hint="depth.txt names images inside its own folder",
+        )
+    if not os.path.lexists(path):
+        raise RecordingError(
+            f"{index}:{number}: names {short_text(parts[1], 80)}, which is missing"
+        )
+    check_regular(path)  # a FIFO, a device or a folder is refused now, not at its frame
+    return stamp, path
 
 
 def list_frames(folder: Path, fps: float) -> list[tuple[float, Path]]:
     """(timestamp_s from the first frame, path) for every depth image, in playback order."""
     index = folder / INDEX
     items: list[tuple[float, Path]] = []
-    if index.is_file():
-        for number, line in enumerate(
-            index.read_text(encoding="utf-8", errors="replace").splitlines(), 1
-        ):
-            text = line.strip()
-            if not text or text.startswith("#"):
-                continue
-            parts = text.split()
-            try:
-                stamp = float(parts[0])
-                path = folder / parts[1]
-            except (ValueError, IndexError):
-                raise RecordingError(
-                    f"{index}:{number}: expected '<timestamp_s> <file.png>', got {text!r}"
-                ) from None
-            root = folder.resolve()
-            if not path.resolve().is_relative_to(root):  # ../, an absolute path or a symlink out
-                raise RecordingError(
-                    f"{index}:{number}: {parts[1]} is outside the recording folder",
-                    hint="depth.txt names images inside its own folder",
-                )
-            if not path.is_file():
-                raise RecordingError(f"{index}:{number}: names {parts[1]}, which is missing")
-            items.append((stamp, path))
+    if os.path.lexists(index):
+        text = read_bytes(index, what="frame index", max_bytes=INDEX_MAX_BYTES)
+        for number, raw in enumerate(text.decode("utf-8", errors="replace").splitlines(), 1):
+            line = raw.strip()
+            if line and not line.startswith("#"):
+                items.append(_index_line(index, number, line, folder))
         if items and any(b[0] < a[0] for a, b in itertools.pairwise(items)):
             raise RecordingError(f"{index}: timestamps go backwards")
     else:
@@ -89,12 +108,9 @@ def list_frames(folder: Path, fps: float) -> list[tuple[float, Path]]:
 def read_sidecar(folder: Path) -> dict[str, Any]:
     """The sidecar ``camera.toml`` as a dict, {} when absent."""
     path = folder / SIDECAR
-    if not path.is_file():
+    if not os.path.lexists(path):
         return {}
-    try:
-        return tomllib.loads(path.read_text(encoding="utf-8"))
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
-        raise RecordingError(f"{path}: not valid TOML ({exc})") from None
+    return read_toml(path, what=SIDECAR)
 
 
 def sidecar_scale(folder: Path, side: dict[str, Any]) -> float:
@@ -104,30 +120,81 @@ def sidecar_scale(folder: Path, side: dict[str, Any]) -> float:
         RecordingError: not a number in 1..1e6 (0 would divide by zero, text would not parse).
     """
     value = side.get("depth_scale", 5000.0)
-    if (
-        isinstance(value, bool)
-        or not isinstance(value, (int, float))
-        or not (math.isfinite(value) and 1.0 <= value <= MAX_SCALE)
-    ):
+    try:
+        if isinstance(value, str):
+            raise NumberError("is text")
+        return float(to_number(value, low=1.0, high=MAX_SCALE))
+    except NumberError:
         raise RecordingError(
-            f"{folder / SIDECAR}: depth_scale = {value!r} is not a number in 1..1000000",
+            f"{folder / SIDECAR}: depth_scale = {short_repr(value)} is not a number in 1..1000000",
             hint="units per metre: 5000 for TUM, 1000 for millimetres",
-        )
-    return float(value)
+        ) from None
+
+
+def sidecar_intrinsics(
+    folder: Path, side: dict[str, Any], shape: tuple[int, ...]
+) -> Intrinsics | None:
+    """The sidecar's ``[intrinsics]`` for (H, W) images, or None when it has none."""
+    table = side.get("intrinsics")
+    if not isinstance(table, dict):
+        return None
+    where = folder / SIDECAR
+    values = {}
+    for key in ("fx", "fy", "cx", "cy"):
+        if key not in table:
+            raise RecordingError(f"{where}: bad [intrinsics]: {key!r} is missing")
+        if isinstance(table[key], str):
+            raise RecordingError(f"{where}: bad [intrinsics]: {key} is text, not a number")
+        try:
+            values[key] = float(to_number(table[key]))
+        except NumberError as exc:
+            raise RecordingError(
+                f"{where}: bad [intrinsics]: {key} = {short_repr(table[key])} {exc}"
+            ) from None
+    try:
+        return Intrinsics(shape[1], shape[0], **values)
+    except ValueError as exc:
+        raise RecordingError(f"{where}: bad [intrinsics]: {exc}") from None
+
+
+def _png_size(head: bytes) -> tuple[int, int] | None:
+    """(width, height) from a PNG's IHDR chunk, or None if ``head`` is not a PNG's start."""
+    if len(head) < len(_PNG_SIGNATURE) + _IHDR.size or not head.startswith(_PNG_SIGNATURE):
+        return None
+    _, kind, width, height = _IHDR.unpack_from(head, len(_PNG_SIGNATURE))
+    return (width, height) if kind == b"IHDR" else None
 
 
 def read_depth_png(path: Path, scale: float) -> npt.NDArray[np.uint16]:
-    """One 16-bit PNG as (H, W) uint16 millimetres, given ``scale`` units per metre."""
-    try:
-        with Image.open(path) as img:
-            img.load()
-            if img.mode not in ("I;16", "I;16B", "I;16L", "I"):
-                raise RecordingError(f"{path}: a {img.mode} image, expected 16-bit greyscale depth")
-            raw = np.asarray(img)
-    except (UnidentifiedImageError, OSError, SyntaxError, ValueError) as exc:
-        raise RecordingError(
-            f"{path}: not a readable PNG ({exc})", hint="the file is corrupt or truncated"
-        ) from None
+    """One 16-bit PNG as (H, W) uint16 millimetres, given ``scale`` units per metre.
+
+    The size in the PNG's header is checked (drivers.limits) before anything is decoded: a PNG
+    claiming 20000x20000 pixels is one line, not Pillow's DecompressionBombError, and a 12000 x
+    12000 one is refused before its 3 GB are allocated.
+    """
+    with open_input(path, what="depth image", max_bytes=MAX_PNG_BYTES) as fh:
+        size = _png_size(fh.read(len(_PNG_SIGNATURE) + _IHDR.size))
+        if size is None:
+            raise RecordingError(f"{path}: not a PNG file", hint="the file is corrupt or truncated")
+        problem = image_size_problem(*size)
+        if problem:
+            raise RecordingError(f"{path}: {problem}")
+        fh.seek(0)
+        try:
+            with Image.open(fh, formats=["PNG"]) as img:
+                img.load()
+                if img.mode not in ("I;16", "I;16B", "I;16L", "I"):
+                    raise RecordingError(
+                        f"{path}: a {img.mode} image, expected 16-bit greyscale depth"
+                    )
+                raw = np.asarray(img)
+        except Image.DecompressionBombError as exc:
+            raise RecordingError(f"{path}: too big to decode ({exc})") from None
+        except (UnidentifiedImageError, OSError, SyntaxError, ValueError, EOFError) as exc:
+            raise RecordingError(
+                f"{path}: not a readable PNG ({short_text(str(exc), 120)})",
+                hint="the file is corrupt or truncated",
+            ) from None
     if raw.ndim != 2 or raw.min() < 0 or raw.max() > UINT16_MAX:  # noqa: PLR2004 - (H, W)
         raise RecordingError(f"{path}: not a single-channel 16-bit depth image")
     if scale == MM_PER_M:

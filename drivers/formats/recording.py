@@ -7,26 +7,30 @@ table and an optional ``[truth]`` table. A bare ``.npz`` with the same arrays is
 
 Memory: ``read_recording`` decompresses every frame into memory, ``open_recording_stream`` one
 frame at a time; ``drivers.formats.recording_writer.write_recording`` holds one frame at a time.
+Nothing is decoded before its size is known (drivers.formats.npz): ``depth_mm`` must be uint16
+(N, H, W) with N <= MAX_FRAMES and an image depthnav takes (drivers.limits), ``timestamp_s``
+(N,), ``accel_mps2`` (N, 3) and ``intrinsics`` (4,) numbers; other members are never read.
 """
 
 from __future__ import annotations
 
-import contextlib
 import logging
 import math
 import os
-import tomllib
-import zipfile
 from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import IO, Any
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
 
 from drivers.base import Frame, Intrinsics
 from drivers.errors import RecordingError
+from drivers.files import read_toml
+from drivers.formats.npz import Archive, Member, is_numeric, open_archive
+from drivers.limits import image_size_problem
+from drivers.values import NumberError, short_repr, to_number
 
 log = logging.getLogger(__name__)
 
@@ -34,7 +38,7 @@ FORMAT_VERSION = 1
 FRAMES_FILE = "frames.npz"
 META_FILE = "recording.toml"
 DEPTH_MEMBER = "depth_mm.npy"
-_MAX_HEADER_SIZE = 10_000  # np.load's limit on a .npy header, bytes
+MAX_FRAMES = 1_000_000  # 9 hours at 30 frames/s; bounds the small arrays (timestamps: 8 MB)
 
 
 @dataclass(frozen=True, slots=True)
@@ -75,48 +79,23 @@ class Recording:
         ]
 
 
-@contextlib.contextmanager
-def _reading(path: Path) -> Iterator[None]:
-    """Turn whatever a damaged or missing archive raises into one RecordingError line."""
-    try:
-        yield
-    except RecordingError:
-        raise
-    except FileNotFoundError:
-        raise RecordingError(f"{path}: no such file", hint="check the path") from None
-    except Exception as exc:
-        # BadZipFile, zlib.error, EOFError, ValueError, SyntaxError, tokenize.TokenError, ...
-        # (found by tests/faults/test_fuzz_inputs.py); every one means the same to the user
-        reason = str(exc).splitlines()[0] if str(exc) else ""
-        raise RecordingError(
-            f"{path}: not a readable .npz archive (corrupt or truncated: "
-            f"{type(exc).__name__}{': ' + reason[:120] if reason else ''})",
-            hint="re-record it or restore it from git",
-        ) from exc
-
-
-def _load_npz(path: Path, skip: str | None = None) -> dict[str, npt.NDArray[Any]]:
-    """Every array of an .npz but ``skip``, which is never decompressed (np.load is lazy)."""
-    with _reading(path), np.load(path, allow_pickle=False) as npz:
-        return {name: npz[name] for name in npz.files if name != skip}
-
-
 def _intrinsics_from_meta(table: Any, shape: tuple[int, int], where: Path) -> Intrinsics:
     if not isinstance(table, dict):
         raise RecordingError(
             f"{where}: [intrinsics] table is missing", hint="add width, height, fx, fy, cx, cy"
         )
+    values: dict[str, int | float] = {}
+    for key in ("width", "height", "fx", "fy", "cx", "cy"):
+        if key not in table:
+            raise RecordingError(f"{where}: [intrinsics] lacks {key!r}")
+        try:
+            values[key] = to_number(table[key], integer=key in ("width", "height"))
+        except NumberError as exc:
+            raise RecordingError(
+                f"{where}: [intrinsics] {key} = {short_repr(table[key])} {exc}"
+            ) from None
     try:
-        intr = Intrinsics(
-            int(table["width"]),
-            int(table["height"]),
-            float(table["fx"]),
-            float(table["fy"]),
-            float(table["cx"]),
-            float(table["cy"]),
-        )
-    except KeyError as exc:
-        raise RecordingError(f"{where}: [intrinsics] lacks {exc.args[0]!r}") from None
+        intr = Intrinsics(**values)  # type: ignore[arg-type]
     except (TypeError, ValueError) as exc:
         raise RecordingError(f"{where}: bad [intrinsics]: {exc}") from None
     if (intr.height, intr.width) != shape:
@@ -130,7 +109,7 @@ def _intrinsics_from_meta(table: Any, shape: tuple[int, int], where: Path) -> In
 def intrinsics_from_array(values: Any, shape: tuple[int, int], where: Path) -> Intrinsics:
     """Intrinsics from an [fx, fy, cx, cy] array and an (H, W) image shape."""
     arr = np.asarray(values)
-    if arr.shape != (4,) or not np.issubdtype(arr.dtype, np.number):
+    if arr.shape != (4,) or arr.dtype.kind not in "iuf":
         raise RecordingError(
             f"{where}: 'intrinsics' must be 4 numbers [fx, fy, cx, cy], got shape {arr.shape}"
         )
@@ -143,42 +122,70 @@ def intrinsics_from_array(values: Any, shape: tuple[int, int], where: Path) -> I
 def _read_meta(folder: Path) -> dict[str, Any]:
     """``recording.toml`` of a recording folder, with its format_version checked."""
     meta_path = folder / META_FILE
-    try:
-        meta = tomllib.loads(meta_path.read_text(encoding="utf-8"))
-    except FileNotFoundError:
+    if not os.path.lexists(meta_path):
         raise RecordingError(
             f"{folder}: not a depthnav recording (no {META_FILE})",
             hint="an interrupted `depthnav record` leaves no recording.toml; record again",
-        ) from None
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
-        raise RecordingError(f"{meta_path}: not valid TOML ({exc})") from None
+        )
+    meta = read_toml(meta_path, what=META_FILE)
     version = meta.get("format_version")
-    if not isinstance(version, int) or version < 1:
+    if isinstance(version, bool) or not isinstance(version, int) or version < 1:
         raise RecordingError(f"{meta_path}: format_version is missing or not a positive integer")
     if version > FORMAT_VERSION:
         raise RecordingError(
-            f"{meta_path}: has format_version {version}; "
+            f"{meta_path}: has format_version {short_repr(version)}; "
             f"this depthnav reads up to {FORMAT_VERSION}",
             hint="update depthnav",
         )
     return meta
 
 
-def _check_depth_layout(dtype: np.dtype[Any], shape: tuple[int, ...], npz_path: Path) -> None:
-    if dtype != np.uint16 or len(shape) != 3 or min(shape) < 1:  # noqa: PLR2004
+def _depth(archive: Archive) -> Member:
+    """The ``depth_mm`` header, checked: uint16 (N, H, W), a size depthnav takes, all stored."""
+    member = archive.member("depth_mm")
+    if member is None:
+        found = ", ".join(short_repr(n, 30) for n in archive.names()[:8]) or "none"
+        raise RecordingError(f"{archive.path}: has no 'depth_mm' array (found: {found})")
+    shape = member.shape
+    if member.dtype != np.uint16 or len(shape) != 3 or min(shape) < 1:  # noqa: PLR2004
         raise RecordingError(
-            f"{npz_path}: 'depth_mm' must be uint16 (N, H, W) with N >= 1, got {dtype} {shape}"
+            f"{archive.path}: 'depth_mm' must be uint16 (N, H, W) with N >= 1, "
+            f"got {member.dtype} {shape}"
         )
+    problem = image_size_problem(shape[2], shape[1])
+    if problem:
+        raise RecordingError(f"{archive.path}: 'depth_mm' holds {problem}")
+    if shape[0] > MAX_FRAMES:
+        raise RecordingError(
+            f"{archive.path}: 'depth_mm' holds {shape[0]} frames, more than the {MAX_FRAMES} "
+            "a recording may have",
+            hint="split it into several recordings",
+        )
+    return member
 
 
-def _checked_depth(arrays: dict[str, npt.NDArray[Any]], npz_path: Path) -> npt.NDArray[np.uint16]:
-    depth = arrays.get("depth_mm")
-    if depth is None:
+def _small(archive: Archive, name: str, shape: tuple[int, ...], what: str) -> Any:
+    """Array ``name`` if it holds numbers of ``shape``: checked from its header, then decoded."""
+    member = archive.member(name)
+    if member is None:
+        return None
+    if member.shape != shape or not is_numeric(member):
         raise RecordingError(
-            f"{npz_path}: has no 'depth_mm' array (found: {', '.join(arrays) or 'none'})"
+            f"{archive.path}: {name!r} must be {what}, got {member.dtype} {member.shape}"
         )
-    _check_depth_layout(depth.dtype, depth.shape, npz_path)
-    return depth
+    return archive.read(member)
+
+
+def _small_arrays(archive: Archive, n: int, with_intrinsics: bool) -> dict[str, Any]:
+    """The small arrays of an N-frame recording, each decoded only after its header is checked
+    (``intrinsics`` only when recording.toml does not give them)."""
+    arrays = {
+        "timestamp_s": _small(archive, "timestamp_s", (n,), f"{n} numbers"),
+        "accel_mps2": _small(archive, "accel_mps2", (n, 3), f"({n}, 3) numbers"),
+    }
+    if with_intrinsics:
+        arrays["intrinsics"] = _small(archive, "intrinsics", (4,), "4 numbers [fx, fy, cx, cy]")
+    return {k: v for k, v in arrays.items() if v is not None}
 
 
 def _checked_stamps(
@@ -186,11 +193,6 @@ def _checked_stamps(
 ) -> npt.NDArray[np.float64]:
     if stamps is None:
         return np.arange(n, dtype=np.float64) / default_fps
-    stamps = np.asarray(stamps)
-    if stamps.shape != (n,) or not np.issubdtype(stamps.dtype, np.number):
-        raise RecordingError(
-            f"{npz_path}: 'timestamp_s' must be {n} numbers, got {stamps.dtype} {stamps.shape}"
-        )
     stamps = stamps.astype(np.float64)
     if not np.all(np.isfinite(stamps)) or np.any(np.diff(stamps) < 0):
         raise RecordingError(f"{npz_path}: 'timestamp_s' must be finite and non-decreasing")
@@ -198,14 +200,10 @@ def _checked_stamps(
 
 
 def _checked_accel(
-    accel: npt.NDArray[Any] | None, n: int, npz_path: Path
+    accel: npt.NDArray[Any] | None, npz_path: Path
 ) -> npt.NDArray[np.float64] | None:
     if accel is None:
         return None
-    if accel.shape != (n, 3) or not np.issubdtype(accel.dtype, np.number):
-        raise RecordingError(
-            f"{npz_path}: 'accel_mps2' must be ({n}, 3) numbers, got {accel.shape}"
-        )
     accel = accel.astype(np.float64)
     if not np.all(np.isfinite(accel)):
         raise RecordingError(f"{npz_path}: 'accel_mps2' has non-finite values")
@@ -217,7 +215,7 @@ def _locate(path: str | os.PathLike[str]) -> tuple[Path, dict[str, Any], Path]:
     where = Path(path)
     if where.is_dir():
         return where, _read_meta(where), where / FRAMES_FILE
-    if where.suffix.lower() == ".npz" or where.is_file():
+    if where.suffix.lower() == ".npz" or os.path.lexists(where):
         return where, {}, where
     raise RecordingError(f"{where}: no such file or folder", hint="check the path")
 
@@ -242,91 +240,54 @@ def _described(
     return {
         "intrinsics": intr,
         "timestamp_s": _checked_stamps(arrays.get("timestamp_s"), n, npz_path, default_fps),
-        "accel_mps2": _checked_accel(arrays.get("accel_mps2"), n, npz_path),
+        "accel_mps2": _checked_accel(arrays.get("accel_mps2"), npz_path),
         "description": str(meta.get("description", "")),
         "device": str(meta.get("device", "")),
         "truth": truth if isinstance(truth, dict) else {},
     }
 
 
-def read_recording(path: str | os.PathLike[str], default_fps: float = 30.0) -> Recording:
+def read_recording(
+    path: str | os.PathLike[str], default_fps: float = 30.0, max_depth_bytes: int | None = None
+) -> Recording:
     """Load a recording folder or a bare ``.npz``, every frame decompressed into memory.
 
     Args:
         path: a recording folder (``recording.toml`` + ``frames.npz``) or an ``.npz`` file.
         default_fps: frame rate assumed when the file has no timestamps, frames per second.
+        max_depth_bytes: refuse (before decoding) depth frames larger than this, bytes; the
+            limit applies to exactly the member that is decoded.
 
     Raises:
-        RecordingError: missing, corrupt, truncated or inconsistent; the message names the file.
+        RecordingError: missing, corrupt, truncated, inconsistent or too big; the message names
+            the file.
     """
     where, meta, npz_path = _locate(path)
-    arrays = _load_npz(npz_path)
-    depth = _checked_depth(arrays, npz_path)
+    with open_archive(npz_path) as archive:
+        member = _depth(archive)
+        if max_depth_bytes is not None and member.nbytes > max_depth_bytes:
+            raise RecordingError(
+                f"{npz_path}: 'depth_mm' decodes to {member.nbytes} bytes, more than the "
+                f"{max_depth_bytes} allowed here (changed while being opened?)"
+            )
+        depth = archive.read(member)
+        arrays = _small_arrays(archive, member.shape[0], "intrinsics" not in meta)
+    shape = (member.shape[0], member.shape[1], member.shape[2])
     return Recording(
-        depth_mm=depth, **_described(where, meta, npz_path, arrays, depth.shape, default_fps)
+        depth_mm=depth, **_described(where, meta, npz_path, arrays, shape, default_fps)
     )
 
 
 # --- streaming: one frame in memory at a time -------------------------------------------------
-@dataclass(frozen=True, slots=True)
-class _DepthHeader:
-    """The .npy header of the ``depth_mm`` member: shape, dtype and memory order.
-
-    Attributes:
-        member: its name in the zip archive.
-        member_size: its size uncompressed (header and data) as the archive says, bytes.
-    """
-
-    member: str
-    member_size: int
-    shape: tuple[int, ...]
-    fortran_order: bool
-    dtype: np.dtype[Any]
-
-    @property
-    def nbytes(self) -> int:
-        """Decoded size of the array, bytes."""
-        return math.prod(self.shape) * self.dtype.itemsize
-
-
-def _depth_member(npz: zipfile.ZipFile, npz_path: Path) -> str:
-    """The member np.load would read as ``depth_mm``."""
-    names = npz.namelist()
-    for name in (DEPTH_MEMBER, "depth_mm"):
-        if name in names:
-            return name
-    found = ", ".join(n.removesuffix(".npy") for n in names) or "none"
-    raise RecordingError(f"{npz_path}: has no 'depth_mm' array (found: {found})")
-
-
-def _read_header(fid: IO[bytes]) -> tuple[tuple[int, ...], bool, np.dtype[Any]]:
-    """(shape, Fortran order, dtype) from the start of a .npy member; leaves fid after it."""
-    version = np.lib.format.read_magic(fid)
-    if version == (1, 0):
-        shape, fortran, dtype = np.lib.format.read_array_header_1_0(fid, _MAX_HEADER_SIZE)
-    elif version == (2, 0):
-        shape, fortran, dtype = np.lib.format.read_array_header_2_0(fid, _MAX_HEADER_SIZE)
-    else:
-        raise ValueError(f"unsupported .npy format version {version[0]}.{version[1]}")
-    return tuple(shape), bool(fortran), dtype
-
-
-def _depth_header(npz_path: Path) -> _DepthHeader:
-    """The ``depth_mm`` header of an .npz, without decompressing the frames."""
-    with _reading(npz_path), zipfile.ZipFile(npz_path) as npz:
-        member = _depth_member(npz, npz_path)
-        with npz.open(member) as fid:
-            return _DepthHeader(member, npz.getinfo(member).file_size, *_read_header(fid))
-
-
 def recording_depth_nbytes(path: str | os.PathLike[str]) -> int:
     """Decoded size of a recording's depth frames, bytes, from the .npy header alone.
 
     Raises:
-        RecordingError: no such file, or not a readable .npz.
+        RecordingError: no such file, not a readable .npz, or a ``depth_mm`` depthnav refuses.
     """
     where = Path(path)
-    return _depth_header(where / FRAMES_FILE if where.is_dir() else where).nbytes
+    with open_archive(where / FRAMES_FILE if where.is_dir() else where) as archive:
+        return _depth(archive).nbytes
 
 
 @dataclass(frozen=True, slots=True)
@@ -363,16 +324,18 @@ class RecordingStream:
         """
         n, height, width = self.shape
         frame_bytes = height * width * 2
-        with _reading(self.npz_path), zipfile.ZipFile(self.npz_path) as npz:
-            with npz.open(_depth_member(npz, self.npz_path)) as fid:
-                if _read_header(fid) != (self.shape, False, np.dtype(np.uint16)):
-                    raise RecordingError(f"{self.npz_path}: changed while being replayed")
+        with open_archive(self.npz_path) as archive:
+            member = _depth(archive)
+            if (member.shape, member.fortran_order) != (self.shape, False):
+                raise RecordingError(f"{self.npz_path}: changed while being replayed")
+            with archive.data(member) as fid:
                 for i in range(n):
                     data = fid.read(frame_bytes)
                     if len(data) != frame_bytes:
                         raise EOFError(f"'depth_mm' ends in frame {i} of {n}")
                     yield np.frombuffer(data, dtype=np.uint16).reshape(height, width)
-                fid.read(1)  # to the end of the member, where zipfile checks its CRC-32
+                if member.stored_bytes == member.nbytes:
+                    fid.read(1)  # to the end of the member, where zipfile checks its CRC-32
 
 
 def open_recording_stream(
@@ -392,23 +355,16 @@ def open_recording_stream(
             in C order; the message names the file.
     """
     where, meta, npz_path = _locate(path)
-    header = _depth_header(npz_path)
-    _check_depth_layout(header.dtype, header.shape, npz_path)
-    if header.fortran_order:
-        raise RecordingError(
-            f"{npz_path}: 'depth_mm' must be uint16 (N, H, W) in C order, "
-            f"got {header.dtype} {header.shape} in Fortran order",
-            hint="save it again with np.ascontiguousarray(depth_mm)",
-        )
-    shape = (header.shape[0], header.shape[1], header.shape[2])
-    # the archive's own size record bounds N before anything is sized by it (a damaged header)
-    if header.member_size < header.nbytes:
-        raise RecordingError(
-            f"{npz_path}: 'depth_mm' holds {header.member_size} bytes, too few for "
-            f"{shape} uint16 (truncated)",
-            hint="re-record it or restore it from git",
-        )
-    arrays = _load_npz(npz_path, skip="depth_mm")
+    with open_archive(npz_path) as archive:
+        member = _depth(archive)
+        if member.fortran_order:
+            raise RecordingError(
+                f"{npz_path}: 'depth_mm' must be uint16 (N, H, W) in C order, "
+                f"got {member.dtype} {member.shape} in Fortran order",
+                hint="save it again with np.ascontiguousarray(depth_mm)",
+            )
+        arrays = _small_arrays(archive, member.shape[0], "intrinsics" not in meta)
+    shape = (member.shape[0], member.shape[1], member.shape[2])
     return RecordingStream(
         npz_path=npz_path,
         shape=shape,

@@ -35,12 +35,19 @@ _COPY_CHUNK_BYTES = 1 << 20  # memory of the final compression, bytes
 
 
 def _check_value(value: Any, where: str) -> None:
-    """Recording metadata takes finite numbers, text, booleans and lists of them."""
+    """Recording metadata takes finite numbers, UTF-8 text, booleans and lists of them."""
     if isinstance(value, (list, tuple)):
         for v in value:
             _check_value(v, where)
     elif isinstance(value, float) and not math.isfinite(value):
         raise RecordingError(f"{where} = {value!r} is not a finite number")
+    elif isinstance(value, str):
+        try:  # checked before the first frame: recording.toml is written after the last one
+            value.encode("utf-8")
+        except UnicodeEncodeError:
+            raise RecordingError(
+                f"{where} is not UTF-8 text (it holds bytes of another encoding)"
+            ) from None
     elif not isinstance(value, (bool, int, float, str)):
         raise RecordingError(
             f"{where} has a {type(value).__name__}; "

@@ -33,6 +33,7 @@ from drivers.errors import (
     FrameTimeout,
     RecordingError,
 )
+from drivers.files import INDEX_MAX_BYTES, check_regular, open_input, read_bytes
 from drivers.formats import fakenect as fakenect_format
 from drivers.kinect.axes import accel_counts_to_camera, tilt_status_name
 from drivers.kinect.freenect import FreenectDepth, find_library
@@ -54,29 +55,31 @@ GRAMMAR = (
     "&fakenect=DIR&const_shift=C&fx=..&fy=..&cx=..&cy=..]"
 )
 OPTIONS = ("accel", "tilt_deg", "led", "lib", "fakenect", "const_shift", *INTRINSICS_OPTIONS)
+FAKENECT_STOP_WAIT_S = 0.2  # its event call sleeps until the next recorded event: not waited for
+LIVE_STOP_WAIT_S = 2.0  # a live device's event call returns within 0.1 s
 
 
 def check_fakenect_recording(folder: Path) -> tuple[int, int]:
-    """Check a fakenect folder so the C library never meets a file it would exit() or over-read on.
+    """Check a fakenect folder so the C library never meets a file it would exit() or over-read
+    on, or block on: the folder, INDEX.txt and every file it names are regular files (the
+    library fopen()s them itself, and a FIFO would hang it where no signal can end it).
 
     Returns:
         (depth frames, index lines); fakenect plays one index line per event.
     """
-    entries = fakenect_format.read_index(folder)
-    lines = (folder / "INDEX.txt").read_text(encoding="ascii").splitlines()
+    entries = fakenect_format.read_index(folder)  # checks the folder and every file it names
+    index = folder / "INDEX.txt"
+    lines = read_bytes(index, what="fakenect index", max_bytes=INDEX_MAX_BYTES).splitlines()
     for number, line in enumerate(lines, 1):
         if not line.strip():
-            raise RecordingError(
-                f"{folder / 'INDEX.txt'}:{number}: blank line; fakenect cannot play it"
-            )
+            raise RecordingError(f"{index}:{number}: blank line; fakenect cannot play it")
     expected = len(fakenect_format.PGM_HEADER) + fakenect_format.WIDTH * fakenect_format.HEIGHT * 2
     for entry in entries:
         if entry.kind in "dr":
-            with open(entry.path, "rb") as fh:
+            with open_input(entry.path) as fh:
                 head = fh.read(len(fakenect_format.PGM_HEADER))
-            if entry.kind == "d" and (
-                head != fakenect_format.PGM_HEADER or entry.path.stat().st_size != expected
-            ):
+                size = os.fstat(fh.fileno()).st_size
+            if entry.kind == "d" and (head != fakenect_format.PGM_HEADER or size != expected):
                 raise RecordingError(
                     f"{entry.path}: not a 640x480 11-bit fakenect depth file of {expected} bytes "
                     "(truncated or corrupt)"
@@ -197,10 +200,11 @@ class KinectDriver:
 
     def _library(self) -> Path:
         if self.lib_path is not None:
-            if not self.lib_path.exists():
+            if not os.path.lexists(self.lib_path):
                 raise DriverNotAvailable(
                     f"{self.lib_path}: no such libfreenect", hint="check the lib= option"
                 )
+            check_regular(self.lib_path, DriverNotAvailable)  # dlopen() of a FIFO would block
             return self.lib_path
         path = find_library(fakenect=self.fakenect_dir is not None)
         if path is None:
@@ -313,10 +317,15 @@ class KinectDriver:
         return self._motor
 
     def close(self) -> None:
-        """Stop streaming and release both devices. Safe to call twice."""
+        """Stop streaming and release both devices. Safe to call twice.
+
+        A fakenect replay is not waited for: fakenect sleeps inside its event call until the
+        next recorded event (seconds, for a recording with gaps), so its thread is left there
+        and the library is not torn down under it (a stop took 2.3 s; now well under one).
+        """
         depth, self._depth = self._depth, None
         if depth is not None:
-            depth.close()
+            depth.close(wait_s=FAKENECT_STOP_WAIT_S if self.fakenect_dir else LIVE_STOP_WAIT_S)
         motor, self._motor = self._motor, None
         if motor is not None:
             motor.close()

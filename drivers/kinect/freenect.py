@@ -261,13 +261,23 @@ class FreenectDepth:
             st.tilt_status,
         )
 
-    def close(self) -> None:
-        """Stop the event thread and release the device. Safe to call twice."""
+    def close(self, wait_s: float = 2.0) -> None:
+        """Stop the event thread and release the device. Safe to call twice.
+
+        Args:
+            wait_s: how long to wait for the event thread. One still inside the library after
+                that (fakenect sleeps there until the next recorded event) is left alone, and so
+                is the library: tearing it down under the thread could crash the process.
+        """
         self._stop.set()
         if self._thread is not None:
-            self._thread.join(timeout=2.0)
+            self._thread.join(timeout=wait_s)
             if self._thread.is_alive():
-                log.warning("libfreenect event thread did not stop within 2 s")
+                say = log.debug if wait_s < 1.0 else log.warning  # fakenect: expected
+                say("libfreenect event thread still busy after %.1f s; left to end", wait_s)
+                self._thread = None
+                self._lib = None  # no call into the library while the thread may be in it
+                return
             self._thread = None
         lib, self._lib = self._lib, None
         if lib is None:

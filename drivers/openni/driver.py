@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import logging
 import math
+import os
 import time
 from pathlib import Path
 from typing import Any
@@ -191,10 +192,8 @@ class OpenNIDriver:
         from openni.utils import OpenNIError
 
         try:
-            if self.file is not None:
-                summary = check_oni(self.file)
-                self._n_frames = summary.frames
-                return openni2.Device.open_file(str(self.file).encode())
+            if self.file is not None:  # checked by check_oni in open()
+                return openni2.Device.open_file(os.fsencode(self.file))
             if self.uri:
                 return openni2.Device(self.uri.encode())
             return openni2.Device.open_any()
@@ -214,6 +213,8 @@ class OpenNIDriver:
         """Open the device or file and start the depth stream."""
         if self._dev is not None:
             raise DriverError(f"{self.spec_text} is already open")
+        if self.file is not None:  # a file's problems before the library's (which may be absent)
+            self._n_frames = check_oni(self.file).frames
         openni2 = self._openni2 = initialize()
         from openni.utils import OpenNIError
 
