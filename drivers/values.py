@@ -28,6 +28,7 @@ _FLOAT = re.compile(r"[+-]?(?:[0-9]+(?:\.[0-9]*)?|\.[0-9]+)(?:[eE][+-]?[0-9]+)?\
 _SPECIAL = {"nan", "+nan", "-nan", "inf", "+inf", "-inf", "infinity", "+infinity", "-infinity"}
 REPR_CHARS = 60  # the longest a value is shown in a message
 _BIG_INT_BITS = 200  # integers longer than this (about 60 digits) are shown by their size
+_COUNTABLE_BITS = 14_000  # about 4200 digits: below Python's 4300-digit str() limit
 
 
 class NumberError(ValueError):
@@ -39,10 +40,12 @@ class _Repr(reprlib.Repr):
     """reprlib with big integers shown by their size (``repr()`` raises over 4300 digits)."""
 
     def repr_int(self, x: int, level: int) -> str:
-        if x.bit_length() > _BIG_INT_BITS:
-            digits = int(x.bit_length() * math.log10(2)) + 1
-            return f"<{'-' if x < 0 else ''}integer of about {digits} digits>"
-        return repr(x)
+        if x.bit_length() <= _BIG_INT_BITS:
+            return repr(x)
+        sign = "-" if x < 0 else ""
+        if x.bit_length() <= _COUNTABLE_BITS:  # str() is allowed and cheap up to here
+            return f"<{sign}integer of {len(str(abs(x)))} digits>"
+        return f"<{sign}integer of about {int(x.bit_length() * math.log10(2)) + 1} digits>"
 
     def repr_bool(self, x: bool, level: int) -> str:
         return repr(x)
@@ -87,7 +90,7 @@ def parse_number_text(text: str, *, integer: bool = False) -> int | float:
     raw = text.strip()
     kind = "an integer" if integer else "a number"
     if len(raw) > MAX_NUMBER_CHARS:
-        raise NumberError(f"is not {kind} (longer than {MAX_NUMBER_CHARS} characters)")
+        raise NumberError(f"is too long to be {kind} (more than {MAX_NUMBER_CHARS} characters)")
     if _INT.match(raw):
         return int(raw)
     if not integer and (_FLOAT.match(raw) or raw.lower() in _SPECIAL):
@@ -133,8 +136,9 @@ def to_number(
             if not number.is_integer():
                 raise NumberError("is not an integer")
             number = int(number)
-    lo = low if low is not None else (-INT_LIMIT + 1 if integer else -MAX_MAGNITUDE)
-    hi = high if high is not None else (INT_LIMIT - 1 if integer else MAX_MAGNITUDE)
-    if not lo <= number <= hi:
-        raise NumberError(f"is out of range (accepted: {_bounds_text(lo, hi)})")
+    limit = INT_LIMIT - 1 if integer else MAX_MAGNITUDE
+    if abs(number) > limit and (low is None or high is None):
+        raise NumberError(f"is too large (more than {limit:.3g} in size)")
+    if not (low is None or low <= number) or not (high is None or number <= high):
+        raise NumberError(f"is out of range (accepted: {_bounds_text(low, high)})")
     return number if integer else float(number)

@@ -11,14 +11,13 @@ import contextlib
 import json
 import logging
 import os
-import resource
 import signal
 import socket
 import subprocess
 import threading
 import time
 import tty
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -49,43 +48,12 @@ from .kit import (
     json_lines,
     one_error_line,
     read_lines,
+    small_disk,
     start,
 )
 
 
-# --- a disk that fills ------------------------------------------------------------------------
-@contextlib.contextmanager
-def small_disk(tmp_path: Path, size: str) -> Iterator[tuple[Path, Callable[[], None] | None]]:
-    """A tmpfs of ``size`` (e.g. "1m"), or, where mounting is not allowed, a file-size limit.
-
-    Yields (folder, preexec_fn for the child): with the fallback, writes past the limit fail
-    with EFBIG (SIGXFSZ ignored) the way a full disk fails with ENOSPC.
-    """
-    folder = tmp_path / "disk"
-    folder.mkdir()
-    mounted = (
-        subprocess.run(
-            ["mount", "-t", "tmpfs", "-o", f"size={size}", "tmpfs", str(folder)],
-            capture_output=True,
-            check=False,
-        ).returncode
-        == 0
-    )
-    if mounted:
-        try:
-            yield folder, None
-        finally:
-            subprocess.run(["umount", "-l", str(folder)], capture_output=True, check=False)
-        return
-    limit = int(size[:-1]) * (1 << 20)
-
-    def preexec() -> None:
-        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
-        resource.setrlimit(resource.RLIMIT_FSIZE, (limit, limit))
-
-    yield folder, preexec
-
-
+# --- a disk that fills (kit.small_disk) -------------------------------------------------------
 def test_disk_full_while_recording(tmp_path: Path) -> None:
     with small_disk(tmp_path, "1m") as (disk, preexec):
         small = read_recording(FIXTURE).frames()[:1]

@@ -1,0 +1,226 @@
+"""Builders of hostile inputs for the fault tests: zip bombs, .npz archives written member by
+member (duplicates, lying headers), PNGs of any claimed size, special files in place of inputs,
+billion-laughs YAML, deep nesting, numbers no reader should choke on.
+
+Bombs are built without compressing their zeros: a deflate block of 1 MiB of zeros ended by a
+full flush holds no reference to what came before, so it can be repeated; a 512 MiB member takes
+a millisecond to build and 0.5 MiB on disk.
+"""
+
+from __future__ import annotations
+
+import io
+import os
+import struct
+import zlib
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+MIB = 1 << 20
+_ZEROS = bytes(MIB)
+
+
+def _zero_block() -> bytes:
+    c = zlib.compressobj(9, zlib.DEFLATED, -15)
+    return c.compress(_ZEROS) + c.flush(zlib.Z_FULL_FLUSH)
+
+
+_ZERO_BLOCK = _zero_block()
+_FINAL_BLOCK = zlib.compressobj(9, zlib.DEFLATED, -15).flush()  # an empty final block
+
+
+@dataclass(frozen=True)
+class Deflated:
+    """Raw deflate data of ``prefix`` + ``zeros`` zero bytes, with the zip fields it needs."""
+
+    data: bytes
+    crc: int
+    size: int  # uncompressed
+
+
+def deflate_zeros(prefix: bytes, zeros: int) -> Deflated:
+    """``prefix`` followed by ``zeros`` zero bytes (rounded down to whole MiB past the prefix's
+    own padding), deflated without compressing the zeros."""
+    head = zlib.compressobj(9, zlib.DEFLATED, -15)
+    pad = zeros % MIB
+    data = [head.compress(prefix + bytes(pad)) + head.flush(zlib.Z_FULL_FLUSH)]
+    crc = zlib.crc32(prefix + bytes(pad))
+    for _ in range(zeros // MIB):
+        data.append(_ZERO_BLOCK)
+        crc = zlib.crc32(_ZEROS, crc)
+    data.append(_FINAL_BLOCK)
+    return Deflated(b"".join(data), crc & 0xFFFFFFFF, len(prefix) + zeros)
+
+
+def deflate(raw: bytes) -> Deflated:
+    c = zlib.compressobj(6, zlib.DEFLATED, -15)
+    return Deflated(c.compress(raw) + c.flush(), zlib.crc32(raw) & 0xFFFFFFFF, len(raw))
+
+
+def npy_header(dtype: str, shape: tuple[int, ...], fortran: bool = False) -> bytes:
+    out = io.BytesIO()
+    np.lib.format.write_array_header_1_0(
+        out, {"descr": np.dtype(dtype).str, "fortran_order": fortran, "shape": shape}
+    )
+    return out.getvalue()
+
+
+def npy_bytes(array: np.ndarray) -> bytes:
+    out = io.BytesIO()
+    np.lib.format.write_array(out, array, allow_pickle=False)
+    return out.getvalue()
+
+
+def bomb(dtype: str, shape: tuple[int, ...]) -> Deflated:
+    """A .npy member whose header and data are true to each other: all zeros, tiny deflated."""
+    nbytes = int(np.prod(shape, dtype=np.int64)) * np.dtype(dtype).itemsize
+    return deflate_zeros(npy_header(dtype, shape), nbytes)
+
+
+def write_zip(path: Path, members: list[tuple[str, Deflated]]) -> None:
+    """A zip archive (deflate, no zip64) of the given members, names repeated as given."""
+    local, central = io.BytesIO(), io.BytesIO()
+    for name, m in members:
+        raw_name = name.encode()
+        offset = local.tell()
+        fields = (20, 0, 8, 0, 0x21, m.crc, len(m.data), m.size, len(raw_name))
+        local.write(struct.pack("<4sHHHHHIIIHH", b"PK\x03\x04", *fields, 0))
+        local.write(raw_name + m.data)
+        central.write(
+            struct.pack(
+                "<4sHHHHHHIIIHHHHHII",
+                b"PK\x01\x02",
+                20,
+                *fields,
+                0,
+                0,
+                0,
+                0,
+                0,
+                offset,
+            )
+            + raw_name
+        )
+    count = len(members)
+    end = struct.pack(
+        "<4sHHHHIIH", b"PK\x05\x06", 0, 0, count, count, central.tell(), local.tell(), 0
+    )
+    path.write_bytes(local.getvalue() + central.getvalue() + end)
+
+
+def npz(path: Path, members: dict[str, np.ndarray | Deflated] | list) -> Path:
+    """An .npz of real arrays and/or prepared (bomb) members; a list keeps repeated names."""
+    items = members.items() if isinstance(members, dict) else members
+    built = []
+    for name, value in items:
+        member = value if isinstance(value, Deflated) else deflate(npy_bytes(value))
+        built.append((name if "." in name or name == "depth_mm" else name + ".npy", member))
+    write_zip(path, built)
+    return path
+
+
+def valid_arrays(n: int = 3, height: int = 48, width: int = 64) -> dict[str, np.ndarray]:
+    """The arrays of a small valid bare .npz recording."""
+    rng = np.random.default_rng(1)
+    return {
+        "depth_mm.npy": rng.integers(500, 4000, (n, height, width), dtype=np.uint16),
+        "intrinsics": np.array([60.0, 60.0, (width - 1) / 2, (height - 1) / 2]),
+        "timestamp_s": np.arange(n) / 30.0,
+        "accel_mps2": np.tile([0.0, -9.7, -1.4], (n, 1)),
+    }
+
+
+# --- PNGs of any claimed size ------------------------------------------------------------------
+def _chunk(kind: bytes, data: bytes) -> bytes:
+    return (
+        struct.pack(">I", len(data))
+        + kind
+        + data
+        + struct.pack(">I", zlib.crc32(kind + data) & 0xFFFFFFFF)
+    )
+
+
+def png_of_zeros(path: Path, width: int, height: int) -> Path:
+    """A valid 16-bit greyscale PNG of ``width`` x ``height`` zeros (a few hundred KiB for any
+    size: its zlib stream is built from repeated zero blocks)."""
+    raw = height * (1 + 2 * width)  # a filter byte and two bytes a pixel, each row
+    body = deflate_zeros(b"", raw)
+    adler = 1
+    for _ in range(raw // MIB):
+        adler = zlib.adler32(_ZEROS, adler)
+    adler = zlib.adler32(bytes(raw % MIB), adler)
+    stream = b"\x78\xda" + body.data + struct.pack(">I", adler & 0xFFFFFFFF)
+    ihdr = struct.pack(">IIBBBBB", width, height, 16, 0, 0, 0, 0)
+    chunks = _chunk(b"IHDR", ihdr) + _chunk(b"IDAT", stream) + _chunk(b"IEND", b"")
+    path.write_bytes(b"\x89PNG\r\n\x1a\n" + chunks)
+    return path
+
+
+def png_header_only(path: Path, width: int, height: int, tail: bytes = b"") -> Path:
+    """A PNG signature and IHDR claiming ``width`` x ``height``, then ``tail`` (no image data)."""
+    ihdr = struct.pack(">IIBBBBB", width, height, 16, 0, 0, 0, 0)
+    path.write_bytes(b"\x89PNG\r\n\x1a\n" + _chunk(b"IHDR", ihdr) + tail)
+    return path
+
+
+# --- special files in place of an input --------------------------------------------------------
+SPECIAL_KINDS = ("fifo", "folder", "dev_zero", "dev_urandom", "dangling", "loop")
+
+
+def make_special(path: Path, kind: str) -> None:
+    """Put a FIFO, a folder, a symlink to /dev/zero or /dev/urandom, a dangling symlink or a
+    symlink loop where a file belongs (replacing whatever is there)."""
+    if path.is_symlink() or path.is_file():
+        path.unlink()
+    elif path.is_dir():
+        import shutil
+
+        shutil.rmtree(path)
+    if kind == "fifo":
+        os.mkfifo(path)
+    elif kind == "folder":
+        path.mkdir()
+    elif kind == "dev_zero":
+        path.symlink_to("/dev/zero")
+    elif kind == "dev_urandom":
+        path.symlink_to("/dev/urandom")
+    elif kind == "dangling":
+        path.symlink_to(path.with_name("nowhere"))
+    elif kind == "loop":
+        path.symlink_to(path.name)
+    else:
+        raise ValueError(kind)
+
+
+# --- text -------------------------------------------------------------------------------------
+def billion_laughs(levels: int = 9, width: int = 9, key: str = "range_min") -> str:
+    """A YAML document whose last key expands to ``width ** levels`` strings."""
+    lines = [f"l0: &l0 [{', '.join(['lol'] * width)}]"]
+    for i in range(1, levels):
+        lines.append(f"l{i}: &l{i} [{', '.join([f'*l{i - 1}'] * width)}]")
+    lines.append(f"{key}: *l{levels - 1}")
+    return "\n".join(lines) + "\n"
+
+
+def nested(depth: int, kind: str = "[") -> str:
+    """A TOML/YAML flow value nested ``depth`` deep: ``[[[...]]]`` or ``{a={a=...}}``."""
+    if kind == "[":
+        return "[" * depth + "]" * depth
+    return "{a = " * depth + "1" + "}" * depth
+
+
+HOSTILE_NUMBERS = (
+    "9" * 400,  # an integer past float range
+    "9" * 5000,  # past Python's 4300-digit int() limit
+    "-" + "9" * 400,
+    "1e400",
+    "-1e400",
+    "inf",
+    "-inf",
+    "nan",
+    "5e-324",
+    "1" + "0" * 308 + ".0",
+    "0x7fffffffffffffffffff",
+)
