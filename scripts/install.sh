@@ -4,7 +4,8 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
-APT_PACKAGES=(libopenni2-0 libfreenect0.5 libfreenect-bin libusb-1.0-0 python3-venv)
+# systemd: systemd-analyze and systemd-sysusers check the shipped unit in the tests
+APT_PACKAGES=(libopenni2-0 libfreenect0.5 libfreenect-bin libusb-1.0-0 python3-venv systemd)
 missing=()
 for p in "${APT_PACKAGES[@]}"; do
   dpkg -s "$p" >/dev/null 2>&1 || missing+=("$p")
