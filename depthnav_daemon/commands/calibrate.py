@@ -12,6 +12,7 @@ import threading
 from depthnav_daemon.commands.common import (
     EXIT_INTERRUPTED,
     EXIT_OK,
+    announce_compiles,
     install_stop_handlers,
     load_config,
     progress_bar,
@@ -33,6 +34,8 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
         format_text,
         write_mount,
     )
+
+    announce_compiles()
 
     cfg = load_config(args, args.device)
     try:

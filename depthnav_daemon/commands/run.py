@@ -10,6 +10,7 @@ import threading
 from depthnav_daemon.commands.common import (
     EXIT_INTERRUPTED,
     EXIT_OK,
+    announce_compiles,
     install_stop_handlers,
     load_config,
 )
@@ -22,6 +23,8 @@ def _run(args: argparse.Namespace, device: str | None) -> int:
     stop = threading.Event()
     got = install_stop_handlers(stop)  # before the heavy imports: see install_stop_handlers
     from depthnav_daemon.daemon.loop import run
+
+    announce_compiles()
 
     cfg = load_config(args, device)
     if not cfg.device:

@@ -199,3 +199,38 @@ def test_waiting_for_a_device_that_never_comes_says_so_then_fails_with_a_hint() 
     assert proc.returncode == 1, proc.stderr
     assert "waiting for device openni://" in proc.stderr
     assert "depthnav: hint:" in proc.stderr and "Traceback" not in proc.stderr
+
+
+COMPILE_ONE = """
+import logging, sys
+import numpy as np
+from depthnav_daemon.cli import configure_logging
+from depthnav_daemon.commands.common import announce_compiles
+from depthnav_daemon.pipeline.pose_kernels import count_candidates_kernel
+configure_logging(0, False)
+announce_compiles()
+z = np.zeros((2, 3), dtype=np.uint16)
+print(count_candidates_kernel(np.ones((4, 6), dtype=np.uint16), 0, 2, 0, 2, z, z + 5))
+"""
+
+
+def test_a_cold_kernel_cache_says_compiling_first_run_only_and_a_warm_one_says_nothing(
+    tmp_path: Path,
+) -> None:
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path / "cache")}
+    runs = [
+        subprocess.run(
+            [sys.executable, "-c", COMPILE_ONE],
+            capture_output=True,
+            text=True,
+            env=env,
+            cwd=ROOT,
+            timeout=300,
+        )
+        for _ in range(2)
+    ]
+    for proc in runs:
+        assert proc.returncode == 0 and proc.stdout.strip() == "6", proc.stderr
+    cold, warm = runs[0].stderr, runs[1].stderr
+    assert "compiling kernels (first run only" in cold and "compiling kernels: 1/" in cold, cold
+    assert "compiling" not in warm, warm
