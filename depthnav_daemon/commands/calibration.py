@@ -3,6 +3,7 @@ frames."""
 
 from __future__ import annotations
 
+import logging
 import math
 import os
 import tempfile
@@ -20,6 +21,8 @@ from depthnav_daemon.config.loader import Config
 from depthnav_daemon.errors import ConfigError, DepthnavError
 from depthnav_daemon.pipeline.pose import estimate_pose
 from drivers import create_driver, iter_frames, opened
+
+log = logging.getLogger(__name__)
 
 
 class NoFramesError(DepthnavError):
@@ -68,6 +71,8 @@ def calibrate(
         for frame in iter_frames(driver, stop):
             est = estimate_pose(frame.depth_mm, frame.intrinsics, cfg.pose, rng)
             read += 1
+            if read == 1:  # the device works: the wait from here is the calibration itself
+                log.info("calibrating %s over up to %d frames", cfg.device, n_frames)
             if est.ok:
                 good.append((est.height_m, est.tilt_deg, est.roll_deg, est.inlier_ratio))
             else:

@@ -173,7 +173,11 @@ def test_sigterm_during_calibrate_uses_the_frames_so_far(tmp_path: Path) -> None
         before = robot.read_text()
         proc = start("calibrate", "--device", ENDLESS, "--frames", "100000", "--write", str(robot))
         wait_until_ours(proc)
-        time.sleep(1.2)  # some realtime frames have been read
+        # wait for a frame read, not for a time: a loaded machine may take seconds to read one
+        deadline = time.monotonic() + WAIT_S
+        while "calibrating replay:" not in proc.stderr_path.read_text():  # type: ignore[attr-defined]
+            assert proc.poll() is None and time.monotonic() < deadline
+            time.sleep(0.05)
         got, out, err = finish(proc, sig)
         assert got == code, err
         assert "Traceback" not in err
