@@ -149,7 +149,8 @@ class UdpSink:
         )
         if data is None:
             self._oversize.failed(
-                "udp sink: frame %d does not fit one %d-byte datagram; skipped",
+                "udp sink: frame %d does not fit one %d-byte datagram; skipped (raise max_bytes, "
+                "or slim it with content=scan or cliff_scan=0)",
                 result.seq,
                 self.max_bytes,
             )
@@ -196,6 +197,16 @@ class UdpSink:
         sock, self._sock = self._sock, None
         if sock is not None:
             sock.close()
+            too_big = self._oversize.count
+            if too_big:
+                # every skipped frame was also logged (rate-limited); the summary says how many
+                log.warning(
+                    "udp sink %s: %d frames sent, %d skipped as larger than max_bytes=%d",
+                    self.name,
+                    self.sent,
+                    too_big,
+                    self.max_bytes,
+                )
             if self.send_errors:
                 log.info(
                     "udp sink %s: %d sent, %d send errors", self.name, self.sent, self.send_errors

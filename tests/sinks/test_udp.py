@@ -223,3 +223,14 @@ def test_every_and_rate_decimate_by_frame_count_and_sensor_time(receiver, pairs,
 def test_bad_slimming_options_are_one_line_config_errors(option):
     with pytest.raises(ConfigError, match=option.split("=")[0]):
         create_sink(f"udp://:5600?{option}")
+
+
+def test_frames_too_big_for_max_bytes_are_summed_up_at_close(receiver, pairs, context, caplog):
+    port = receiver.getsockname()[1]
+    sink = create_sink(f"udp://:{port}?max_bytes=512")
+    with caplog.at_level(logging.INFO, logger="depthnav_daemon.sinks.udp"):
+        sent = _datagrams(receiver, sink, pairs, context)
+    assert sent == [] and sink.sent == 0
+    text = caplog.text
+    assert "content=scan" in text  # the per-frame line says how to slim it
+    assert f"0 frames sent, {len(pairs)} skipped as larger than max_bytes=512" in text
