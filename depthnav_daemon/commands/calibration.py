@@ -3,6 +3,7 @@ frames."""
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 import os
@@ -19,10 +20,29 @@ import tomli_w
 
 from depthnav_daemon.config.loader import Config
 from depthnav_daemon.errors import ConfigError, DepthnavError
-from depthnav_daemon.pipeline.pose import estimate_pose
+from depthnav_daemon.pipeline.pose import PoseParams, estimate_pose
 from drivers import create_driver, iter_frames, opened
 
 log = logging.getLogger(__name__)
+
+# calibrate searches every plausible mount (the daemon's default prior is narrower, for live
+# tracking around a known mount): a sensor on a mast or a pole, pitched up or looking down
+WHOLE_RANGE = {
+    "height_min_m": 0.05,
+    "height_max_m": 3.0,
+    "tilt_min_deg": -30.0,
+    "tilt_max_deg": 89.0,
+    "roll_max_deg": 30.0,
+}
+
+
+def calibration_prior(pose: PoseParams) -> PoseParams:
+    """The floor search's prior for calibrate: the whole plausible range, unless the user's
+    config narrowed it (any prior field changed from its default: theirs wins)."""
+    default = PoseParams()
+    if any(getattr(pose, k) != getattr(default, k) for k in WHOLE_RANGE):
+        return pose
+    return dataclasses.replace(pose, **WHOLE_RANGE)
 
 
 class NoFramesError(DepthnavError):
@@ -63,13 +83,14 @@ def calibrate(
         DepthnavError: too little floor in too many frames (with a hint to point at open floor).
     """
     rng = np.random.default_rng(cfg.daemon.seed)
+    prior = calibration_prior(cfg.pose)
     good: list[tuple[float, float, float, float]] = []
     reasons: list[str] = []
     read = 0
     driver = create_driver(cfg.device)
     with opened(driver):
         for frame in iter_frames(driver, stop):
-            est = estimate_pose(frame.depth_mm, frame.intrinsics, cfg.pose, rng)
+            est = estimate_pose(frame.depth_mm, frame.intrinsics, prior, rng)
             read += 1
             if read == 1:  # the device works: the wait from here is the calibration itself
                 log.info("calibrating %s over up to %d frames", cfg.device, n_frames)
