@@ -238,3 +238,42 @@ def test_run_quick_enough_to_start() -> None:
     assert time.monotonic() - t0 < 60
     assert np.isfinite(0.0)
     assert os.environ.get("DEPTHNAV_NEVER_SET") is None
+
+
+def test_a_mount_typed_on_the_command_line_wins_over_the_accelerometer_and_floor() -> None:
+    # the fixture's accelerometer and floor both say 0.55 m / 15 deg; the user typed 30 and 5
+    p = depthnav(
+        "run",
+        "--device",
+        f"replay:{FIXTURE}?rate=max",
+        "--sink",
+        "stdout",
+        "--max-frames",
+        "3",
+        "--tilt-deg",
+        "30",
+        "--roll-deg",
+        "5",
+    )
+    assert p.returncode == 0, p.stderr
+    poses = [json.loads(line)["pose"] for line in p.stdout.splitlines()]
+    assert all(q["tilt_deg"] == 30.0 and q["roll_deg"] == 5.0 for q in poses), poses
+    assert all(q["source"] == "config" for q in poses)
+    assert "as given: the accelerometer and the floor estimates do not replace it" in p.stderr
+    # asking for the sensors back on the command line lets them in again
+    p = depthnav(
+        "run",
+        "--device",
+        f"replay:{FIXTURE}?rate=max",
+        "--sink",
+        "stdout",
+        "--max-frames",
+        "3",
+        "--tilt-deg",
+        "30",
+        "--set",
+        "daemon.tilt_source=auto",
+    )
+    assert p.returncode == 0, p.stderr
+    last = json.loads(p.stdout.splitlines()[-1])["pose"]
+    assert last["tilt_deg"] == pytest.approx(15.0, abs=0.5)

@@ -37,6 +37,10 @@ def overrides(args: argparse.Namespace, device: str | None = None) -> dict[str, 
     }
     if mount:
         out["mount"] = mount
+        typed = (s.split("=", 1)[0].strip() for s in getattr(args, "set", []) or [])
+        if "daemon.tilt_source" not in typed:
+            # a mount the user typed wins: the accelerometer and the floor do not replace it
+            out["daemon"] = {"tilt_source": "config"}
     if args.method:
         out["scan"] = {"method": args.method}
     if device:
