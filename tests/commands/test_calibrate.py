@@ -16,7 +16,7 @@ from depthnav_daemon.commands.calibration import WHOLE_RANGE, calibration_prior
 from depthnav_daemon.pipeline.geometry import Mount
 from depthnav_daemon.pipeline.pose import PoseParams
 from depthnav_daemon.sim.synthetic import Scene, render
-from drivers.base import Frame, Intrinsics
+from drivers.base import Frame, Intrinsics, tilt_roll_to_accel
 from drivers.formats.recording_writer import write_recording
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -73,3 +73,17 @@ def test_a_prior_the_user_gave_wins_over_the_whole_range() -> None:
     assert {k: getattr(wide, k) for k in WHOLE_RANGE} == WHOLE_RANGE
     mine = PoseParams(height_min_m=0.4, height_max_m=0.7)
     assert calibration_prior(mine) == mine
+
+
+def test_the_accelerometer_centres_the_search_even_beyond_80_deg(tmp_path: Path) -> None:
+    # 85 deg down: outside the no-accelerometer range (a wall head-on looks like a floor from
+    # above), found when the frames carry the accelerometer's reading
+    mount = Mount(1.1, 85.0, 3.0)
+    depth = render(Scene(), ASYM, mount).depth_mm
+    accel = tilt_roll_to_accel(mount.tilt_deg, mount.roll_deg)
+    frames = [Frame(i, i / 30, depth, ASYM, accel) for i in range(3)]
+    got = calibrate(record(tmp_path, frames))
+    assert got["tilt_deg"] == pytest.approx(85.0, abs=0.5)
+    assert got["height_m"] == pytest.approx(1.1, abs=0.01)
+    prior = calibration_prior(PoseParams(), accel)
+    assert (prior.tilt_min_deg, prior.tilt_max_deg) == (75.0, 89.0)
