@@ -7,6 +7,7 @@
     rerun | rerun+grpc://HOST:PORT | rerun:FILE.rrd    viewer / remote viewer / file
     mavlink:SERIALPORT?baud=N | mavlink+udp://HOST:PORT  OBSTACLE_DISTANCE + HEARTBEAT
     rosbag:FILE.mcap | rosbag:FILE.bag   ROS 2 / ROS 1 bag: /scan, /cliff/*, /tf, pose
+    foxglove://HOST:PORT | foxglove:FILE.mcap   Foxglove live view (127.0.0.1:8765) / file
 
 The grammar is ``scheme[://target][?key=value&...]`` (``scheme:target`` is shorthand); each sink
 module's docstring gives its options. Modules are imported only when their sink is made, so
@@ -32,6 +33,7 @@ SINKS: dict[str, tuple[str, str]] = {  # scheme -> (module, class); imported onl
     "mavlink": ("depthnav_daemon.sinks.mavlink", "MavlinkSink"),
     "mavlink+udp": ("depthnav_daemon.sinks.mavlink", "MavlinkSink"),
     "rosbag": ("depthnav_daemon.sinks.rosbag", "RosbagSink"),
+    "foxglove": ("depthnav_daemon.sinks.foxglove", "FoxgloveSink"),
 }
 
 
