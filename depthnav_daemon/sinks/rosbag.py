@@ -212,6 +212,12 @@ class RosbagSink:
             raise SinkError(
                 f"rosbag sink: {self.path} exists; not overwriting", hint="name a new file"
             )
+        for leftover in (self.partial, self.reserve):
+            if leftover.exists():  # never remove it: it may be another run's bag in the making
+                raise SinkError(
+                    f"rosbag sink: {leftover} exists (another run writing, or one that died)",
+                    hint="remove it or name another file",
+                )
         try:
             with open(self.reserve, "xb") as fh:
                 fh.write(bytes(RESERVE_BYTES))
@@ -227,11 +233,6 @@ class RosbagSink:
             self._bag.out.mark()
         except Exception as exc:  # a file error, or a library's own on a bad name
             self._discard()
-            if isinstance(exc, FileExistsError):
-                raise SinkError(
-                    f"rosbag sink: {exc.filename} exists (another run writing, or one that died)",
-                    hint="remove it or name another file",
-                ) from None
             text = exc.strerror if isinstance(exc, OSError) and exc.strerror else str(exc)
             raise SinkError(f"rosbag sink: cannot write {self.partial}: {text}") from None
         log.info("rosbag sink writing %s (%s)", self.path, self.compression)

@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from depthnav_daemon.errors import ConfigError
+from depthnav_daemon.errors import ConfigError, SinkError
 from depthnav_daemon.sinks import create_sink
 from tests.drivers.driverkit import skip_without
 from tests.faults.kit import depthnav, json_lines
@@ -227,6 +227,11 @@ def test_bad_specs_say_one_line(tmp_path: Path) -> None:
         with pytest.raises(ConfigError) as info:
             create_sink(spec)
         assert words in str(info.value)
+    (tmp_path / "busy.bag.partial").write_bytes(b"another run's")
+    with pytest.raises(SinkError, match=r"busy\.bag\.partial exists"):
+        create_sink(f"rosbag:{tmp_path / 'busy.bag'}").open(None)  # type: ignore[arg-type]
+    assert (tmp_path / "busy.bag.partial").read_bytes() == b"another run's"
+    assert not (tmp_path / "busy.bag.partial.reserve").exists()
     (tmp_path / "there.mcap").write_bytes(b"mine")
     p = depthnav(
         "run", "--device", f"replay:{special_recording(tmp_path / 'r', n=1)}?rate=max",
