@@ -230,6 +230,7 @@ class RosbagSink:
             self._builder = MessageBuilder(self._bag.store, self.names)
             for topic, msgtype in self._builder.msgtypes().items():
                 self._bag.add(topic, msgtype)
+                self._bag.store.get_msgdef(msgtype)  # generates its serializer now, not per frame
             self._bag.out.mark()
         except Exception as exc:  # a file error, or a library's own on a bad name
             self._discard()
