@@ -23,6 +23,8 @@ EXAMPLES = {
     "rerun+grpc": "rerun+grpc://127.0.0.1:9876",
     "mavlink": "mavlink:/dev/ttyUSB0?baud=921600",
     "mavlink+udp": "mavlink+udp://127.0.0.1:14550",
+    "rosbag": "rosbag:run.mcap?compression=none",
+    "foxglove": "foxglove://127.0.0.1:8765?image=0",
 }
 
 
