@@ -92,9 +92,11 @@ def watch_compiles(progress: Callable[[int, int], None]) -> None:
 
 
 def main() -> None:
-    from depthnav_daemon.commands.common import progress_bar
+    def show(done: int, total: int) -> None:
+        if done:  # each kernel takes seconds: show the install moves
+            print(f"depthnav: compiling kernels {done}/{total}", flush=True)  # noqa: T201
 
-    watch_compiles(progress_bar("compiling kernels", unit="kernels"))
+    watch_compiles(show)
     print(f"depthnav kernels ready in {warm_up():.1f} s")  # noqa: T201
 
 

@@ -49,7 +49,7 @@ def test_unknown_scheme_lists_valid_ones():
 
 
 def test_unknown_option_lists_valid_ones():
-    with pytest.raises(ConfigError, match="valid options: max_bytes"):
+    with pytest.raises(ConfigError, match=r"valid options: .*\bmax_bytes\b"):
         create_sink("udp://127.0.0.1:1?maxbytes=3")
 
 
