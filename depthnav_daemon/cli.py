@@ -215,10 +215,43 @@ def _add_tool_commands(sub: Any) -> None:
     p.set_defaults(handler="bench:cmd_bench")
 
 
+# syslog priorities (sd-daemon(3)): journald reads a "<N>" prefix as the line's priority
+_PRIORITY = {logging.DEBUG: 7, logging.INFO: 6, logging.WARNING: 4, logging.ERROR: 3}
+
+
+class _JournalFormatter(logging.Formatter):
+    """``<priority>depthnav: LEVEL: message``: journald adds the time itself."""
+
+    def format(self, record: logging.LogRecord) -> str:
+        prio = _PRIORITY.get(record.levelno, 2 if record.levelno > logging.ERROR else 7)
+        return f"<{prio}>{super().format(record)}"
+
+
+def _stderr_is_journal() -> bool:
+    """True when stderr is systemd's journal stream (JOURNAL_STREAM names its device:inode)."""
+    want = os.environ.get("JOURNAL_STREAM", "")
+    try:
+        st = os.fstat(sys.stderr.fileno())
+    except (OSError, ValueError):
+        return False
+    return bool(want) and want == f"{st.st_dev}:{st.st_ino}"
+
+
+def _log_formatter() -> logging.Formatter:
+    """Plain lines at a terminal, journald priorities under systemd, timestamps elsewhere."""
+    fmt = "depthnav: %(levelname)s: %(message)s"
+    if _stderr_is_journal():
+        return _JournalFormatter(fmt)
+    if sys.stderr.isatty():
+        return logging.Formatter(fmt)
+    return logging.Formatter("%(asctime)s.%(msecs)03d " + fmt, datefmt="%Y-%m-%dT%H:%M:%S")
+
+
 def configure_logging(verbose: int, quiet: bool) -> None:
+    """Log lines to stderr at the level the flags ask for (-v debug, -q warnings)."""
     level = logging.WARNING if quiet else (logging.DEBUG if verbose else logging.INFO)
     handler = logging.StreamHandler(sys.stderr)
-    handler.setFormatter(logging.Formatter("depthnav: %(levelname)s: %(message)s"))
+    handler.setFormatter(_log_formatter())
     root = logging.getLogger()
     root.handlers[:] = [handler]
     root.setLevel(logging.WARNING)

@@ -8,7 +8,9 @@ PATH is one of (detected when opened):
 - a folder of 16-bit PNG depth images (see drivers/formats/png_folder.py; ``scale`` units per metre,
   default from ``camera.toml`` or 5000; intrinsics from ``camera.toml`` or ``fx, fy, cx, cy``);
 - a fakenect recording (``INDEX.txt``; disparity converted with ``const_shift``, default 200);
-- an ``.oni`` file, played by OpenNI2's libOniFile (see drivers/openni/).
+- an ``.oni`` file, played by OpenNI2's libOniFile (see drivers/openni/);
+- a ROS bag: ROS 1 ``.bag``, ROS 2 folder, ``.mcap`` or ``.db3`` (see drivers/formats/rosbag.py;
+  ``topic`` picks the depth image topic, ``info_topic`` its CameraInfo).
 
 Options: ``rate`` realtime (default; sleep to the recorded timestamps) or max (no sleeping);
 ``loop`` 1 to start again at the end (timestamps keep increasing); ``fps`` frame rate for sources
@@ -35,8 +37,8 @@ import numpy.typing as npt
 
 from drivers.base import KINECT_V1, DeviceInfo, Driver, Frame, Intrinsics, TiltState
 from drivers.errors import DeviceSpecError, DriverError, RecordingError
-from drivers.files import check_path_length
-from drivers.formats import fakenect, png_folder
+from drivers.files import check_path_length, check_regular
+from drivers.formats import fakenect, png_folder, rosbag
 from drivers.formats.recording import (
     Recording,
     RecordingStream,
@@ -58,9 +60,11 @@ from drivers.spec import (
 log = logging.getLogger(__name__)
 
 GRAMMAR = (
-    "replay:PATH[?rate=realtime|max&loop=0|1&fps=F&fx=..&fy=..&cx=..&cy=..&scale=S&const_shift=C]"
+    "replay:PATH[?rate=realtime|max&loop=0|1&fps=F&fx=..&fy=..&cx=..&cy=..&scale=S&const_shift=C"
+    "&topic=T&info_topic=T]"
 )
 OPTIONS = ("rate", "loop", "fps", "fx", "fy", "cx", "cy", "scale", "const_shift", "start")
+OPTIONS += ("topic", "info_topic")
 # Decoded depth up to this size stays in memory for looping (decompressing the 12-frame fixture
 # on every pass cost 40 % of the daemon's CPU at 30 frames/s); above it frames are streamed.
 CACHE_MAX_BYTES = 256 << 20
@@ -86,6 +90,8 @@ class ReplayDriver:
         const_shift: float = fakenect.CONST_SHIFT,
         start: int = 0,
         spec_text: str = "",
+        topic: str | None = None,
+        info_topic: str | None = None,
     ) -> None:
         self.path = Path(path)
         self.realtime = realtime
@@ -96,6 +102,7 @@ class ReplayDriver:
         self.const_shift = const_shift
         self.start = start
         self.spec_text = spec_text or f"replay:{path}"
+        self.topics = (topic, info_topic)  # ROS bags: depth image and CameraInfo topics
         self._items: Iterator[Item] | None = None
         self._recording: Recording | RecordingStream | None = None  # opened once, kept to loop
         self._inner: Driver | None = None
@@ -125,6 +132,8 @@ class ReplayDriver:
             or fakenect.CONST_SHIFT,
             spec_text=spec.text,
             start=int_option(spec, "start", 0, 0, 10_000_000),
+            topic=spec.options.get("topic"),
+            info_topic=spec.options.get("info_topic"),
         )
 
     # --- sources -------------------------------------------------------------------------
@@ -206,8 +215,28 @@ class ReplayDriver:
 
         return items(), intr, self.path.name
 
-    def _start(self) -> None:
+    def _rosbag_items(self) -> tuple[Iterator[Item], Intrinsics, str]:
+        # the bag reader opens its files itself: regular files only (a FIFO would block it)
         if self.path.is_dir():
+            for part in sorted(self.path.iterdir()):
+                if part.suffix.lower() in (*rosbag.SUFFIXES, ".yaml"):
+                    check_regular(part)
+        else:
+            check_regular(self.path)
+        bag = rosbag.DepthBag(self.path, *self.topics)
+        probe = bag.probe(
+            intrinsics_given=all(k in self.overrides for k in ("fx", "fy", "cx", "cy"))
+        )
+        self._has_accel = probe.imu_topic is not None
+        base = None if probe.camera is None else probe.camera.intrinsics
+        intr = self._intrinsics_with(base, probe.shape)
+        items = ((stamp, depth, accel, None) for stamp, depth, accel in bag.frames())
+        return items, intr, f"{self.path.name} {probe.depth_topic}"
+
+    def _start(self) -> None:
+        if rosbag.is_rosbag(self.path) and self.path.exists():
+            self._items, intr, name = self._rosbag_items()
+        elif self.path.is_dir():
             if (self.path / "recording.toml").exists():
                 self._items, intr, name = self._depthnav_items()
             elif (self.path / "INDEX.txt").exists():
@@ -227,7 +256,8 @@ class ReplayDriver:
         else:
             raise RecordingError(
                 f"{self.path}: unknown recording type {self.path.suffix or '(no suffix)'!r}",
-                hint="replay takes a recording folder, .npz, PNG folder, fakenect folder or .oni",
+                hint="replay takes a recording folder, .npz, PNG folder, fakenect folder, .oni "
+                "or a ROS bag (.bag, .mcap, .db3, ROS 2 bag folder)",
             )
         if self._intrinsics is not None and intr != self._intrinsics:
             raise RecordingError(f"{self.path}: intrinsics changed while looping")
@@ -339,7 +369,9 @@ class ReplayDriver:
         if self._inner is not None:
             self._inner.close()
             self._inner = None
-        self._items = None
+        items, self._items = self._items, None
+        if hasattr(items, "close"):
+            items.close()  # a ROS bag's generator closes its reader
         self._recording = None
         if self._is_open:
             self._is_open = False

@@ -238,3 +238,79 @@ def test_run_quick_enough_to_start() -> None:
     assert time.monotonic() - t0 < 60
     assert np.isfinite(0.0)
     assert os.environ.get("DEPTHNAV_NEVER_SET") is None
+
+
+def test_a_mount_typed_on_the_command_line_wins_over_the_accelerometer_and_floor() -> None:
+    # the fixture's accelerometer and floor both say 0.55 m / 15 deg; the user typed 30 and 5
+    p = depthnav(
+        "run",
+        "--device",
+        f"replay:{FIXTURE}?rate=max",
+        "--sink",
+        "stdout",
+        "--max-frames",
+        "3",
+        "--tilt-deg",
+        "30",
+        "--roll-deg",
+        "5",
+    )
+    assert p.returncode == 0, p.stderr
+    poses = [json.loads(line)["pose"] for line in p.stdout.splitlines()]
+    assert all(q["tilt_deg"] == 30.0 and q["roll_deg"] == 5.0 for q in poses), poses
+    assert all(q["source"] == "config" for q in poses)
+    assert "as given: the accelerometer and the floor estimates do not replace it" in p.stderr
+    # asking for the sensors back on the command line lets them in again
+    p = depthnav(
+        "run",
+        "--device",
+        f"replay:{FIXTURE}?rate=max",
+        "--sink",
+        "stdout",
+        "--max-frames",
+        "3",
+        "--tilt-deg",
+        "30",
+        "--set",
+        "daemon.tilt_source=auto",
+    )
+    assert p.returncode == 0, p.stderr
+    last = json.loads(p.stdout.splitlines()[-1])["pose"]
+    assert last["tilt_deg"] == pytest.approx(15.0, abs=0.5)
+
+
+def test_record_from_a_source_shorter_than_asked_says_so(tmp_path: Path) -> None:
+    out = tmp_path / "rec"
+    p = depthnav("record", "--device", f"replay:{FIXTURE}?rate=max", "--frames", "50", str(out))
+    assert p.returncode == 0, p.stderr
+    assert "ended after 12 of the 50 frames asked for; recorded 12" in p.stderr
+
+
+def test_calibrate_interrupted_reports_what_it_has_marked_partial(tmp_path: Path) -> None:
+    cfg = tmp_path / "robot.toml"
+    cfg.write_text('device = "kinect"\n')
+    proc = subprocess.Popen(
+        [
+            *(sys.executable, "-m", "depthnav_daemon", "calibrate", "--json"),
+            *("--device", f"replay:{FIXTURE}?rate=realtime&loop=1", "--frames", "100000"),
+            *("--write", str(cfg)),
+        ],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        cwd=ROOT,
+    )
+    assert proc.stderr is not None
+    # wait for the first frame (a line on stderr), then Ctrl-C
+    deadline = time.monotonic() + 60
+    for line in proc.stderr:
+        if "calibrating replay:" in line:
+            break
+        assert time.monotonic() < deadline
+    proc.send_signal(signal.SIGINT)
+    out, err = proc.communicate(timeout=60)
+    assert proc.returncode == 130, err
+    got = json.loads(out)
+    assert got["partial"] is True and got["frames_read"] >= 1
+    assert "partial calibration: stopped after" in err and "nothing written" in err
+    assert cfg.read_text() == 'device = "kinect"\n'

@@ -24,7 +24,12 @@ from typing import Any
 
 import numpy as np
 
-from depthnav_daemon.commands.bench_process import cpu_at_30fps, startup_time, udp_latency
+from depthnav_daemon.commands.bench_process import (
+    cpu_at_30fps,
+    loop_cost,
+    startup_time,
+    udp_latency,
+)
 from depthnav_daemon.commands.bench_stages import (
     FIXTURE,
     RESOLUTIONS,
@@ -54,6 +59,7 @@ class BenchReport:
     mount: dict[str, float]
     timings: list[Timing]
     latency: dict[str, float] | None = None
+    loop_ms: dict[str, float] | None = None  # the whole loop per frame, by sink set
     cpu_30fps: dict[str, float] | None = None
     startup: dict[str, float] | None = None
     resolutions: dict[str, list[Timing]] = field(default_factory=dict)
@@ -115,6 +121,7 @@ def run_bench(
     loop_spec = spec if device else f"replay:{FIXTURE}?rate=max&loop=1"
     if latency_frames:
         report.latency = udp_latency(loop_spec, latency_frames)
+        report.loop_ms = loop_cost(loop_spec, latency_frames)
     views: list[tuple[str, Intrinsics, Mount | None]] = []  # synthetic frames to time as well
     if mount is not None:
         views.append(
@@ -160,6 +167,13 @@ def format_report(r: BenchReport) -> str:
             f"(daemon loop, full speed, {lt['frames']:.0f} frames): "
             f"p50 {lt['p50_ms']:.3f} ms, p99 {lt['p99_ms']:.3f} ms, max {lt['max_ms']:.3f} ms; "
             f"loop {lt['loop_fps']:.0f} frames/s"
+        )
+    pipeline = next((t for t in r.timings if t.name.startswith("pipeline per frame")), None)
+    if r.loop_ms and pipeline is not None:
+        ref_ms = pipeline.median_s * 1e3
+        out.append(
+            "whole loop per frame (read, stages, sinks) / in-process pipeline: "
+            + ", ".join(f"{k} {v:.3f} ms = {v / ref_ms:.2f}x" for k, v in r.loop_ms.items())
         )
     for name, ts in r.resolutions.items():
         out.append(format_timings(ts, f"synthetic corridor, {name}:"))

@@ -137,6 +137,53 @@ def udp_latency(spec: str, n_frames: int = 600) -> dict[str, float]:
     }
 
 
+LOOP_SINKS = {"null": ("null",), "stdout + udp": ("stdout", "udp")}
+
+
+def loop_cost(spec: str, n_frames: int = 600, rounds: int = 3) -> dict[str, float]:
+    """Per-frame wall time of the daemon's whole frame loop (read, stages, sinks), in-process.
+
+    For each sink set of LOOP_SINKS the loop runs ``n_frames`` frames of ``spec`` at full speed
+    (stdout goes to /dev/null, UDP to a local receiver); the median over ``rounds`` runs, in ms
+    per frame, keyed by the set's name. ``depthnav bench`` divides them by the in-process
+    pipeline's per-frame time of the same run.
+    """
+    import logging
+
+    from depthnav_daemon.config.loader import Config, DaemonParams
+    from depthnav_daemon.daemon.loop import run
+    from depthnav_daemon.sinks import create_sink
+    from depthnav_daemon.sinks.stdout import StdoutSink
+
+    drain = _UdpDrain()
+    quiet = logging.getLogger("depthnav_daemon")
+    level = quiet.level
+    quiet.setLevel(logging.WARNING)
+    out: dict[str, float] = {}
+    try:
+        with open(os.devnull, "w") as devnull:
+
+            def make(name: str) -> Any:
+                if name == "stdout":
+                    return StdoutSink("stdout", stream=devnull)
+                if name == "udp":
+                    return create_sink(f"udp://127.0.0.1:{drain.port}")
+                return create_sink(name)
+
+            for label, sinks in LOOP_SINKS.items():
+                cfg = Config(device=spec, sinks=sinks, daemon=DaemonParams(tilt_source="floor"))
+                per_frame = []
+                for _ in range(rounds + 1):  # the first run builds the tables: not counted
+                    t0 = time.perf_counter()
+                    report = run(cfg, threading.Event(), n_frames, sink_factory=make)
+                    per_frame.append((time.perf_counter() - t0) / max(report.frames, 1))
+                out[label] = float(np.median(per_frame[1:])) * 1e3
+    finally:
+        drain.close()
+        quiet.setLevel(level)
+    return out
+
+
 def _cpu_s(pid: int) -> float:
     """utime + stime of a process, seconds (/proc/PID/stat fields 14 and 15)."""
     fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()

@@ -12,6 +12,7 @@ import threading
 from depthnav_daemon.commands.common import (
     EXIT_INTERRUPTED,
     EXIT_OK,
+    announce_compiles,
     install_stop_handlers,
     load_config,
     progress_bar,
@@ -34,6 +35,8 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
         write_mount,
     )
 
+    announce_compiles()
+
     cfg = load_config(args, args.device)
     try:
         result = calibrate(
@@ -45,12 +48,23 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
         # a stop before the first frame is a clean stop, not a failed calibration
         log.warning("stopped before the first frame: nothing was calibrated")
         return stopped_code(got)
-    if got.get("signal") == signal.SIGINT:
-        return EXIT_INTERRUPTED
+    interrupted = got.get("signal") == signal.SIGINT
+    partial = "signal" in got and result.frames_read < args.frames
     if args.json:
-        print(json.dumps(result.as_dict(), allow_nan=False))  # noqa: T201
+        print(json.dumps({**result.as_dict(), "partial": partial}, allow_nan=False))  # noqa: T201
     else:
         print(format_text(result))  # noqa: T201
+    if partial:
+        # what was collected is reported, marked partial; Ctrl-C writes nothing, SIGTERM (a
+        # service manager stopping it) writes what the frames read so far give
+        log.warning(
+            "partial calibration: stopped after %d of %d frames%s",
+            result.frames_read,
+            args.frames,
+            "; nothing written" if interrupted and args.write else "",
+        )
+    if interrupted:
+        return EXIT_INTERRUPTED
     if args.write:
         write_mount(args.write, result)
         log.info("wrote [mount] to %s", args.write)

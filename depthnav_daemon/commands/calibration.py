@@ -3,12 +3,14 @@ frames."""
 
 from __future__ import annotations
 
+import dataclasses
+import logging
 import math
 import os
 import tempfile
 import threading
 import tomllib
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -19,10 +21,49 @@ import tomlkit.exceptions
 
 from depthnav_daemon.config.loader import Config
 from depthnav_daemon.errors import ConfigError, DepthnavError
-from depthnav_daemon.pipeline.pose import estimate_pose
+from depthnav_daemon.pipeline.geometry import MAX_ROLL_DEG, MAX_TILT_DEG
+from depthnav_daemon.pipeline.pose import PoseParams, estimate_pose, tilt_roll_from_accel
 from drivers import create_driver, iter_frames, opened
 from drivers.files import read_text
 from drivers.values import short_text
+
+log = logging.getLogger(__name__)
+
+# calibrate searches every plausible mount (the daemon's default prior is narrower, for live
+# tracking around a known mount): a sensor on a mast or a pole, pitched up or looking down. Not
+# beyond 80 deg down: a wall seen head-on is a floor seen from straight above, so without an
+# accelerometer a steeper mount needs a prior in [pose].
+WHOLE_RANGE = {
+    "height_min_m": 0.05,
+    "height_max_m": 3.0,
+    "tilt_min_deg": -30.0,
+    "tilt_max_deg": 80.0,
+    "roll_max_deg": 30.0,
+}
+ACCEL_WINDOW_DEG = 10.0  # the search around the accelerometer's tilt and roll
+
+
+def calibration_prior(pose: PoseParams, accel_mps2: Sequence[float] | None = None) -> PoseParams:
+    """The floor search's prior for calibrate: a prior the user's config gives (any prior field
+    changed from its default) wins; else the accelerometer's tilt and roll +-10 deg at any
+    height; else the whole plausible range."""
+    default = PoseParams()
+    if any(getattr(pose, k) != getattr(default, k) for k in WHOLE_RANGE):
+        return pose
+    wide = dataclasses.replace(pose, **WHOLE_RANGE)
+    if accel_mps2 is None:
+        return wide
+    try:
+        tilt, roll = tilt_roll_from_accel(accel_mps2)
+    except ConfigError:  # moving, or not an accelerometer reading: search the whole range
+        return wide
+    w = ACCEL_WINDOW_DEG
+    return dataclasses.replace(
+        wide,
+        tilt_min_deg=max(-MAX_TILT_DEG, round(tilt) - w),
+        tilt_max_deg=min(MAX_TILT_DEG, round(tilt) + w),
+        roll_max_deg=min(MAX_ROLL_DEG, abs(round(roll)) + w),
+    )
 
 
 class NoFramesError(DepthnavError):
@@ -63,14 +104,19 @@ def calibrate(
         DepthnavError: too little floor in too many frames (with a hint to point at open floor).
     """
     rng = np.random.default_rng(cfg.daemon.seed)
+    prior: PoseParams | None = None
     good: list[tuple[float, float, float, float]] = []
     reasons: list[str] = []
     read = 0
     driver = create_driver(cfg.device)
     with opened(driver):
         for frame in iter_frames(driver, stop):
-            est = estimate_pose(frame.depth_mm, frame.intrinsics, cfg.pose, rng)
+            if prior is None:  # from the first frame: its accelerometer narrows the search
+                prior = calibration_prior(cfg.pose, frame.accel_mps2)
+            est = estimate_pose(frame.depth_mm, frame.intrinsics, prior, rng)
             read += 1
+            if read == 1:  # the device works: the wait from here is the calibration itself
+                log.info("calibrating %s over up to %d frames", cfg.device, n_frames)
             if est.ok:
                 good.append((est.height_m, est.tilt_deg, est.roll_deg, est.inlier_ratio))
             else:

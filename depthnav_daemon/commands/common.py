@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
 import signal
 import sys
 import threading
@@ -19,6 +20,7 @@ if TYPE_CHECKING:
 log = logging.getLogger(__name__)
 
 EXIT_OK, EXIT_FAIL, EXIT_USAGE, EXIT_INTERRUPTED = 0, 1, 2, 130
+FIRST_COMPILE_S = 30  # measured: every kernel from a cold cache, 2-core machine
 
 
 def overrides(args: argparse.Namespace, device: str | None = None) -> dict[str, Any]:
@@ -35,6 +37,10 @@ def overrides(args: argparse.Namespace, device: str | None = None) -> dict[str, 
     }
     if mount:
         out["mount"] = mount
+        typed = (s.split("=", 1)[0].strip() for s in getattr(args, "set", []) or [])
+        if "daemon.tilt_source" not in typed:
+            # a mount the user typed wins: the accelerometer and the floor do not replace it
+            out["daemon"] = {"tilt_source": "config"}
     if args.method:
         out["scan"] = {"method": args.method}
     if device:
@@ -125,3 +131,29 @@ def stopped_code(got: dict[str, int]) -> int:
 def mib(n_bytes: int) -> int:
     """Bytes in whole MiB, rounded up (so a finished count equals its total)."""
     return -(-n_bytes // (1 << 20))
+
+
+def announce_compiles() -> None:
+    """On a cold kernel cache, say "compiling kernels (first run only)" and show the progress.
+
+    Call after the stage imports; with a warm cache (scripts/install.sh fills it) it says nothing.
+    """
+    from depthnav_daemon.tools.warmup import watch_compiles
+
+    # a bar at a terminal; elsewhere a line per kernel (each takes seconds: show it moves)
+    bar = progress_bar("compiling kernels", unit="kernels") if sys.stderr.isatty() else None
+
+    def progress(done: int, total: int) -> None:
+        if done == 0:
+            log.warning(
+                "compiling kernels (first run only, about %d s on 2 cores; later runs load them "
+                "from %s)",
+                FIRST_COMPILE_S,
+                os.environ.get("NUMBA_CACHE_DIR", "the cache"),
+            )
+        if bar is not None:
+            bar(done, total)
+        elif done:
+            log.info("compiling kernels: %d/%d", done, total)
+
+    watch_compiles(progress)

@@ -99,5 +99,15 @@ def cmd_record(args: argparse.Namespace) -> int:
         # a stop before the first frame is a clean stop, not a failed recording
         log.warning("stopped before the first frame: nothing was recorded into %s", args.out)
         return stopped_code(got)
-    log.info("recorded %d frames into %s", n, args.out)
+    if n < args.frames and "signal" not in got:
+        log.warning(
+            "%s ended after %d of the %d frames asked for; recorded %d into %s",
+            args.device,
+            n,
+            args.frames,
+            n,
+            args.out,
+        )
+    else:
+        log.info("recorded %d frames into %s", n, args.out)
     return stopped_code(got) if "signal" in got else EXIT_OK

@@ -10,8 +10,10 @@ import threading
 from depthnav_daemon.commands.common import (
     EXIT_INTERRUPTED,
     EXIT_OK,
+    announce_compiles,
     install_stop_handlers,
     load_config,
+    overrides,
 )
 from depthnav_daemon.errors import ConfigError
 
@@ -23,6 +25,8 @@ def _run(args: argparse.Namespace, device: str | None) -> int:
     got = install_stop_handlers(stop)  # before the heavy imports: see install_stop_handlers
     from depthnav_daemon.daemon.loop import run
 
+    announce_compiles()
+
     cfg = load_config(args, device)
     if not cfg.device:
         raise ConfigError(
@@ -30,6 +34,15 @@ def _run(args: argparse.Namespace, device: str | None) -> int:
         )
     if args.max_frames is not None and args.max_frames < 1:
         raise ConfigError(f"--max-frames={args.max_frames} is out of range (accepted: 1 or more)")
+    if overrides(args).get("daemon", {}).get("tilt_source") == "config":
+        m = cfg.mount
+        log.info(
+            "mount %.3f m, tilt %.1f deg, roll %.1f deg as given: the accelerometer and the floor "
+            "estimates do not replace it (--set daemon.tilt_source=auto lets them)",
+            m.height_m,
+            m.tilt_deg,
+            m.roll_deg,
+        )
     serial = None
     if cfg.daemon.serial_tilt:
         from drivers.tilt import create_tilt_source

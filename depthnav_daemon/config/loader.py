@@ -52,6 +52,8 @@ class DaemonParams:
         max_consecutive_timeouts: then treat the device as lost and reconnect.
         reconnect_attempts: give up after this many reconnects in a row (0 = never give up).
         reconnect_backoff_s, reconnect_backoff_max_s: first wait between reconnects, and its cap.
+        wait_for_device_s: at start, wait up to this long for a device that cannot be opened yet
+            (not enumerated at boot), retrying with the reconnect backoff; 0 = fail at once.
         seed: seed of the random generator that RANSAC uses (runs are reproducible).
     """
 
@@ -69,6 +71,7 @@ class DaemonParams:
     reconnect_attempts: int = 10
     reconnect_backoff_s: float = 0.5
     reconnect_backoff_max_s: float = 8.0
+    wait_for_device_s: float = 0.0
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -90,6 +93,7 @@ class DaemonParams:
         check_range(
             "daemon.reconnect_backoff_max_s", self.reconnect_backoff_max_s, 0.0, 3600.0, " s"
         )
+        check_range("daemon.wait_for_device_s", self.wait_for_device_s, 0.0, 1e9, " s")
         check_int("daemon.seed", self.seed, 0, 2**63 - 1)
 
 

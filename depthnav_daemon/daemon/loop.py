@@ -18,6 +18,7 @@ from dataclasses import dataclass, field
 from depthnav_daemon import __version__
 from depthnav_daemon.config.loader import Config
 from depthnav_daemon.daemon.frame_step import FrameStep
+from depthnav_daemon.daemon.notify import ServiceNotifier
 from depthnav_daemon.daemon.source import DeviceSource
 from depthnav_daemon.errors import DepthnavError, FrameError, SinkError
 from depthnav_daemon.pipeline import Result, StageParams
@@ -107,12 +108,14 @@ def run(
     source = DeviceSource(cfg.device, cfg.daemon, stop, driver_factory)
     info = source.open()
     sinks: list[Sink] = []
+    notifier = ServiceNotifier()
     try:
         context = SinkContext(info, cfg.scan, cfg.cliff.block_size, __version__)
         sinks = _open_sinks(cfg.sinks, context, sink_factory)
         # the obstacle mask costs a pass over the image: only when a sink draws it
         wanted = any(getattr(sink, "needs_obstacle_mask", False) for sink in sinks)
         step.params = dataclasses.replace(params, obstacle_mask=wanted)
+        notifier.ready(f"running on {info.name}")
         for frame in _frames(source, cfg, stop, report):
             try:
                 result = step.run(frame)
@@ -124,10 +127,13 @@ def run(
             _fan_out(sinks, frame, result, report)
             report.frames += 1
             report.last_result = result
+            notifier.frame(report.frames, lambda fps, r=result: _status(fps, r))
             if max_frames is not None and report.frames >= max_frames:
                 break
         report.stopped = stop.is_set()
     finally:
+        notifier.stopping(f"stopping after {report.frames} frames")
+        notifier.close()
         for sink in sinks:
             try:
                 sink.close()
@@ -170,3 +176,12 @@ def _frames(
             return
         last_frame_wall = time.monotonic()
         yield frame
+
+
+def _status(fps: float, result: Result) -> str:
+    """The one-line STATUS systemd shows: frame rate and the mount in use."""
+    m = result.mount
+    return (
+        f"{fps:.1f} frames/s, mount {m.height_m:.3f} m, tilt {m.tilt_deg:.1f} deg, "
+        f"roll {m.roll_deg:.1f} deg ({result.mount_source})"
+    )

@@ -4,12 +4,13 @@ from __future__ import annotations
 
 import logging
 import threading
+import time
 from collections.abc import Callable
 
 from depthnav_daemon.config.loader import DaemonParams
 from depthnav_daemon.errors import DepthnavError
 from drivers.base import DeviceInfo, Driver
-from drivers.errors import DriverError
+from drivers.errors import DeviceLost, DeviceOpenError, DriverError, DriverNotAvailable
 
 log = logging.getLogger(__name__)
 
@@ -33,8 +34,34 @@ class DeviceSource:
         self.reconnects = 0
 
     def open(self) -> DeviceInfo:
-        self.info = self.driver.open()
-        return self.info
+        """Open the device; with ``wait_for_device_s``, wait for it with backoff and say so.
+
+        Raises:
+            DriverError: it cannot be opened (within the wait), or a stop came meanwhile.
+        """
+        deadline = time.monotonic() + self._cfg.wait_for_device_s
+        backoff = max(self._cfg.reconnect_backoff_s, 0.1)
+        while True:
+            try:
+                self.info = self.driver.open()
+                return self.info
+            except (DeviceOpenError, DeviceLost, DriverNotAvailable) as exc:
+                left = deadline - time.monotonic()
+                if left <= 0 or self._stop.is_set():
+                    raise
+                wait = min(backoff, left)
+                log.warning(
+                    "waiting for device %s (%s); trying again in %.1f s, for %.0f s more",
+                    self.spec,
+                    str(exc).splitlines()[0],
+                    wait,
+                    left,
+                )
+                if self._stop.wait(wait):
+                    raise
+                backoff = min(backoff * 2, max(self._cfg.reconnect_backoff_max_s, 0.1))
+                self.close()
+                self.driver = self._factory(self.spec)
 
     def close(self) -> None:
         try:

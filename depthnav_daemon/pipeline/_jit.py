@@ -9,7 +9,9 @@ fills it, so the daemon's first frame compiles nothing).
 from __future__ import annotations
 
 import os
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 os.environ.setdefault(
     "NUMBA_CACHE_DIR",
@@ -19,6 +21,16 @@ os.environ.setdefault(
 from numba import njit
 
 # Every kernel: compiled once, cached on disk, releases the GIL, no bounds checks in the hot loops.
-kernel = njit(cache=True, nogil=True, boundscheck=False, error_model="numpy")
+_njit = njit(cache=True, nogil=True, boundscheck=False, error_model="numpy")
 
-__all__ = ["kernel"]
+KERNELS: list[Any] = []  # every kernel's dispatcher, so a first run can report its compiling
+
+
+def kernel(fn: Callable[..., Any]) -> Any:
+    """``fn`` compiled by numba (see above), registered in KERNELS."""
+    dispatcher = _njit(fn)
+    KERNELS.append(dispatcher)
+    return dispatcher
+
+
+__all__ = ["KERNELS", "kernel"]

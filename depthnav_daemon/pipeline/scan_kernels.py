@@ -235,7 +235,8 @@ def paper_scan_kernel(
         lo_mm, hi_mm: (B,) uint16: a reading counts iff lo <= d <= hi (range and eq. 5 ground test).
         factor: (B,) float32 metres per mm times eq. 4's tilt factor.
         range_per_z: (W,) float32 sqrt(1 + ((u - cx) / fx)^2), eq. 2 folded into the range.
-        index: (W,) int64 bin of every column.
+        index: (W,) int64 bin of every column; where two columns share a bin, the later column's
+            range is kept, as in the original (not the nearer one).
         scratch: (2, W) float32 work space.
         out: (n,) float32 ranges, overwritten: NaN no reading, +inf nothing counted.
     """
@@ -266,7 +267,5 @@ def paper_scan_kernel(
     for c in range(width):
         z = a[c]
         r = z * range_per_z[c] if z < inf else (inf if col_max[c] > 0 else np.float32(np.nan))
-        k = index[c]
-        cur = out[k]
-        if np.isnan(cur) or r < cur:  # fmin: a number beats NaN; colliding columns keep the nearest
-            out[k] = r
+        # the original's ``ranges[index[u]] = r``: of two columns in one bin the later one wins
+        out[index[c]] = r

@@ -6,6 +6,8 @@
     null                                 discard (throughput measurement)
     rerun | rerun+grpc://HOST:PORT | rerun:FILE.rrd    viewer / remote viewer / file
     mavlink:SERIALPORT?baud=N | mavlink+udp://HOST:PORT  OBSTACLE_DISTANCE + HEARTBEAT
+    rosbag:FILE.mcap | rosbag:FILE.bag   ROS 2 / ROS 1 bag: /scan, /cliff/*, /tf, pose
+    foxglove://HOST:PORT | foxglove:FILE.mcap   Foxglove live view (127.0.0.1:8765) / file
 
 The grammar is ``scheme[://target][?key=value&...]`` (``scheme:target`` is shorthand); each sink
 module's docstring gives its options. Modules are imported only when their sink is made, so
@@ -30,6 +32,8 @@ SINKS: dict[str, tuple[str, str]] = {  # scheme -> (module, class); imported onl
     "rerun+grpc": ("depthnav_daemon.sinks.rerun", "RerunSink"),
     "mavlink": ("depthnav_daemon.sinks.mavlink", "MavlinkSink"),
     "mavlink+udp": ("depthnav_daemon.sinks.mavlink", "MavlinkSink"),
+    "rosbag": ("depthnav_daemon.sinks.rosbag", "RosbagSink"),
+    "foxglove": ("depthnav_daemon.sinks.foxglove", "FoxgloveSink"),
 }
 
 

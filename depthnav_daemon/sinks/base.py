@@ -23,6 +23,7 @@ from drivers.errors import DeviceSpecError
 from drivers.spec import Spec, parse_spec
 from drivers.spec import bool_option as spec_bool_option
 from drivers.spec import check_options as spec_check_options
+from drivers.spec import choice_option as spec_choice_option
 from drivers.spec import number_option as spec_number_option
 from drivers.values import short_repr
 
@@ -126,6 +127,7 @@ def _config_errors(fn: Callable[..., T]) -> Callable[..., T]:
 check_options = _config_errors(functools.partial(spec_check_options, kind="sink "))
 number_option = _config_errors(spec_number_option)
 bool_option = _config_errors(spec_bool_option)
+choice_option = _config_errors(spec_choice_option)
 
 
 def check_host(host: str, spec: SinkSpec) -> str:

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import logging
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -178,14 +178,23 @@ def dumps(msg: dict[str, Any]) -> str:
 
 
 def fit_message(
-    frame: Frame, result: Result, version: str, wall_time_s: float, max_bytes: int
+    frame: Frame,
+    result: Result,
+    version: str,
+    wall_time_s: float,
+    max_bytes: int,
+    shape: Callable[[dict[str, Any]], dict[str, Any]] | None = None,
 ) -> bytes | None:
     """The frame's JSON as UTF-8, cliff points dropped (nearest kept) until it fits ``max_bytes``.
+
+    Args:
+        shape: applied to each message before it is encoded (a sink's choice of content).
 
     Returns:
         The encoded message, or None when even the message without any cliff points is too big.
     """
-    data = dumps(frame_message(frame, result, version, wall_time_s)).encode()
+    shape = shape or (lambda msg: msg)
+    data = dumps(shape(frame_message(frame, result, version, wall_time_s))).encode()
     if len(data) <= max_bytes:
         return data
     if result.cliff is None:
@@ -201,7 +210,11 @@ def fit_message(
             f"to fit one {max_bytes}-byte datagram"
         )
         data = dumps(
-            frame_message(frame, result, version, wall_time_s, max_cliff_points=cap, message=note)
+            shape(
+                frame_message(
+                    frame, result, version, wall_time_s, max_cliff_points=cap, message=note
+                )
+            )
         ).encode()
         if len(data) <= max_bytes:
             return data

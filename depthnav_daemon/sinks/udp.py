@@ -1,12 +1,21 @@
 """``udp``: the stdout JSON object (docs/json_schema.md) as one UDP datagram per frame.
 
-Spec: ``udp://HOST:PORT[?max_bytes=N]``; ``udp://:PORT`` and ``udp:PORT`` mean 127.0.0.1 (a robot
-should not spray its scan over the LAN unless asked). IPv6 as ``udp://[::1]:PORT``.
+Spec: ``udp://HOST:PORT[?max_bytes=N&content=all|scan&cliff_scan=0|1&ranges=m|mm&every=N&rate=HZ]``;
+``udp://:PORT`` and ``udp:PORT`` mean 127.0.0.1 (a robot should not spray its scan over the LAN
+unless asked). IPv6 as ``udp://[::1]:PORT``.
 
-Options:
+Options (a full message at 640x480 is ~12.5 KB: fragmented on Wi-Fi; these slim it):
     max_bytes: largest datagram, bytes (default 60000, 512..65507). A bigger message keeps only the
         nearest cliff points and says so in its ``message`` field; one that still does not fit is
         skipped.
+    content: ``all`` (default, the stdout object) or ``scan``: seq, times, the scan, the mount
+        and the warning only.
+    cliff_scan: 0 leaves out the cliff's polar scan (its floor points stay).
+    ranges: ``mm`` sends every range as integer millimetres (``scan.ranges_unit`` says so;
+        null / "Infinity" / "-Infinity" as in metres); default ``m``.
+    every: send every Nth frame (default 1).
+    rate: send at most this many datagrams per second of sensor time (default 0 = every frame),
+        like the ROS nodes' ``rate``.
 
 Sending never blocks and never raises: the socket is non-blocking and connected, so a receiver
 that is gone shows up as ConnectionRefusedError (ICMP port unreachable) on a later send. Failures
@@ -18,7 +27,8 @@ from __future__ import annotations
 import logging
 import socket
 import time
-from typing import TYPE_CHECKING
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
 
 from depthnav_daemon.errors import SinkError
 from depthnav_daemon.sinks import jsonmsg
@@ -26,7 +36,9 @@ from depthnav_daemon.sinks.base import (
     RateLimitedLog,
     SinkContext,
     SinkSpec,
+    bool_option,
     check_options,
+    choice_option,
     number_option,
     parse_host_port,
 )
@@ -37,7 +49,10 @@ if TYPE_CHECKING:
 
 log = logging.getLogger(__name__)
 
-GRAMMAR = "udp://HOST:PORT[?max_bytes=N]"
+GRAMMAR = (
+    "udp://HOST:PORT[?max_bytes=N&content=all|scan&cliff_scan=0|1&ranges=m|mm&every=N&rate=HZ]"
+)
+OPTIONS = ("max_bytes", "content", "cliff_scan", "ranges", "every", "rate")
 DEFAULT_HOST = "127.0.0.1"
 DEFAULT_MAX_BYTES = 60000
 MAX_UDP_PAYLOAD = 65507  # IPv4: 65535 - 20 (IP header) - 8 (UDP header)
@@ -52,11 +67,21 @@ class UdpSink:
         max_bytes: largest datagram to send, bytes.
     """
 
-    def __init__(self, name: str, host: str, port: int, max_bytes: int = DEFAULT_MAX_BYTES) -> None:
+    def __init__(
+        self,
+        name: str,
+        host: str,
+        port: int,
+        max_bytes: int = DEFAULT_MAX_BYTES,
+        content: Content | None = None,
+    ) -> None:
         self.name = name
         self.host = host
         self.port = port
         self.max_bytes = max_bytes
+        self.content = content or Content()
+        self._frames = 0
+        self._last_sent_t: float | None = None
         self._sock: socket.socket | None = None
         self._version = "unknown"
         self._send_errors = RateLimitedLog(log)
@@ -71,12 +96,19 @@ class UdpSink:
     @classmethod
     def from_spec(cls, spec: SinkSpec) -> UdpSink:
         """Build from a parsed spec (no I/O). Raises ConfigError for a bad address or option."""
-        check_options(spec, ("max_bytes",), GRAMMAR)
+        check_options(spec, OPTIONS, GRAMMAR)
         host, port = parse_host_port(spec, DEFAULT_HOST, None)
         max_bytes = int(
             number_option(spec, "max_bytes", DEFAULT_MAX_BYTES, 512, MAX_UDP_PAYLOAD, integer=True)
         )
-        return cls(spec.text, host, port, max_bytes)
+        content = Content(
+            scan_only=choice_option(spec, "content", ("all", "scan"), "all") == "scan",
+            cliff_scan=bool_option(spec, "cliff_scan", True),
+            ranges_mm=choice_option(spec, "ranges", ("m", "mm"), "m") == "mm",
+            every=int(number_option(spec, "every", 1, 1, 1_000_000, integer=True)),
+            rate_hz=number_option(spec, "rate", 0.0, 0.0, 1000.0),
+        )
+        return cls(spec.text, host, port, max_bytes, content)
 
     def open(self, context: SinkContext) -> None:
         """Resolve the address and make a connected, non-blocking UDP socket.
@@ -110,10 +142,15 @@ class UdpSink:
         """Send the frame's datagram; failures are counted and logged, never raised."""
         if self._sock is None:
             raise SinkError(f"sink {self.name!r} is not open")
-        data = jsonmsg.fit_message(frame, result, self._version, time.time(), self.max_bytes)
+        if not self._due(result.timestamp_s):
+            return
+        data = jsonmsg.fit_message(
+            frame, result, self._version, time.time(), self.max_bytes, self.content.shape
+        )
         if data is None:
             self._oversize.failed(
-                "udp sink: frame %d does not fit one %d-byte datagram; skipped",
+                "udp sink: frame %d does not fit one %d-byte datagram; skipped (raise max_bytes, "
+                "or slim it with content=scan or cliff_scan=0)",
                 result.seq,
                 self.max_bytes,
             )
@@ -142,12 +179,70 @@ class UdpSink:
         else:
             self.sent += 1
 
+    def _due(self, t_s: float) -> bool:
+        """Whether this frame goes out under ``every`` and ``rate`` (sensor time, seconds)."""
+        self._frames += 1
+        if (self._frames - 1) % self.content.every:
+            return False
+        rate = self.content.rate_hz
+        if rate > 0 and self._last_sent_t is not None:
+            # a little slack: frames 33.3 ms apart still make 10 Hz out of 30
+            if 0 <= t_s - self._last_sent_t < 1.0 / rate - 1e-3:
+                return False
+        self._last_sent_t = t_s
+        return True
+
     def close(self) -> None:
         """Close the socket. Safe to call twice."""
         sock, self._sock = self._sock, None
         if sock is not None:
             sock.close()
+            too_big = self._oversize.count
+            if too_big:
+                # every skipped frame was also logged (rate-limited); the summary says how many
+                log.warning(
+                    "udp sink %s: %d frames sent, %d skipped as larger than max_bytes=%d",
+                    self.name,
+                    self.sent,
+                    too_big,
+                    self.max_bytes,
+                )
             if self.send_errors:
                 log.info(
                     "udp sink %s: %d sent, %d send errors", self.name, self.sent, self.send_errors
                 )
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class Content:
+    """What each datagram holds and how often one goes out (see the module docstring)."""
+
+    scan_only: bool = False
+    cliff_scan: bool = True
+    ranges_mm: bool = False
+    every: int = 1
+    rate_hz: float = 0.0
+
+    def shape(self, msg: dict[str, Any]) -> dict[str, Any]:
+        """The stdout object cut down to this content (the object is made anew per frame)."""
+        if self.scan_only:
+            msg = {k: msg[k] for k in SCAN_ONLY_KEYS if k in msg}
+            if isinstance(msg.get("pose"), dict):
+                msg["pose"] = {k: v for k, v in msg["pose"].items() if k != "estimate"}
+        cliff = msg.get("cliff")
+        if isinstance(cliff, dict) and not self.cliff_scan:
+            cliff.pop("scan", None)
+        if self.ranges_mm:
+            for scan in (msg.get("scan"), (cliff or {}).get("scan") if cliff else None):
+                if isinstance(scan, dict):
+                    scan["ranges"] = [_mm(r) for r in scan["ranges"]]
+                    scan["ranges_unit"] = "mm"
+        return msg
+
+
+SCAN_ONLY_KEYS = ("v", "version", "seq", "t_s", "wall_s", "scan", "pose", "warning", "message")
+
+
+def _mm(r: float | str | None) -> int | str | None:
+    """A JSON range in metres (or its REP 117 marker) as integer millimetres."""
+    return round(r * 1000) if isinstance(r, float | int) else r

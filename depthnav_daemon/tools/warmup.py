@@ -9,6 +9,7 @@ every kernel is run here with each kind of array the stages can hand it.
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 
 import numpy as np
 
@@ -61,7 +62,41 @@ def warm_up() -> float:
     return time.perf_counter() - t0
 
 
+def watch_compiles(progress: Callable[[int, int], None]) -> None:
+    """Report numba compiling one of depthnav's kernels: ``progress(done, total)`` per kernel.
+
+    A warm cache loads every kernel from disk and reports nothing; a cold one (a fresh install,
+    another CPU, a new depthnav) compiles them at the first frame, tens of seconds in all, and the
+    caller says so instead of looking hung. Uses numba's event API; call it once per process.
+    """
+    from numba.core import event
+
+    from depthnav_daemon.pipeline._jit import KERNELS
+
+    ours = {id(k) for k in KERNELS}
+    done: set[int] = set()
+
+    class _Listener(event.Listener):
+        def on_start(self, ev: event.Event) -> None:
+            disp = ev.data.get("dispatcher") if isinstance(ev.data, dict) else None
+            if disp is not None and id(disp) in ours and not done:
+                progress(0, len(ours))  # the first compile: say it before the wait
+
+        def on_end(self, ev: event.Event) -> None:
+            disp = ev.data.get("dispatcher") if isinstance(ev.data, dict) else None
+            if disp is not None and id(disp) in ours and id(disp) not in done:
+                done.add(id(disp))
+                progress(len(done), len(ours))
+
+    event.register("numba:compile", _Listener())
+
+
 def main() -> None:
+    def show(done: int, total: int) -> None:
+        if done:  # each kernel takes seconds: show the install moves
+            print(f"depthnav: compiling kernels {done}/{total}", flush=True)  # noqa: T201
+
+    watch_compiles(show)
     print(f"depthnav kernels ready in {warm_up():.1f} s")  # noqa: T201
 
 

@@ -37,6 +37,8 @@ def test_quick_bench_json_has_every_stage_latency_and_machine(
     lat = report["latency"]
     assert 0 < lat["p50_ms"] <= lat["p99_ms"] <= lat["max_ms"]
     assert lat["frames"] == 40
+    assert set(report["loop_ms"]) == {"null", "stdout + udp"}  # the whole loop, by sink set
+    assert all(v > 0 for v in report["loop_ms"].values())
     assert {"cpu", "cores", "loadavg", "numpy", "numba"} <= set(report["machine"])
 
 
@@ -47,6 +49,7 @@ def test_text_report_names_the_copy_reference_and_latency(
     out = capsys.readouterr().out
     assert "np.copy(frame)" in out and "x np.copy" in out
     assert "UDP datagram sent" in out and "p99" in out
+    assert "whole loop per frame" in out and "/ in-process pipeline" in out
 
 
 def test_bench_options_parse() -> None:

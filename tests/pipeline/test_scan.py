@@ -225,8 +225,7 @@ def paper_reference(
         x = (i - intr.cx) / intr.fx * best  # eq. 2
         r = math.hypot(x, best) if math.isfinite(best) else (math.inf if seen else math.nan)
         k = int((-math.atan((i - intr.cx) / intr.fx) - amin) / inc)
-        if math.isnan(out[k]) or r < out[k]:
-            out[k] = r
+        out[k] = r  # laserscan_kinect's ranges[index[u]] = r: later columns overwrite
     return out
 
 
@@ -313,3 +312,22 @@ def test_all_zero_frame_gives_all_nan_scan() -> None:
         assert np.isnan(scan.ranges).all()
     nan_frame = np.full((480, 640), np.nan, np.float32)
     assert np.isnan(depth_to_scan(nan_frame, ASYM_640, Mount(), ScanParams()).ranges).all()
+
+
+def test_paper_scan_keeps_the_later_column_where_two_share_a_bin() -> None:
+    # laserscan_kinect writes ranges[index[u]] = r for u = 0..W-1: the later column overwrites
+    intr = ASYM_640
+    amax = math.atan(intr.cx / intr.fx)
+    amin = -math.atan((intr.width - 1 - intr.cx) / intr.fx)
+    inc = (amax - amin) / (intr.width - 1)
+    index = [int((-math.atan((u - intr.cx) / intr.fx) - amin) / inc) for u in range(intr.width)]
+    pairs = [(u, u + 1) for u in range(intr.width - 1) if index[u] == index[u + 1]]
+    assert pairs  # the truncating map sends two columns into one bin near the edges
+    u1, u2 = pairs[0]
+    depth = np.zeros((intr.height, intr.width), np.uint16)
+    depth[:, u1] = 1000  # the nearer column comes first ...
+    depth[:, u2] = 3000  # ... and the farther one last: the original keeps this one
+    p = ScanParams(method="paper", ground_remove=False, tilt_compensation=False)
+    scan = depth_to_scan(depth, intr, Mount(0.5, 0.0, 0.0), p)
+    want = 3.0 * math.hypot(1.0, (u2 - intr.cx) / intr.fx)
+    assert scan.ranges[index[u2]] == pytest.approx(want, rel=1e-6)

@@ -154,3 +154,83 @@ def test_bad_specs(spec):
 def test_ipv6_spec():
     sink = create_sink("udp://[::1]:5600?max_bytes=1400")
     assert (sink.host, sink.port, sink.max_bytes) == ("::1", 5600, 1400)
+
+
+def _datagrams(receiver, sink, pairs, context) -> list[bytes]:
+    sink.open(context)
+    for frame, result in pairs:
+        sink.write(frame, result)
+    sink.close()
+    receiver.settimeout(0.5)  # loopback delivers at once; this only ends the read
+    out = []
+    try:
+        while True:
+            out.append(receiver.recv(65536))
+    except TimeoutError:
+        return out
+
+
+def test_slim_datagrams_scan_only_in_millimetres(receiver, pairs, context):
+    port = receiver.getsockname()[1]
+    full = _datagrams(receiver, create_sink(f"udp://:{port}"), pairs[:1], context)[0]
+    slim = _datagrams(
+        receiver, create_sink(f"udp://:{port}?content=scan&ranges=mm"), pairs[:1], context
+    )[0]
+    msg = json.loads(slim)
+    assert set(msg) == {
+        "v",
+        "version",
+        "seq",
+        "t_s",
+        "wall_s",
+        "scan",
+        "pose",
+        "warning",
+        "message",
+    }
+    assert "estimate" not in msg["pose"] and msg["scan"]["ranges_unit"] == "mm"
+    assert len(slim) < len(full) / 2  # what a Wi-Fi link sees: fewer fragments
+    want = json.loads(full)["scan"]["ranges"]
+    for mm, m in zip(msg["scan"]["ranges"], want, strict=True):
+        if isinstance(m, float):  # a number: the same range, in whole millimetres
+            assert isinstance(mm, int) and abs(mm - m * 1000) <= 0.5
+        else:  # null (no reading) and the REP 117 markers stay as they are
+            assert mm == m
+
+
+def test_no_cliff_scan_keeps_the_cliff_points(receiver, pairs, context):
+    port = receiver.getsockname()[1]
+    msg = json.loads(
+        _datagrams(receiver, create_sink(f"udp://:{port}?cliff_scan=0"), pairs[:1], context)[0]
+    )
+    assert "scan" not in msg["cliff"] and "points_m" in msg["cliff"]
+
+
+def test_every_and_rate_decimate_by_frame_count_and_sensor_time(receiver, pairs, context):
+    port = receiver.getsockname()[1]
+    n = len(pairs)
+    sent = _datagrams(receiver, create_sink(f"udp://:{port}?every=3"), pairs, context)
+    assert [json.loads(d)["seq"] for d in sent] == [r.seq for _, r in pairs][::3]
+    # the pairs are 30 frames/s of sensor time: 10 Hz is every third frame
+    sent = _datagrams(receiver, create_sink(f"udp://:{port}?rate=10"), pairs, context)
+    assert [json.loads(d)["seq"] for d in sent] == [r.seq for _, r in pairs][::3]
+    assert n >= 4
+
+
+@pytest.mark.parametrize(
+    "option", ["content=all2", "ranges=cm", "every=0", "rate=-1", "rate=inf", "cliff_scan=maybe"]
+)
+def test_bad_slimming_options_are_one_line_config_errors(option):
+    with pytest.raises(ConfigError, match=option.split("=")[0]):
+        create_sink(f"udp://:5600?{option}")
+
+
+def test_frames_too_big_for_max_bytes_are_summed_up_at_close(receiver, pairs, context, caplog):
+    port = receiver.getsockname()[1]
+    sink = create_sink(f"udp://:{port}?max_bytes=512")
+    with caplog.at_level(logging.INFO, logger="depthnav_daemon.sinks.udp"):
+        sent = _datagrams(receiver, sink, pairs, context)
+    assert sent == [] and sink.sent == 0
+    text = caplog.text
+    assert "content=scan" in text  # the per-frame line says how to slim it
+    assert f"0 frames sent, {len(pairs)} skipped as larger than max_bytes=512" in text

@@ -1,0 +1,315 @@
+"""``foxglove``: a live Foxglove WebSocket server, or the same channels in an MCAP file.
+
+Specs:
+    ``foxglove`` / ``foxglove://HOST:PORT``   serve on HOST:PORT (default 127.0.0.1:8765: this
+                                              machine only; give another address to open it)
+    ``foxglove:FILE.mcap``                    write the channels to FILE.mcap (Foxglove opens it)
+
+Options: ``image=0`` leaves out the depth image and its overlays; ``tf=0`` the transforms; the
+frame and topic names of the ROS sinks (sinks/ros_messages.py: ``base_frame``, ``scan_topic`` ...).
+
+Channels (Foxglove's own protobuf schemas unless said):
+    /depthnav/depth/image_raw     RawImage 16UC1 (mm), optical frame
+    /depthnav/depth/camera_info   CameraCalibration (the 3D panel projects the image with it)
+    /depthnav/depth/annotations   ImageAnnotations: the scan's row band (yellow), obstacle
+                                  pixels (red, at most 1000 drawn), cliff blocks (magenta)
+    /scan, /cliff/scan            LaserScan in the level scan frame (NaN/+inf/-inf as computed)
+    /cliff/points                 PointCloud x y z float32, floor points in the scan frame
+    /tf                           FrameTransforms: base -> scan frame, base -> optical frame
+    /depth_sensor_pose            PoseInFrame: the mount in the base frame (see ros_messages)
+    /depthnav/timings             JSON: stage timings (ms), mount and its source, warning
+
+Served by the foxglove-sdk (its Rust server runs on its own threads): logging a message never
+waits for a client; each client has a bounded backlog (oldest data dropped when it fills, a
+client too slow for even control messages is disconnected), and closing waits at most 2 s for
+clients that stopped reading. A channel nobody subscribes to builds no message, so an idle
+server costs almost nothing.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import threading
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from depthnav_daemon.errors import ConfigError, SinkError
+from depthnav_daemon.sinks.base import SinkContext, SinkSpec, check_options, parse_host_port
+from depthnav_daemon.sinks.ros_messages import OPTIONS, RosNames, quaternion, sensor_placement
+from depthnav_daemon.sinks.ros_messages import stamp_ns as to_ns
+
+if TYPE_CHECKING:
+    from depthnav_daemon.pipeline import Result
+    from depthnav_daemon.pipeline.scan import LaserScan
+    from drivers.base import Frame
+
+log = logging.getLogger(__name__)
+
+GRAMMAR = "foxglove://HOST:PORT | foxglove:FILE.mcap [?image=0|1&tf=0|1&<names>]"
+DEFAULT_HOST, DEFAULT_PORT = "127.0.0.1", 8765
+BACKLOG = 64  # messages queued per client before the oldest are dropped
+MAX_OBSTACLE_POINTS = 1000  # ~7 us each to build
+STOP_WAIT_S = 2.0  # longest close() waits for the server to say goodbye to its clients
+ANNOTATIONS = "/depthnav/depth/annotations"
+TIMINGS = "/depthnav/timings"
+
+
+class FoxgloveSink:
+    """Serves or records the Foxglove channels (see the module docstring)."""
+
+    def __init__(
+        self, name: str, *, file: Path | None, host: str, port: int, names: RosNames
+    ) -> None:
+        self.name = name
+        self.file = file
+        self.host, self.port = host, port
+        self.names = names
+        self.needs_obstacle_mask = names.image
+        self._ctx: Any = None
+        self._out: Any = None  # the WebSocketServer or the MCAP writer
+        self._ch: dict[str, Any] = {}
+        self._intr: Any = None
+
+    @classmethod
+    def from_spec(cls, spec: SinkSpec) -> FoxgloveSink:
+        """Build from a parsed spec (no I/O). Raises ConfigError for a bad address or option."""
+        check_options(spec, OPTIONS, GRAMMAR)
+        names = RosNames.from_spec(spec)
+        if "image" not in spec.options:  # the image is on by default here
+            names = dataclasses.replace(names, image=True)
+        if spec.target.lower().endswith(".mcap"):
+            return cls(spec.text, file=Path(spec.target), host="", port=0, names=names)
+        if "/" in spec.target.strip("/"):
+            raise ConfigError(
+                f"sink {spec.text!r}: a file must end in .mcap", hint=f"the spec is {GRAMMAR}"
+            )
+        host, port = parse_host_port(spec, DEFAULT_HOST, DEFAULT_PORT)
+        return cls(spec.text, file=None, host=host, port=port, names=names)
+
+    @property
+    def bound_port(self) -> int:
+        """The port the server listens on (useful with port 0), 0 for a file."""
+        return int(self._out.port) if self.file is None and self._out is not None else 0
+
+    def open(self, context: SinkContext) -> None:
+        """Start the server or create the file, and declare the channels.
+
+        Raises:
+            SinkError: foxglove-sdk missing, the port is in use, the file exists.
+        """
+        try:
+            import foxglove
+        except ImportError as exc:
+            raise SinkError(
+                f"the foxglove sink needs the foxglove-sdk package ({exc})",
+                hint="pip install foxglove-sdk",
+            ) from None
+        self._intr = context.device.intrinsics
+        self._ctx = foxglove.Context()
+        self._channels(foxglove)
+        try:
+            if self.file is not None:
+                self._out = foxglove.open_mcap(str(self.file), context=self._ctx)
+            else:
+                self._out = foxglove.start_server(
+                    name=f"depthnav {context.version}",
+                    host=self.host,
+                    port=self.port,
+                    context=self._ctx,
+                    message_backlog_size=BACKLOG,
+                )
+        except (
+            Exception
+        ) as exc:  # foxglove raises its own FoxgloveError (a RuntimeError) or OSError
+            text = str(exc).splitlines()[0].removeprefix("FoxgloveError: ")
+            if self.file is not None:
+                raise SinkError(f"foxglove sink: cannot write {self.file}: {text}") from None
+            raise SinkError(
+                f"foxglove sink: cannot serve on {self.host}:{self.port}: {text}",
+                hint=f"another program uses the port: pick another, foxglove://{self.host}:"
+                f"{self.port + 1}",
+            ) from None
+        where = self.file or f"ws://{self.host}:{self.bound_port}"
+        log.info("foxglove sink: %s (open it in Foxglove)", where)
+
+    def _channels(self, foxglove: Any) -> None:
+        from foxglove import channels as c
+
+        n, ctx = self.names, self._ctx
+        ch = {
+            n["scan_topic"]: c.LaserScanChannel(n["scan_topic"], context=ctx),
+            n["cliff_scan_topic"]: c.LaserScanChannel(n["cliff_scan_topic"], context=ctx),
+            n["cliff_points_topic"]: c.PointCloudChannel(n["cliff_points_topic"], context=ctx),
+            n["pose_topic"]: c.PoseInFrameChannel(n["pose_topic"], context=ctx),
+            TIMINGS: foxglove.Channel(TIMINGS, context=ctx),
+        }
+        if n.tf:
+            ch[n["tf_topic"]] = c.FrameTransformsChannel(n["tf_topic"], context=ctx)
+        if n.image:
+            ch[n["image_topic"]] = c.RawImageChannel(n["image_topic"], context=ctx)
+            ch[n["info_topic"]] = c.CameraCalibrationChannel(n["info_topic"], context=ctx)
+            ch[ANNOTATIONS] = c.ImageAnnotationsChannel(ANNOTATIONS, context=ctx)
+        self._ch = ch
+
+    def write(self, frame: Frame, result: Result) -> None:
+        """Log the frame on every channel somebody listens to; never waits for a client."""
+        if self._out is None:
+            raise SinkError(f"sink {self.name!r} is not open")
+        from foxglove import messages as m
+
+        t_ns = to_ns(result.timestamp_s)
+        stamp = m.Timestamp(t_ns // 10**9, t_ns % 10**9)
+        n = self.names
+        for topic, build in (
+            (n["scan_topic"], lambda: self._scan(m, stamp, result.scan)),
+            (
+                n["cliff_scan_topic"],
+                lambda: result.cliff and self._scan(m, stamp, result.cliff.scan),
+            ),
+            (n["cliff_points_topic"], lambda: result.cliff and self._points(m, stamp, result)),
+            (n["pose_topic"], lambda: self._pose(m, stamp, result)),
+            (n["tf_topic"], lambda: self._tf(m, stamp, result)),
+            (n["image_topic"], lambda: self._image(m, stamp, frame)),
+            (n["info_topic"], lambda: self._calibration(m, stamp, frame)),
+            (ANNOTATIONS, lambda: self._annotations(m, stamp, result)),
+            (TIMINGS, lambda: self._timings(result)),
+        ):
+            ch = self._ch.get(topic)
+            if ch is not None and ch.has_sinks():
+                msg = build()
+                if msg:
+                    ch.log(msg, log_time=t_ns)
+
+    # --- messages ----------------------------------------------------------------------
+    def _identity(self, m: Any) -> Any:
+        return m.Pose(position=m.Vector3(), orientation=m.Quaternion(w=1.0))
+
+    def _scan(self, m: Any, stamp: Any, scan: LaserScan) -> Any:
+        return m.LaserScan(
+            timestamp=stamp, frame_id=self.names["scan_frame"], pose=self._identity(m),
+            start_angle=float(scan.angle_min), end_angle=float(scan.angle_max),
+            ranges=np.asarray(scan.ranges, dtype=np.float64).tolist(),
+        )  # fmt: skip
+
+    def _points(self, m: Any, stamp: Any, result: Result) -> Any:
+        assert result.cliff is not None
+        xy = np.asarray(result.cliff.points_m, dtype=np.float32).reshape(-1, 2)
+        xy = xy[np.isfinite(xy).all(axis=1)]
+        xyz = np.column_stack([xy, np.full(len(xy), -result.mount.height_m, np.float32)])
+        f32 = m.PackedElementFieldNumericType.Float32
+        fields = [m.PackedElementField(name=c, offset=4 * i, type=f32) for i, c in enumerate("xyz")]
+        return m.PointCloud(
+            timestamp=stamp, frame_id=self.names["scan_frame"], pose=self._identity(m),
+            point_stride=12, fields=fields, data=xyz.astype("<f4").tobytes(),
+        )  # fmt: skip
+
+    def _quat(self, m: Any, rot: np.ndarray) -> Any:
+        x, y, z, w = quaternion(rot)
+        return m.Quaternion(x=x, y=y, z=z, w=w)
+
+    def _pose(self, m: Any, stamp: Any, result: Result) -> Any:
+        t, body = sensor_placement(result.mount)
+        pose = m.Pose(position=m.Vector3(x=t[0], y=t[1], z=t[2]), orientation=self._quat(m, body))
+        return m.PoseInFrame(timestamp=stamp, frame_id=self.names["base_frame"], pose=pose)
+
+    def _tf(self, m: Any, stamp: Any, result: Result) -> Any:
+        from depthnav_daemon.pipeline.geometry import M_CAM_TO_FLU
+
+        t, body = sensor_placement(result.mount)
+        n = self.names
+        return m.FrameTransforms(
+            transforms=[
+                m.FrameTransform(
+                    timestamp=stamp,
+                    parent_frame_id=n["base_frame"],
+                    child_frame_id=child,
+                    translation=m.Vector3(x=t[0], y=t[1], z=t[2]),
+                    rotation=self._quat(m, rot),
+                )
+                for child, rot in (
+                    (n["scan_frame"], np.eye(3)),
+                    (n["optical_frame"], body @ M_CAM_TO_FLU),
+                )
+            ]
+        )
+
+    def _image(self, m: Any, stamp: Any, frame: Frame) -> Any:
+        h, w = frame.depth_mm.shape
+        return m.RawImage(
+            timestamp=stamp, frame_id=self.names["optical_frame"], width=w, height=h,
+            encoding="16UC1", step=2 * w, data=frame.depth_mm.astype("<u2").tobytes(),
+        )  # fmt: skip
+
+    def _calibration(self, m: Any, stamp: Any, frame: Frame) -> Any:
+        i = frame.intrinsics
+        return m.CameraCalibration(
+            timestamp=stamp, frame_id=self.names["optical_frame"], width=i.width,
+            height=i.height, distortion_model="", D=[],
+            K=[i.fx, 0.0, i.cx, 0.0, i.fy, i.cy, 0.0, 0.0, 1.0],
+            R=[1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0],
+            P=[i.fx, 0.0, i.cx, 0.0, 0.0, i.fy, i.cy, 0.0, 0.0, 0.0, 1.0, 0.0],
+        )  # fmt: skip
+
+    def _annotations(self, m: Any, stamp: Any, result: Result) -> Any:
+        kind = m.PointsAnnotationType
+        w = result.intrinsics.width
+        top, stop = result.scan_band
+        band = [m.Point2(x=x, y=y) for x, y in ((0, top), (w, top), (w, stop), (0, stop))]
+        out = [self._annotation(m, stamp, kind.LineLoop, band, (1.0, 0.9, 0.1), 2.0)]
+        if result.obstacle_mask is not None and result.obstacle_mask.any():
+            rows, cols = np.nonzero(result.obstacle_mask)
+            keep = slice(None, None, -(-rows.size // MAX_OBSTACLE_POINTS))
+            xs, ys = cols[keep].astype(float).tolist(), rows[keep].astype(float).tolist()
+            pts = [m.Point2(x=x, y=y) for x, y in zip(xs, ys, strict=True)]
+            out.append(self._annotation(m, stamp, kind.Points, pts, (1.0, 0.15, 0.1), 2.0))
+        if result.cliff is not None and len(result.cliff.blocks):
+            s = result.cliff.block_size
+            seg = []
+            for r, c in np.asarray(result.cliff.blocks).reshape(-1, 2):
+                a, b, d, e = (c, r), (c + s, r), (c + s, r + s), (c, r + s)
+                seg += [m.Point2(x=float(x), y=float(y)) for x, y in (a, b, b, d, d, e, e, a)]
+            out.append(self._annotation(m, stamp, kind.LineList, seg, (1.0, 0.2, 1.0), 2.0))
+        return m.ImageAnnotations(timestamp=stamp, points=out)
+
+    @staticmethod
+    def _annotation(m: Any, stamp: Any, kind: Any, pts: list, rgb: tuple, width: float) -> Any:
+        color = m.Color(r=rgb[0], g=rgb[1], b=rgb[2], a=1.0)
+        return m.PointsAnnotation(
+            timestamp=stamp, type=kind, points=pts, outline_color=color, thickness=width
+        )
+
+    @staticmethod
+    def _timings(result: Result) -> dict[str, Any]:
+        mount = result.mount
+        return {
+            "seq": int(result.seq),
+            "timings_ms": {k: round(v * 1000.0, 3) for k, v in sorted(result.timings_s.items())},
+            "mount": {
+                "height_m": mount.height_m,
+                "tilt_deg": mount.tilt_deg,
+                "roll_deg": mount.roll_deg,
+            },
+            "mount_source": result.mount_source,
+            "warning": result.warning,
+        }
+
+    def close(self) -> None:
+        """Stop the server or finish the file. Safe to call twice."""
+        out, self._out = self._out, None
+        if out is None:
+            return
+        for ch in self._ch.values():
+            ch.close()
+        if self.file is not None:
+            out.close()
+            return
+        # stop() waits for every client to take its close (~50 s for one that stopped reading):
+        # a stalled viewer must not hold up the daemon's exit
+        stopper = threading.Thread(target=out.stop, name="foxglove-stop", daemon=True)
+        stopper.start()
+        stopper.join(STOP_WAIT_S)
+        if stopper.is_alive():
+            log.warning("foxglove sink: a client is not reading; not waiting for it to close")

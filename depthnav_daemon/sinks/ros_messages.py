@@ -1,0 +1,266 @@
+"""ROS messages of a processed frame, shared by the ``rosbag`` and ``ros2`` sinks.
+
+Messages are the ``rosbags`` library's classes (ROS 1 Noetic or ROS 2 Humble definitions), so one
+builder serves ROS 1 bags, ROS 2 bags and live ROS 2 topics. Frames (names are options):
+
+- ``base_frame`` (``base_link``): the robot, origin on the floor below the sensor, x forward,
+  y left, z up (REP 103). Issue 12 will add the sensor's x, y and yaw on the robot: the
+  placement comes from :func:`sensor_placement` only.
+- ``scan_frame`` (``depthnav_scan``): level frame at the sensor's optical centre (x forward,
+  y left, z up, gravity-aligned); the scans and cliff points are in it, the floor at
+  z = -height.
+- ``optical_frame`` (``depthnav_optical``): the depth camera's optical frame (x right, y down,
+  z forward), tilted and rolled as the mount says.
+
+Topics (names are options): ``/scan`` and ``/cliff/scan`` (sensor_msgs/LaserScan, REP 117
+ranges: NaN no reading, +inf nothing within range_max, -inf closer than range_min),
+``/cliff/points`` (sensor_msgs/PointCloud2, x y z float32 in the scan frame: cliff floor
+points), ``/tf`` (tf2_msgs/TFMessage: base -> scan frame and base -> optical frame), and
+``/depth_sensor_pose`` (geometry_msgs/PoseStamped in the base frame: position z = mount height;
+orientation = the sensor body (x along the optical axis) as roll about x = roll_deg (positive
+left side up), pitch about y = tilt_deg (positive nose down), yaw 0, ROS fixed-axis RPY).
+With ``image=1`` also the depth image (sensor_msgs/Image 16UC1, optical frame) and its
+CameraInfo, so ``replay:`` reads the bag back.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+import numpy.typing as npt
+
+from depthnav_daemon.pipeline.geometry import M_CAM_TO_FLU, rot_x, rot_y
+from depthnav_daemon.sinks.base import SinkSpec, bool_option
+
+if TYPE_CHECKING:
+    from depthnav_daemon.pipeline import Result
+    from depthnav_daemon.pipeline.geometry import Mount
+    from depthnav_daemon.pipeline.scan import LaserScan
+    from drivers.base import Frame
+
+F64 = npt.NDArray[np.float64]
+
+NAME_OPTIONS = {  # option -> default frame id or topic name
+    "base_frame": "base_link",
+    "scan_frame": "depthnav_scan",
+    "optical_frame": "depthnav_optical",
+    "scan_topic": "/scan",
+    "cliff_scan_topic": "/cliff/scan",
+    "cliff_points_topic": "/cliff/points",
+    "pose_topic": "/depth_sensor_pose",
+    "tf_topic": "/tf",
+    "image_topic": "/depthnav/depth/image_raw",
+    "info_topic": "/depthnav/depth/camera_info",
+}
+OPTIONS = (*NAME_OPTIONS, "tf", "image")
+TFMESSAGE_MSG = "geometry_msgs/TransformStamped[] transforms"
+POINTFIELD_FLOAT32 = 7
+
+
+def typestore(ros1: bool) -> Any:
+    """The rosbags typestore for ROS 1 (Noetic, plus tf2_msgs/TFMessage) or ROS 2 (Humble)."""
+    from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+
+    if not ros1:
+        return get_typestore(Stores.ROS2_HUMBLE)
+    store = get_typestore(Stores.ROS1_NOETIC)
+    store.register(get_types_from_msg(TFMESSAGE_MSG, "tf2_msgs/msg/TFMessage"))
+    return store
+
+
+@dataclass(frozen=True, slots=True)
+class RosNames:
+    """Frame ids and topic names (``NAME_OPTIONS``), and which optional topics to write."""
+
+    names: dict[str, str]
+    tf: bool = True
+    image: bool = False
+
+    @classmethod
+    def from_spec(cls, spec: SinkSpec) -> RosNames:
+        names = {k: spec.options.get(k, v).strip() or v for k, v in NAME_OPTIONS.items()}
+        return cls(names, bool_option(spec, "tf", True), bool_option(spec, "image", False))
+
+    def __getitem__(self, key: str) -> str:
+        return self.names[key]
+
+
+def sensor_placement(mount: Mount) -> tuple[F64, F64]:
+    """Where the sensor sits on the robot: (translation (3,) metres, rotation (3, 3)) in the base
+    frame, the rotation taking sensor-body (x forward along the optical axis, y left, z up)
+    vectors to the base frame. Today: straight above the base origin, pitched and rolled."""
+    translation = np.array([0.0, 0.0, mount.height_m])
+    return translation, rot_y(mount.tilt_rad) @ rot_x(mount.roll_rad)
+
+
+def quaternion(rot: F64) -> tuple[float, float, float, float]:
+    """(x, y, z, w) of a (3, 3) rotation matrix, w >= 0."""
+    m = rot
+    w = math.sqrt(max(0.0, 1.0 + m[0, 0] + m[1, 1] + m[2, 2])) / 2.0
+    x = math.copysign(
+        math.sqrt(max(0.0, 1.0 + m[0, 0] - m[1, 1] - m[2, 2])) / 2.0, m[2, 1] - m[1, 2]
+    )
+    y = math.copysign(
+        math.sqrt(max(0.0, 1.0 - m[0, 0] + m[1, 1] - m[2, 2])) / 2.0, m[0, 2] - m[2, 0]
+    )
+    z = math.copysign(
+        math.sqrt(max(0.0, 1.0 - m[0, 0] - m[1, 1] + m[2, 2])) / 2.0, m[1, 0] - m[0, 1]
+    )
+    return x, y, z, w
+
+
+def stamp_ns(t_s: float) -> int:
+    """A frame time in whole nanoseconds (0 for negative or non-finite times)."""
+    return max(0, round(t_s * 1e9)) if math.isfinite(t_s) else 0
+
+
+class MessageBuilder:
+    """Builds the ROS messages of one frame for a typestore (see the module docstring)."""
+
+    def __init__(self, store: Any, names: RosNames) -> None:
+        self.store = store
+        self.names = names
+        self.t = store.types
+        self._header_has_seq = "seq" in self.t["std_msgs/msg/Header"].__dataclass_fields__
+
+    def msgtypes(self) -> dict[str, str]:
+        """topic -> message type of every topic this builder may write."""
+        n = self.names
+        out = {
+            n["scan_topic"]: "sensor_msgs/msg/LaserScan",
+            n["cliff_scan_topic"]: "sensor_msgs/msg/LaserScan",
+            n["cliff_points_topic"]: "sensor_msgs/msg/PointCloud2",
+            n["pose_topic"]: "geometry_msgs/msg/PoseStamped",
+        }
+        if n.tf:
+            out[n["tf_topic"]] = "tf2_msgs/msg/TFMessage"
+        if n.image:
+            out[n["image_topic"]] = "sensor_msgs/msg/Image"
+            out[n["info_topic"]] = "sensor_msgs/msg/CameraInfo"
+        return out
+
+    def header(self, t_ns: int, frame_id: str) -> Any:
+        stamp = self.t["builtin_interfaces/msg/Time"](sec=t_ns // 10**9, nanosec=t_ns % 10**9)
+        if self._header_has_seq:
+            return self.t["std_msgs/msg/Header"](seq=0, stamp=stamp, frame_id=frame_id)
+        return self.t["std_msgs/msg/Header"](stamp=stamp, frame_id=frame_id)
+
+    def laser_scan(self, scan: LaserScan, t_ns: int) -> Any:
+        return self.t["sensor_msgs/msg/LaserScan"](
+            header=self.header(t_ns, self.names["scan_frame"]),
+            angle_min=float(scan.angle_min),
+            angle_max=float(scan.angle_max),
+            angle_increment=float(scan.angle_increment),
+            time_increment=0.0,
+            scan_time=0.0,
+            range_min=float(scan.range_min),
+            range_max=float(scan.range_max),
+            ranges=np.asarray(scan.ranges, dtype=np.float32),
+            intensities=np.zeros(0, dtype=np.float32),
+        )
+
+    def points(self, xyz: npt.NDArray[np.float32], t_ns: int) -> Any:
+        """A PointCloud2 of (K, 3) float32 points in the scan frame."""
+        field = self.t["sensor_msgs/msg/PointField"]
+        fields = [
+            field(name=c, offset=4 * i, datatype=POINTFIELD_FLOAT32, count=1)
+            for i, c in enumerate("xyz")
+        ]
+        data = np.ascontiguousarray(xyz, dtype="<f4")
+        return self.t["sensor_msgs/msg/PointCloud2"](
+            header=self.header(t_ns, self.names["scan_frame"]),
+            height=1,
+            width=int(data.shape[0]),
+            fields=fields,
+            is_bigendian=False,
+            point_step=12,
+            row_step=12 * int(data.shape[0]),
+            data=data.reshape(-1).view(np.uint8),
+            is_dense=True,
+        )
+
+    def _vector(self, v: F64) -> Any:
+        return self.t["geometry_msgs/msg/Vector3"](x=float(v[0]), y=float(v[1]), z=float(v[2]))
+
+    def _quat(self, rot: F64) -> Any:
+        x, y, z, w = quaternion(rot)
+        return self.t["geometry_msgs/msg/Quaternion"](x=x, y=y, z=z, w=w)
+
+    def transforms(self, mount: Mount, t_ns: int) -> Any:
+        """/tf: base -> scan frame (level) and base -> optical frame."""
+        translation, body = sensor_placement(mount)
+        level = np.eye(3)  # the scan frame keeps the base frame's axes
+        optical = body @ M_CAM_TO_FLU
+        out = []
+        for child, rot in (
+            (self.names["scan_frame"], level),
+            (self.names["optical_frame"], optical),
+        ):
+            out.append(
+                self.t["geometry_msgs/msg/TransformStamped"](
+                    header=self.header(t_ns, self.names["base_frame"]),
+                    child_frame_id=child,
+                    transform=self.t["geometry_msgs/msg/Transform"](
+                        translation=self._vector(translation), rotation=self._quat(rot)
+                    ),
+                )
+            )
+        return self.t["tf2_msgs/msg/TFMessage"](transforms=out)
+
+    def pose(self, mount: Mount, t_ns: int) -> Any:
+        translation, body = sensor_placement(mount)
+        point = self.t["geometry_msgs/msg/Point"](
+            x=float(translation[0]), y=float(translation[1]), z=float(translation[2])
+        )
+        return self.t["geometry_msgs/msg/PoseStamped"](
+            header=self.header(t_ns, self.names["base_frame"]),
+            pose=self.t["geometry_msgs/msg/Pose"](position=point, orientation=self._quat(body)),
+        )
+
+    def image(self, frame: Frame, t_ns: int) -> tuple[Any, Any]:
+        """The depth image (16UC1, little-endian) and its CameraInfo."""
+        depth = np.ascontiguousarray(frame.depth_mm, dtype="<u2")
+        h, w = depth.shape
+        header = self.header(t_ns, self.names["optical_frame"])
+        img = self.t["sensor_msgs/msg/Image"](
+            header=header, height=h, width=w, encoding="16UC1", is_bigendian=0, step=2 * w,
+            data=depth.reshape(-1).view(np.uint8),
+        )  # fmt: skip
+        i = frame.intrinsics
+        k = np.array([i.fx, 0.0, i.cx, 0.0, i.fy, i.cy, 0.0, 0.0, 1.0])
+        p = np.array([i.fx, 0.0, i.cx, 0.0, 0.0, i.fy, i.cy, 0.0, 0.0, 0.0, 1.0, 0.0])
+        arrays = dict(
+            zip(("d", "k", "r", "p"), (np.zeros(5), k, np.eye(3).reshape(-1), p), strict=True)
+        )
+        if self._header_has_seq:  # ROS 1 spells them in capitals
+            arrays = {key.upper(): value for key, value in arrays.items()}
+        roi = self.t["sensor_msgs/msg/RegionOfInterest"](
+            x_offset=0, y_offset=0, height=0, width=0, do_rectify=False
+        )
+        info = self.t["sensor_msgs/msg/CameraInfo"](
+            header=header, height=h, width=w, distortion_model="plumb_bob", binning_x=0,
+            binning_y=0, roi=roi, **arrays,
+        )  # fmt: skip
+        return img, info
+
+    def messages(self, frame: Frame, result: Result) -> tuple[int, list[tuple[str, Any]]]:
+        """(stamp ns, [(topic, message)]) of one frame: only what the frame has."""
+        t_ns = stamp_ns(result.timestamp_s)
+        n = self.names
+        out: list[tuple[str, Any]] = [(n["scan_topic"], self.laser_scan(result.scan, t_ns))]
+        if result.cliff is not None:
+            out.append((n["cliff_scan_topic"], self.laser_scan(result.cliff.scan, t_ns)))
+            xy = np.asarray(result.cliff.points_m, dtype=np.float32).reshape(-1, 2)
+            xy = xy[np.isfinite(xy).all(axis=1)]
+            xyz = np.column_stack([xy, np.full(len(xy), -result.mount.height_m, np.float32)])
+            out.append((n["cliff_points_topic"], self.points(xyz.astype(np.float32), t_ns)))
+        out.append((n["pose_topic"], self.pose(result.mount, t_ns)))
+        if n.tf:
+            out.append((n["tf_topic"], self.transforms(result.mount, t_ns)))
+        if n.image:
+            img, info = self.image(frame, t_ns)
+            out += [(n["image_topic"], img), (n["info_topic"], info)]
+        return t_ns, out

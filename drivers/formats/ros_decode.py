@@ -1,0 +1,159 @@
+"""Decoding ROS messages of depth cameras (sensor_msgs Image, CameraInfo; tf rotations).
+
+Duck-typed over the message objects of the ``rosbags`` library, ROS 1 or ROS 2 field names alike.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from drivers.base import Intrinsics
+from drivers.errors import RecordingError
+
+log = logging.getLogger(__name__)
+
+DEPTH_ENCODINGS = {"16UC1": "u2", "32FC1": "f4"}  # encoding -> numpy kind (mm, m)
+MAX_MM = 65535  # the largest depth a uint16 millimetre image holds
+HINT_BROKEN = "the bag is truncated or damaged: re-record it, or repair it (rosbag reindex)"
+
+
+@dataclass(frozen=True, slots=True)
+class CameraModel:
+    """The camera of a CameraInfo message.
+
+    Attributes:
+        intrinsics: pinhole fx, fy, cx, cy (pixels) for the depth image's size.
+        distortion_model: e.g. "plumb_bob", "" when none is given (not applied yet).
+        distortion: the D coefficients as recorded (not applied yet).
+        frame_id: the camera's frame.
+    """
+
+    intrinsics: Intrinsics
+    distortion_model: str
+    distortion: tuple[float, ...]
+    frame_id: str
+
+
+def _field(msg: Any, *names: str) -> Any:
+    """A message field under its ROS 2 or ROS 1 name (CameraInfo's ``k`` is ``K`` in ROS 1)."""
+    for name in names:
+        if hasattr(msg, name):
+            return getattr(msg, name)
+    raise AttributeError(names[0])
+
+
+def stamp_s(msg: Any, log_time_ns: int) -> float:
+    """The header stamp in seconds, or the bag's receive time when the stamp is zero."""
+    stamp = msg.header.stamp
+    sec, nsec = int(stamp.sec), int(_field(stamp, "nanosec", "nsec"))
+    if sec == 0 and nsec == 0:
+        return log_time_ns * 1e-9
+    return sec + nsec * 1e-9
+
+
+def decode_depth(msg: Any, where: str) -> npt.NDArray[np.uint16]:
+    """A sensor_msgs/Image (16UC1 mm or 32FC1 m) as (H, W) uint16 millimetres, 0 = no reading.
+
+    Raises:
+        RecordingError: another encoding, or data shorter than ``height * step``.
+    """
+    encoding = str(msg.encoding).strip()
+    if encoding not in DEPTH_ENCODINGS:
+        raise RecordingError(
+            f"{where}: image encoding {encoding!r} is not depth",
+            hint="depth images are 16UC1 (millimetres) or 32FC1 (metres); pick one with ?topic=",
+        )
+    kind = DEPTH_ENCODINGS[encoding]
+    height, width, step = int(msg.height), int(msg.width), int(msg.step)
+    row_bytes = width * 2 if kind == "u2" else width * 4
+    data = np.asarray(msg.data, dtype=np.uint8)
+    if height < 1 or width < 1 or step < row_bytes or data.size < step * height:
+        raise RecordingError(
+            f"{where}: a {width}x{height} {encoding} image with step {step} "
+            f"holds {data.size} bytes (needs {step * height})",
+            hint=HINT_BROKEN,
+        )
+    rows = data[: step * height].reshape(height, step)[:, :row_bytes]
+    dtype = np.dtype((">" if msg.is_bigendian else "<") + kind)
+    values = np.ascontiguousarray(rows).view(dtype).reshape(height, width)
+    if kind == "u2":
+        return values.astype(np.uint16)
+    with np.errstate(invalid="ignore", over="ignore"):
+        mm = np.rint(values.astype(np.float64) * 1000.0)
+        ok = np.isfinite(mm) & (mm > 0) & (mm <= MAX_MM)
+    return np.where(ok, mm, 0).astype(np.uint16)
+
+
+def camera_model(info: Any, shape: tuple[int, int], where: str) -> CameraModel | None:
+    """The camera of a CameraInfo for images of ``shape`` (H, W); None when K is all zero."""
+    k = np.asarray(_field(info, "k", "K"), dtype=np.float64)
+    if k.shape != (9,) or not np.any(k):
+        return None  # an uncalibrated camera publishes K = 0
+    height, width = shape
+    info_w, info_h = int(info.width), int(info.height)
+    try:
+        intr = Intrinsics(
+            info_w or width, info_h or height, float(k[0]), float(k[4]), float(k[2]), float(k[5])
+        )
+        if (intr.width, intr.height) != (width, height):
+            log.info("%s: CameraInfo is %dx%d, images %dx%d: intrinsics scaled", where,
+                     intr.width, intr.height, width, height)  # fmt: skip
+            intr = intr.scaled(width, height)
+    except ValueError as exc:
+        raise RecordingError(f"{where}: CameraInfo K does not fit the image: {exc}") from None
+    d = tuple(float(x) for x in np.asarray(_field(info, "d", "D"), dtype=np.float64))
+    model = str(info.distortion_model)
+    if any(d):
+        log.warning(
+            "%s: lens distortion (%s, %s) is not modelled yet; the depth image is treated as "
+            "an undistorted pinhole", where, model or "unnamed", ", ".join(f"{x:.4g}" for x in d)
+        )  # fmt: skip
+    return CameraModel(intr, model, d, str(info.header.frame_id))
+
+
+def quat_matrix(q: Any) -> npt.NDArray[np.float64]:
+    """(3, 3) rotation of a geometry_msgs/Quaternion."""
+    x, y, z, w = float(q.x), float(q.y), float(q.z), float(q.w)
+    n = math.sqrt(x * x + y * y + z * z + w * w) or 1.0
+    x, y, z, w = x / n, y / n, z / n, w / n
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+        ]
+    )
+
+
+def frame_rotation(
+    static: dict[tuple[str, str], npt.NDArray[np.float64]], source: str, target: str
+) -> npt.NDArray[np.float64] | None:
+    """Rotation taking ``source``-frame vectors to ``target``, through static transforms.
+
+    Args:
+        static: (parent, child) -> R with v_parent = R v_child.
+        source, target: frame ids (a leading '/' ignored).
+
+    Returns:
+        (3, 3), or None when the transforms do not join the two frames.
+    """
+    source, target = source.lstrip("/"), target.lstrip("/")
+    edges: dict[str, list[tuple[str, npt.NDArray[np.float64]]]] = {}
+    for (parent, child), rot in static.items():
+        edges.setdefault(child, []).append((parent, rot))  # child -> parent: R
+        edges.setdefault(parent, []).append((child, rot.T))
+    seen = {source: np.eye(3)}
+    todo = [source]
+    while todo:
+        frame = todo.pop()
+        for other, rot in edges.get(frame, []):
+            if other not in seen:
+                seen[other] = rot @ seen[frame]
+                todo.append(other)
+    return seen.get(target)

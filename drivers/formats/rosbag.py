@@ -1,0 +1,369 @@
+"""ROS bags as depth recordings, read with the pure-Python ``rosbags`` library (no ROS needed).
+
+Paths: a ROS 1 ``.bag``; a ROS 2 bag folder (``metadata.yaml`` with sqlite3 ``.db3`` or ``.mcap``
+storage); a bare ROS 2 ``.mcap`` or ``.db3`` file.
+
+What is read:
+- depth from ``sensor_msgs/Image`` with encoding ``16UC1`` (millimetres) or ``32FC1`` (metres),
+  big- or little-endian, rows ``step`` bytes apart (padding skipped). With no ``topic`` the only
+  such topic is used (the first message of each Image topic tells its encoding).
+- intrinsics from the first ``sensor_msgs/CameraInfo`` on ``info_topic`` (default: the
+  ``camera_info`` beside the depth topic, or the bag's only CameraInfo topic): fx, fy, cx, cy
+  from K, scaled when the info's size differs from the image's. The distortion model and
+  coefficients are kept on :class:`CameraModel`, but lens distortion is not modelled yet: the
+  image is treated as an ideal pinhole (a line in the log says so when D is not all zero).
+- the accelerometer from the bag's only ``sensor_msgs/Imu`` topic (the latest message before
+  each image), turned into the depth image's optical frame: used as is when the IMU's frame is
+  the image's, else through the rotations of ``/tf_static``; an IMU the static transforms do not
+  join to the camera is left out (the log says so).
+- timestamps from the image headers (the bag's receive time where a header stamp is 0).
+
+Known traps of ``rosbags``: a ROS 2 folder whose ``metadata.yaml`` QoS differs from its storage
+file reads no message through the folder, so the storage files are then read directly; images
+from ``image_transport``'s ``compressedDepth`` are not decoded yet (a clear error says so).
+Frames are streamed: one storage chunk is decompressed at a time, never the whole bag.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from drivers.errors import RecordingError
+from drivers.formats.ros_decode import (
+    DEPTH_ENCODINGS,
+    HINT_BROKEN,
+    CameraModel,
+    camera_model,
+    decode_depth,
+    frame_rotation,
+    quat_matrix,
+    stamp_s,
+)
+
+log = logging.getLogger(__name__)
+
+IMAGE = "sensor_msgs/msg/Image"
+COMPRESSED = "sensor_msgs/msg/CompressedImage"
+CAMERA_INFO = "sensor_msgs/msg/CameraInfo"
+IMU = "sensor_msgs/msg/Imu"
+TF_STATIC = "/tf_static"
+SUFFIXES = (".bag", ".mcap", ".db3")
+
+Item = tuple[float, npt.NDArray[np.uint16], tuple[float, float, float] | None]
+
+
+def is_rosbag(path: Path) -> bool:
+    """True for a ``.bag``/``.mcap``/``.db3`` file or a ROS 2 bag folder (``metadata.yaml``)."""
+    if path.is_dir():
+        return (path / "metadata.yaml").is_file()
+    return path.suffix.lower() in SUFFIXES
+
+
+@dataclass(frozen=True, slots=True)
+class BagProbe:
+    """What :meth:`DepthBag.probe` found.
+
+    Attributes:
+        depth_topic, info_topic, imu_topic: topics used (None: absent or not usable).
+        shape: (height, width) of the depth images.
+        camera: the CameraInfo's camera, or None when the bag has none.
+        frames: number of depth images.
+        imu_to_camera: (3, 3) rotation from the IMU's frame to the image's optical frame.
+    """
+
+    depth_topic: str
+    info_topic: str | None
+    imu_topic: str | None
+    shape: tuple[int, int]
+    camera: CameraModel | None
+    frames: int
+    imu_to_camera: npt.NDArray[np.float64] | None
+
+
+class DepthBag:
+    """Depth frames of one image topic of a ROS bag; nothing stays open between calls.
+
+    Args:
+        path: the bag (see the module docstring).
+        topic: the depth image topic, or None for the bag's only depth topic.
+        info_topic: the CameraInfo topic, or None to find it.
+    """
+
+    def __init__(self, path: Path, topic: str | None = None, info_topic: str | None = None) -> None:
+        self.path = path
+        self.topic = topic
+        self.info_topic = info_topic
+        self._paths: list[Path] = [path]
+        self._probe: BagProbe | None = None
+
+    # --- opening -----------------------------------------------------------------------
+    def _reader(self) -> Any:
+        """An opened rosbags AnyReader over ``self._paths``."""
+        from rosbags.highlevel import AnyReader
+        from rosbags.typesys import Stores, get_typestore
+
+        try:
+            reader = AnyReader(self._paths, default_typestore=get_typestore(Stores.ROS2_HUMBLE))
+            reader.open()
+        except Exception as exc:  # a third-party parser on a damaged file: many exception types
+            raise self._broken(exc, "cannot be opened") from None
+        return reader
+
+    def _broken(self, exc: BaseException, what: str) -> RecordingError:
+        text = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        hint = HINT_BROKEN
+        if self.path.suffix.lower() == ".bag" and "index" in text.lower():
+            hint = "the ROS 1 bag has no index (recording cut short?): run `rosbag reindex` on it"
+        return RecordingError(f"{self.path}: not a readable ROS bag, {what} ({text})", hint=hint)
+
+    def _first(self, reader: Any, conns: list[Any]) -> tuple[Any, int] | None:
+        """The first message (deserialized) and its log time on ``conns``, or None."""
+        try:
+            for conn, t_ns, raw in reader.messages(connections=conns):
+                return reader.deserialize(raw, conn.msgtype), t_ns
+        except Exception as exc:  # see _reader
+            raise self._broken(exc, "reading failed") from None
+        return None
+
+    def probe(self, intrinsics_given: bool = False) -> BagProbe:
+        """Open the bag, choose the topics, read the camera; close it again.
+
+        Args:
+            intrinsics_given: the caller has fx, fy, cx, cy, so a bag without CameraInfo is fine.
+
+        Raises:
+            RecordingError: not a readable bag, no depth topic or several (listed), an encoding
+                that is not depth, compressed depth, no CameraInfo (unless ``intrinsics_given``).
+        """
+        reader = self._reader()
+        try:
+            topics = self._topics(reader)
+            if self.path.is_dir() and self._reads_nothing(reader, topics):
+                reader = self._storage_fallback(reader)
+                topics = self._topics(reader)
+            depth = self._depth_topic(reader, topics)
+            first = self._first(reader, topics[depth][1])
+            if first is None:
+                raise RecordingError(f"{self.path}: topic {depth} holds no message")
+            image = first[0]
+            shape = (int(image.height), int(image.width))
+            decode_depth(image, f"{self.path} {depth}")  # checks the encoding and the size
+            info_topic, camera = self._camera(reader, topics, depth, shape, intrinsics_given)
+            imu_topic, imu_rot = self._imu(reader, topics, str(image.header.frame_id))
+            self._probe = BagProbe(
+                depth, info_topic, imu_topic, shape, camera, topics[depth][2], imu_rot
+            )
+            return self._probe
+        finally:
+            reader.close()
+
+    def _reads_nothing(self, reader: Any, topics: dict[str, tuple[str, list[Any], int]]) -> bool:
+        """True when an image topic with messages in metadata.yaml yields none (the QoS trap)."""
+        return any(
+            msgtype in (IMAGE, COMPRESSED) and count > 0 and self._first(reader, conns) is None
+            for msgtype, conns, count in topics.values()
+        )
+
+    def _storage_fallback(self, reader: Any) -> Any:
+        """Reopen a ROS 2 folder through its storage files (metadata QoS != storage QoS)."""
+        files = sorted(
+            p for p in self.path.iterdir() if p.suffix in (".mcap", ".db3") and p.is_file()
+        )
+        reader.close()
+        if not files:
+            raise RecordingError(
+                f"{self.path}: images read no message through metadata.yaml and the folder "
+                "has no plain .mcap/.db3 storage file",
+                hint=HINT_BROKEN,
+            )
+        log.warning(
+            "%s: metadata.yaml does not match its storage file (QoS differs): reading %s directly",
+            self.path,
+            ", ".join(p.name for p in files),
+        )
+        self._paths = files
+        return self._reader()
+
+    @staticmethod
+    def _topics(reader: Any) -> dict[str, tuple[str, list[Any], int]]:
+        """topic -> (message type, connections, message count)."""
+        out: dict[str, tuple[str, list[Any], int]] = {}
+        for conn in reader.connections:
+            msgtype, conns, count = out.get(conn.topic, (conn.msgtype, [], 0))
+            out[conn.topic] = (msgtype, [*conns, conn], count + max(conn.msgcount, 0))
+        return out
+
+    def _depth_topic(self, reader: Any, topics: dict[str, tuple[str, list[Any], int]]) -> str:
+        def compressed_error(names: list[str]) -> RecordingError:
+            return RecordingError(
+                f"{self.path}: compressed depth images ({', '.join(names)}) are not supported yet",
+                hint="record the raw depth topic, or convert the bag first "
+                "(image_transport republish compressedDepth in, raw out)",
+            )
+
+        if self.topic is not None:
+            if self.topic not in topics:
+                images = [t for t, v in topics.items() if v[0] in (IMAGE, COMPRESSED)]
+                raise RecordingError(
+                    f"{self.path}: no topic {self.topic!r}",
+                    hint=f"image topics: {', '.join(sorted(images)) or 'none'}",
+                )
+            msgtype = topics[self.topic][0]
+            if msgtype == COMPRESSED:
+                raise compressed_error([self.topic])
+            if msgtype != IMAGE:
+                raise RecordingError(f"{self.path}: {self.topic} is a {msgtype}, not an {IMAGE}")
+            return self.topic
+        encodings: dict[str, str] = {}
+        for name, (msgtype, conns, count) in sorted(topics.items()):
+            if msgtype == IMAGE and count > 0:
+                first = self._first(reader, conns)
+                encodings[name] = "" if first is None else str(first[0].encoding).strip()
+        depth = [t for t, e in encodings.items() if e in DEPTH_ENCODINGS]
+        if len(depth) == 1:
+            return depth[0]
+        if len(depth) > 1:
+            listed = ", ".join(f"{t} ({encodings[t]})" for t in depth)
+            raise RecordingError(
+                f"{self.path}: {len(depth)} depth image topics: {listed}",
+                hint=f"choose one with ?topic={depth[0]}",
+            )
+        packed = sorted(t for t, v in topics.items() if v[0] == COMPRESSED and "depth" in t.lower())
+        if packed:
+            raise compressed_error(packed)
+        others = ", ".join(f"{t} ({e or 'empty'})" for t, e in encodings.items())
+        raise RecordingError(
+            f"{self.path}: no depth image topic (sensor_msgs/Image 16UC1 or 32FC1)",
+            hint=f"image topics: {others}" if others else f"topics: {', '.join(sorted(topics))}",
+        )
+
+    def _camera(
+        self,
+        reader: Any,
+        topics: dict[str, tuple[str, list[Any], int]],
+        depth: str,
+        shape: tuple[int, int],
+        intrinsics_given: bool,
+    ) -> tuple[str | None, CameraModel | None]:
+        infos = sorted(t for t, v in topics.items() if v[0] == CAMERA_INFO and v[2] > 0)
+        sibling = depth.rsplit("/", 1)[0] + "/camera_info"
+        name = self.info_topic or (
+            sibling if sibling in infos else infos[0] if len(infos) == 1 else None
+        )
+        if self.info_topic is not None and self.info_topic not in infos:
+            raise RecordingError(
+                f"{self.path}: no CameraInfo messages on {self.info_topic!r}",
+                hint=f"CameraInfo topics: {', '.join(infos) or 'none'}",
+            )
+        first = None if name is None else self._first(reader, topics[name][1])
+        camera = None if first is None else camera_model(first[0], shape, f"{self.path} {name}")
+        if camera is None and not intrinsics_given:
+            why = (
+                f"several CameraInfo topics ({', '.join(infos)}) and none beside it"
+                if len(infos) > 1 and name is None
+                else f"{name} has K = 0 (uncalibrated)"
+                if name is not None
+                else "no CameraInfo"
+            )
+            raise RecordingError(
+                f"{self.path}: no intrinsics for {depth}: {why}",
+                hint="give them: replay:BAG?fx=..&fy=..&cx=..&cy=.. (pixels)"
+                + (", or pick one with ?info_topic=" if len(infos) > 1 else ""),
+            )
+        return (name if camera is not None else None), camera
+
+    def _imu(
+        self, reader: Any, topics: dict[str, tuple[str, list[Any], int]], camera_frame: str
+    ) -> tuple[str | None, npt.NDArray[np.float64] | None]:
+        imus = sorted(t for t, v in topics.items() if v[0] == IMU and v[2] > 0)
+        if len(imus) != 1:
+            if imus:
+                log.warning("%s: %d Imu topics (%s): none used", self.path, len(imus), imus)
+            return None, None
+        first = self._first(reader, topics[imus[0]][1])
+        imu_frame = "" if first is None else str(first[0].header.frame_id)
+        if imu_frame.lstrip("/") == camera_frame.lstrip("/"):
+            return imus[0], np.eye(3)
+        static: dict[tuple[str, str], npt.NDArray[np.float64]] = {}
+        if TF_STATIC in topics:
+            try:
+                for conn, _, raw in reader.messages(connections=topics[TF_STATIC][1]):
+                    for tf in reader.deserialize(raw, conn.msgtype).transforms:
+                        key = (
+                            str(tf.header.frame_id).lstrip("/"),
+                            str(tf.child_frame_id).lstrip("/"),
+                        )
+                        static[key] = quat_matrix(tf.transform.rotation)
+            except Exception as exc:  # see _reader
+                raise self._broken(exc, "reading /tf_static failed") from None
+        rot = frame_rotation(static, imu_frame, camera_frame)
+        if rot is None:
+            log.warning(
+                "%s: %s is in frame %r, which /tf_static does not join to the depth frame %r: "
+                "accelerometer not used", self.path, imus[0], imu_frame, camera_frame,
+            )  # fmt: skip
+            return None, None
+        return imus[0], rot
+
+    # --- frames ------------------------------------------------------------------------
+    def frames(self) -> Iterator[Item]:
+        """(timestamp_s, depth_mm (H, W), accel_mps2 in the optical frame or None) per image.
+
+        Raises:
+            RecordingError: a damaged bag (after the frames before the damage), an image whose
+                size or encoding differs from the first.
+        """
+        probe = self._probe or self.probe(intrinsics_given=True)
+        reader = self._reader()
+        try:
+            topics = self._topics(reader)
+            wanted = list(topics[probe.depth_topic][1])
+            if probe.imu_topic is not None:
+                wanted += topics[probe.imu_topic][1]
+            accel: tuple[float, float, float] | None = None
+            count = 0
+            where = f"{self.path} {probe.depth_topic}"
+            messages = reader.messages(connections=wanted)
+            while True:
+                try:
+                    item = next(messages, None)
+                    if item is None:
+                        return
+                    conn, t_ns, raw = item
+                    msg = reader.deserialize(raw, conn.msgtype)
+                except Exception as exc:  # see _reader
+                    raise self._broken(exc, f"damaged after {count} frames") from None
+                if conn.topic != probe.depth_topic:
+                    accel = self._accel(msg, probe)
+                    continue
+                depth = decode_depth(msg, where)
+                if depth.shape != probe.shape:
+                    raise RecordingError(
+                        f"{where}: image {count} is {depth.shape[1]}x{depth.shape[0]}, "
+                        f"the first was {probe.shape[1]}x{probe.shape[0]}"
+                    )
+                count += 1
+                yield stamp_s(msg, t_ns), depth, accel
+        finally:
+            reader.close()
+
+    @staticmethod
+    def _accel(msg: Any, probe: BagProbe) -> tuple[float, float, float] | None:
+        """An Imu's specific force in the depth image's optical frame (m/s^2), or None."""
+        cov = np.asarray(msg.linear_acceleration_covariance, dtype=np.float64)
+        if cov.size and cov[0] == -1.0:  # REP 145: no estimate of this quantity
+            return None
+        a = msg.linear_acceleration
+        vec = np.array([float(a.x), float(a.y), float(a.z)])
+        assert probe.imu_to_camera is not None
+        out = probe.imu_to_camera @ vec
+        if not np.all(np.isfinite(out)):
+            return None
+        return float(out[0]), float(out[1]), float(out[2])
