@@ -273,8 +273,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     configure_logging(args.verbose, args.quiet)
     try:
         command = _handler(args.handler)
-        if stop_signal_received() is not None:  # noted while the command was being imported
-            raise _EarlyStop(stop_signal_received())
+        if _early["installed"] and stop_signal_received() is not None:
+            raise _EarlyStop(stop_signal_received())  # noted while the command was imported
         return int(command(args))
     except (DepthnavError, DriverError) as exc:
         log.debug("traceback", exc_info=args.verbose >= TRACEBACK_VERBOSITY)
@@ -297,6 +297,9 @@ def main(argv: Sequence[str] | None = None) -> int:
             "depthnav: hint: run again with -vv for the traceback and report it\n"
         )
         return EXIT_FAIL
+
+
+_early = {"installed": False}  # entry_point's start-up handlers are in place (not in-process use)
 
 
 class _EarlyStop(BaseException):
@@ -340,6 +343,7 @@ def entry_point() -> None:
     """
     for sig in STOP_SIGNALS:
         signal.signal(sig, _stop_early)
+    _early["installed"] = True
     try:
         code = main()
     except _EarlyStop as stop:

@@ -85,12 +85,13 @@ def check_path_length(path: str | os.PathLike[str], error: ErrorFactory = Record
             f"{short_repr(text, _SHOWN_PATH)}: the path is {len(raw)} bytes long, "
             f"longer than the {PATH_MAX} the system allows"
         )
-    for part in raw.split(b"/"):
+    parts = raw.split(b"/")
+    for i, part in enumerate(parts):
         if len(part) > NAME_MAX:
-            shown = short_repr(os.fsdecode(part), 40)
+            shown = os.fsdecode(b"/".join([*parts[:i], part[:40]]))
             raise error(
-                f"a name in {short_repr(text, _SHOWN_PATH)} is {len(part)} bytes long, "
-                f"longer than the {NAME_MAX} a file name may have ({shown})",
+                f"{shown}...: a name of {len(part)} bytes, longer than the {NAME_MAX} a file "
+                "name may have",
                 hint="check the path",
             )
     return text

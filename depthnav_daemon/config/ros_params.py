@@ -285,8 +285,9 @@ def _read_yaml(p: Path) -> object:
     if not os.path.lexists(p):
         raise ConfigError(f"{p}: cannot read (no such file)", hint="check the path")
     text = read_text(p, what="parameter file", error=ConfigError)
-    loader = _BoundedLoader(text)
+    loader = None
     try:
+        loader = _BoundedLoader(text)  # its reader refuses control characters already
         return loader.get_single_data()
     except _YamlRefusedError as e:
         raise ConfigError(f"{p}: not accepted as YAML: {e}") from None
@@ -299,7 +300,8 @@ def _read_yaml(p: Path) -> object:
     except ValueError:  # a number over Python's 4300-digit limit, an impossible date
         raise ConfigError(f"{p}: not valid YAML (a value that cannot be read)") from None
     finally:
-        loader.dispose()
+        if loader is not None:
+            loader.dispose()
 
 
 def _node_notes(

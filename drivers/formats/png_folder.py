@@ -71,7 +71,8 @@ def _index_line(index: Path, number: int, text: str, folder: Path) -> tuple[floa
             hint="timestamps are finite numbers of seconds",
         ) from None
     path = folder / parts[1]
-    if not path.resolve().is_relative_to(folder.resolve()):  # ../, /abs or a symlink out
+    # ../, /abs or a symlink out (realpath, unlike Path.resolve, never raises on a symlink loop)
+    if not Path(os.path.realpath(path)).is_relative_to(os.path.realpath(folder)):
         raise RecordingError(
             f"{index}:{number}: {short_text(parts[1], 80)} is outside the recording folder",
             hint="depth.txt names images inside its own folder",

@@ -220,7 +220,7 @@ class KinectDriver:
         if self.fakenect_dir is not None:
             n, events = check_fakenect_recording(self.fakenect_dir)
             log.info("replaying %d fakenect frames from %s", n, self.fakenect_dir)
-            os.environ["FAKENECT_PATH"] = str(self.fakenect_dir.resolve())  # read by the C library
+            os.environ["FAKENECT_PATH"] = os.path.realpath(self.fakenect_dir)  # read by the C lib
         else:
             events = 0
         serial = None

@@ -224,3 +224,92 @@ HOSTILE_NUMBERS = (
     "1" + "0" * 308 + ".0",
     "0x7fffffffffffffffffff",
 )
+# what Python's int()/float() read as numbers but depthnav must not: Arabic-Indic and full-width
+# digits, a superscript, underscores; and near-numbers
+NOT_ASCII_NUMBERS = (
+    "\u0665",  # ARABIC-INDIC DIGIT FIVE
+    "5\u00b2",  # 5 SUPERSCRIPT TWO
+    "1_000",
+    "\uff11\uff12",  # FULLWIDTH 12
+    "\u0661e\u0663",
+    "0x10",
+    "1e",
+    ".",
+    "+-1",
+)
+
+
+# --- guards for in-process fuzzing --------------------------------------------------------------
+def _status_kb(field: str) -> int:
+    for line in Path("/proc/self/status").read_text().splitlines():
+        if line.startswith(field + ":"):
+            return int(line.split()[1])
+    return 0
+
+
+class PeakMemory:
+    """The growth of this process's peak resident memory (VmHWM) over a block, in MB.
+
+    The kernel's peak is reset at the start (``/proc/self/clear_refs``, Linux >= 4.0); where
+    that is not allowed, ``growth_mb`` stays None and callers skip the check.
+    """
+
+    def __init__(self) -> None:
+        self.growth_mb: float | None = None
+        self._start_kb = 0
+
+    def __enter__(self) -> PeakMemory:
+        try:
+            Path("/proc/self/clear_refs").write_text("5")
+        except OSError:
+            self._start_kb = -1
+            return self
+        self._start_kb = _status_kb("VmRSS")
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        if self._start_kb >= 0:
+            self.growth_mb = (_status_kb("VmHWM") - self._start_kb) / 1024
+
+
+class Watchdog:
+    """Interrupts the main thread after ``seconds`` (a blocking open() or read() included) with
+    TimeoutError, and caps its address space at ``address_space_mb`` more than it has, so a
+    reader that hangs or reads /dev/zero to the end fails its case instead of the machine.
+
+    A thread sends SIGUSR1 (pytest-timeout owns SIGALRM); the limit is RLIMIT_AS's soft value,
+    restored at the end.
+    """
+
+    def __init__(self, seconds: float = 20.0, address_space_mb: int = 4096) -> None:
+        self.seconds = seconds
+        self.extra = address_space_mb << 20
+
+    def __enter__(self) -> Watchdog:
+        import resource
+        import signal
+        import threading
+
+        def interrupt(_signum: int, _frame: object) -> None:
+            raise TimeoutError(f"still reading after {self.seconds} s (a hang)")
+
+        self._old_handler = signal.signal(signal.SIGUSR1, interrupt)
+        main = threading.get_ident()
+        self._timer = threading.Timer(
+            self.seconds, lambda: signal.pthread_kill(main, signal.SIGUSR1)
+        )
+        self._timer.start()
+        self._old_limit = resource.getrlimit(resource.RLIMIT_AS)
+        size = _status_kb("VmSize") * 1024 + self.extra
+        hard = self._old_limit[1]
+        if hard == resource.RLIM_INFINITY or size < hard:
+            resource.setrlimit(resource.RLIMIT_AS, (size, hard))
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        import resource
+        import signal
+
+        self._timer.cancel()
+        resource.setrlimit(resource.RLIMIT_AS, self._old_limit)
+        signal.signal(signal.SIGUSR1, self._old_handler)

@@ -11,10 +11,14 @@ from __future__ import annotations
 import io
 import math
 import os
+import re
+import shutil
 import string
 import tempfile
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -24,7 +28,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from PIL import Image
 
-from depthnav_daemon.config.loader import build_config, parse_set
+from depthnav_daemon.config.loader import build_config, parse_set, valid_keys
 from depthnav_daemon.config.ros_params import load_ros_params
 from depthnav_daemon.errors import ConfigError
 from depthnav_daemon.sinks import create_sink
@@ -35,8 +39,11 @@ from drivers.formats.fakenect import ACCEL_DUMP, write_fakenect
 from drivers.formats.oni import check_oni, write_oni
 from drivers.formats.recording_writer import write_recording
 from drivers.kinect.driver import check_fakenect_recording
+from drivers.limits import image_size_problem, max_image_pixels
 from drivers.replay import CACHE_MAX_BYTES, ReplayDriver
 from drivers.tilt.serialtilt import SerialTiltSource, parse_line
+
+from . import hostile
 
 BASE = settings(
     deadline=None, suppress_health_check=list(HealthCheck), derandomize=True, database=None
@@ -631,12 +638,8 @@ def test_fuzz_command_line(argv: list[str]) -> None:
     if any(w in ("--write", "--plot", "record", "bench") for w in argv):
         return  # commands that write files or run long are covered in their own tests
     root = logging.getLogger()
-    saved = (
-        root.handlers[:],
-        root.level,
-        signal.getsignal(signal.SIGINT),
-        signal.getsignal(signal.SIGTERM),
-    )
+    stops = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
+    saved = (root.handlers[:], root.level, {s: signal.getsignal(s) for s in stops})
     err = io.StringIO()
     try:
         with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()):
@@ -646,10 +649,428 @@ def test_fuzz_command_line(argv: list[str]) -> None:
                 code = exc.code if isinstance(exc.code, int) else 2
     finally:
         root.handlers[:], root.level = saved[0], saved[1]
-        signal.signal(signal.SIGINT, saved[2])
-        signal.signal(signal.SIGTERM, saved[3])
+        for sig, handler in saved[2].items():
+            signal.signal(sig, handler)
         for name in ("depthnav_daemon", "drivers"):
             logging.getLogger(name).setLevel(logging.NOTSET)
     text = err.getvalue()
     assert code in (0, 1, 2, 130), (argv, code, text)
     assert "internal error" not in text and "Traceback" not in text, (argv, text)
+
+
+# --- hostile inputs, generated for every reader (docs/hardening.md, "Hostile inputs") ----------
+# Each reader registers how to make a valid input, the files it reads and which of them are
+# text; every generator below then runs against every reader: special files and symlinks in
+# place of each file, each text file in another encoding, every number in it replaced by a
+# hostile one, deep nesting in each TOML/YAML file. A new reader added to READERS inherits them.
+@dataclass(frozen=True)
+class Reader:
+    """An entry point that reads files.
+
+    Attributes:
+        name: for the test ids.
+        make: writes a valid input into a folder; returns its root (what the user names).
+        files: the files it reads, relative to the root ("" is the root itself; a glob picks
+            the first match).
+        text: those of ``files`` that are text.
+        read: reads the whole input: returns, or raises its own error in one line.
+    """
+
+    name: str
+    make: Callable[[Path], Path]
+    files: tuple[str, ...]
+    text: tuple[str, ...]
+    read: Callable[[Path], None]
+
+
+def _replay(root: Path) -> None:
+    replay_all(f"replay:{root}?rate=max&fx=60&fy=58&cx=31&cy=23", str(root.parent))
+
+
+def _replay_recording(root: Path) -> None:
+    replay_all(f"replay:{root}?rate=max", str(root.parent))
+
+
+def _make_recording(folder: Path) -> Path:
+    write_recording(folder / "rec", frames())
+    return folder / "rec"
+
+
+def _make_npz(folder: Path) -> Path:
+    (folder / "x.npz").write_bytes(NPZ)
+    return folder / "x.npz"
+
+
+def _make_png_folder(folder: Path) -> Path:
+    root = folder / "png"
+    root.mkdir()
+    (root / "000.png").write_bytes(PNG)
+    (root / "001.png").write_bytes(PNG)
+    (root / "depth.txt").write_text("# t file\n0.0 000.png\n0.033 001.png\n")
+    (root / "camera.toml").write_text(
+        "depth_scale = 1000.0\n[intrinsics]\nfx = 60.0\nfy = 58.0\ncx = 31.0\ncy = 23.0\n"
+    )
+    return root
+
+
+def _make_fakenect(folder: Path) -> Path:
+    shutil.copytree(FAKENECT_DIR / "base", folder / "fk")
+    return folder / "fk"
+
+
+def _make_oni(folder: Path) -> Path:
+    (folder / "x.oni").write_bytes(ONI)
+    return folder / "x.oni"
+
+
+def _make_config(folder: Path) -> Path:
+    (folder / "robot.toml").write_text(
+        'device = "kinect"\n[mount]\nheight_m = 0.55\ntilt_deg = 15.0\n'
+        "[scan]\nrange_max_m = 4.0\nrow_step = 2\n[daemon]\nseed = 7\npose_every_frames = 30\n"
+    )
+    return folder / "robot.toml"
+
+
+def _make_ros_params(folder: Path) -> Path:
+    (folder / "params.yaml").write_text(
+        "laserscan_kinect:\n  ros__parameters:\n    range_min: 0.45\n    range_max: 4.0\n"
+        "    scan_height: 3\n    sensor_mount_height: 0.4\n    sensor_tilt_angle: -10.0\n"
+    )
+    return folder / "params.yaml"
+
+
+def _read_config(root: Path) -> None:
+    # a value's error names its key (mount.height_m), not the file: values from several files
+    # and --set are merged before they are checked
+    clean(lambda: build_config([root]), (ConfigError,))
+
+
+READERS = [
+    Reader(
+        "recording",
+        _make_recording,
+        ("", "recording.toml", "frames.npz"),
+        ("recording.toml",),
+        _replay_recording,
+    ),
+    Reader("bare npz", _make_npz, ("",), (), _replay_recording),
+    Reader(
+        "png folder",
+        _make_png_folder,
+        ("", "depth.txt", "camera.toml", "000.png", "001.png"),
+        ("depth.txt", "camera.toml"),
+        _replay,
+    ),
+    Reader(
+        "fakenect",
+        _make_fakenect,
+        ("", "INDEX.txt", "d-*.pgm", "a-*.dump"),
+        ("INDEX.txt",),
+        _replay_recording,
+    ),
+    Reader(
+        "fakenect guard",
+        _make_fakenect,
+        ("", "INDEX.txt", "d-*.pgm", "a-*.dump"),
+        ("INDEX.txt",),
+        lambda root: clean(
+            lambda: check_fakenect_recording(root), (RecordingError,), str(root.parent)
+        ),
+    ),
+    Reader(
+        "oni",
+        _make_oni,
+        ("",),
+        (),
+        lambda root: clean(lambda: check_oni(root), (RecordingError,), str(root.parent)),
+    ),
+    Reader("config", _make_config, ("",), ("",), _read_config),
+    Reader("ros params", _make_ros_params, ("",), ("",), _read_config),
+    Reader("ros bag", lambda folder: _touch(folder / "x.bag"), ("",), (), _replay_recording),
+]
+READER = st.sampled_from(READERS)
+
+
+def _touch(path: Path) -> Path:
+    path.write_bytes(b"")
+    return path
+
+
+def _role(root: Path, name: str) -> Path:
+    if not name:
+        return root
+    return next(iter(sorted(root.glob(name))), root / name)
+
+
+def _guarded(read: Callable[[Path], None], root: Path) -> None:
+    """``read(root)`` under a watchdog (20 s, +4 GiB of address space): a reader that blocks on a
+    FIFO or reads /dev/zero to the end fails its case, not the machine."""
+    with hostile.Watchdog():
+        read(root)
+
+
+@fuzz(150)
+@given(
+    reader=READER,
+    pick=st.integers(0, 10),
+    kind=st.sampled_from([*hostile.SPECIAL_KINDS, "long name"]),
+)
+def test_fuzz_special_files_in_place_of_every_input(
+    tmp_path_factory: pytest.TempPathFactory, reader: Reader, pick: int, kind: str
+) -> None:
+    """A FIFO, a folder, a symlink to /dev/zero or /dev/urandom, a dangling symlink, a symlink
+    loop or a 300-byte name where each file of each reader belongs: one line, never a hang
+    (before: open() blocked and SIGTERM was ignored) or a read to the end."""
+    folder = tmp_path_factory.mktemp("special")
+    root = reader.make(folder)
+    if kind == "long name":
+        root = root.with_name("n" * 300 + root.suffix)
+    else:
+        hostile.make_special(_role(root, reader.files[pick % len(reader.files)]), kind)
+    with hostile.PeakMemory() as peak:
+        _guarded(reader.read, root)
+    assert peak.growth_mb is None or peak.growth_mb < 200, peak.growth_mb
+
+
+TEXT_READERS = st.sampled_from([r for r in READERS if r.text])
+
+
+@fuzz(120)
+@given(
+    reader=TEXT_READERS,
+    pick=st.integers(0, 10),
+    encoding=st.sampled_from(["utf-16", "utf-16-le", "utf-16-be", "utf-32", "latin-1", "cp1252"]),
+    noise=st.one_of(st.none(), st.binary(min_size=1, max_size=8)),
+    at=st.integers(0, 1 << 16),
+)
+def test_fuzz_text_that_is_not_utf8(
+    tmp_path_factory: pytest.TempPathFactory,
+    reader: Reader,
+    pick: int,
+    encoding: str,
+    noise: bytes | None,
+    at: int,
+) -> None:
+    """Every text file of every reader in another encoding (a non-ASCII character added so
+    Latin-1 differs from UTF-8), or with random bytes inserted: one line (before: a
+    UnicodeDecodeError traceback), or read as before when the bytes happen to be valid UTF-8."""
+    root = reader.make(tmp_path_factory.mktemp("enc"))
+    path = _role(root, reader.text[pick % len(reader.text)])
+    text = path.read_text()
+    if noise is None:
+        data = ("# café\n" + text if not path.name.endswith(".txt") else text).encode(
+            encoding, errors="replace"
+        )
+    else:
+        raw = text.encode()
+        data = raw[: at % (len(raw) + 1)] + noise + raw[at % (len(raw) + 1) :]
+    path.write_bytes(data)
+    _guarded(reader.read, root)
+
+
+_NUMBER = re.compile(rb"(?<![\w.])[-+]?[0-9]+(?:\.[0-9]+)?(?:[eE][-+]?[0-9]+)?(?![\w])")
+HOSTILE_NUMBER = st.one_of(
+    st.sampled_from(hostile.HOSTILE_NUMBERS),
+    st.sampled_from(hostile.NOT_ASCII_NUMBERS),
+    st.integers(-(10**30), 10**30).map(str),
+    st.floats().map(repr),
+)
+
+
+@fuzz(200)
+@given(
+    reader=TEXT_READERS, pick=st.integers(0, 10), which=st.integers(0, 100), number=HOSTILE_NUMBER
+)
+def test_fuzz_hostile_numbers_in_every_text_file(
+    tmp_path_factory: pytest.TempPathFactory, reader: Reader, pick: int, which: int, number: str
+) -> None:
+    """Each number in each text file of each reader (TOML and YAML values, depth.txt timestamps,
+    fakenect file names) replaced by a 400- or 5000-digit integer, 1e400, inf, nan, 5e-324,
+    non-ASCII digits and random numbers: accepted as a number, or one line (before: OverflowError,
+    ValueError over 4300 digits, OverflowError from int(inf): internal errors)."""
+    root = reader.make(tmp_path_factory.mktemp("num"))
+    path = _role(root, reader.text[pick % len(reader.text)])
+    data = path.read_bytes()
+    spots = list(_NUMBER.finditer(data))
+    if spots:
+        spot = spots[which % len(spots)]
+        data = data[: spot.start()] + number.encode() + data[spot.end() :]
+        path.write_bytes(data)
+    _guarded(reader.read, root)
+
+
+NUMERIC_OPTIONS = [
+    (
+        "replay:fixtures/corridor_step?",
+        ("fps", "fx", "fy", "cx", "cy", "scale", "const_shift", "start"),
+    ),
+    ("kinect?", ("tilt_deg", "const_shift", "fx", "cy")),
+    ("openni:x.oni?", ("fx", "cx")),
+]
+SINK_NUMERIC_OPTIONS = [
+    ("text?", ("every",)),
+    ("udp://127.0.0.1:5600?", ("max_bytes",)),
+    ("mavlink:/dev/null?", ("baud", "rate", "stale", "sysid", "compid")),
+    ("mavlink+udp://127.0.0.1:14550?", ("rate", "sysid")),
+    ("rerun:x.rrd?", ("every",)),
+    ("udp://127.0.0.1:", ("",)),
+    ("udp://[::1]:", ("",)),
+]
+
+
+@fuzz(200)
+@given(
+    device=st.sampled_from(NUMERIC_OPTIONS),
+    sink=st.sampled_from(SINK_NUMERIC_OPTIONS),
+    key=st.sampled_from(valid_keys()),
+    pick=st.integers(0, 10),
+    number=HOSTILE_NUMBER,
+)
+def test_fuzz_hostile_numbers_in_specs_and_set(device, sink, key, pick, number: str) -> None:
+    """The same numbers in every numeric spec option of the drivers and sinks, in sink ports, and
+    in ``--set`` for every config key: a value, or one line."""
+    prefix, options = device
+    option = options[pick % len(options)]
+    clean(lambda: create_driver(f"{prefix}{option}={number}"), (DriverError,))
+    prefix, options = sink
+    option = options[pick % len(options)]
+    clean(lambda: create_sink(f"{prefix}{option}{'=' if option else ''}{number}"), (ConfigError,))
+    clean(lambda: build_config([], [f"{key}={number}"]), (ConfigError,))
+
+
+NESTING = st.tuples(st.integers(1, 4000), st.sampled_from(["[", "{"]))
+
+
+@fuzz(80)
+@given(reader=TEXT_READERS, pick=st.integers(0, 10), nesting=NESTING)
+def test_fuzz_deep_nesting_in_every_toml_and_yaml(
+    tmp_path_factory: pytest.TempPathFactory, reader: Reader, pick: int, nesting
+) -> None:
+    """A value nested up to 4000 deep added to each TOML/YAML file (and to ``--set``): one line
+    (before: RecursionError), never a crash."""
+    depth, kind = nesting
+    root = reader.make(tmp_path_factory.mktemp("deep"))
+    path = _role(root, reader.text[pick % len(reader.text)])
+    if path.suffix in (".toml", ".yaml"):
+        value = hostile.nested(depth, kind)
+        if path.suffix == ".yaml":
+            value = value.replace(" = ", ": ")
+            line = f"zz_nested: {value}\n"
+        else:
+            line = f"zz_nested = {value}\n"
+        path.write_text(line + path.read_text())  # before the first table: a top-level key
+    _guarded(reader.read, root)
+    clean(
+        lambda: build_config([], [f"scan.range_max_m={hostile.nested(depth, kind)}"]),
+        (ConfigError,),
+    )
+
+
+@fuzz(60)
+@given(levels=st.integers(2, 12), width=st.integers(2, 12), scalar_alias=st.booleans())
+def test_fuzz_hostile_yaml(
+    tmp_path_factory: pytest.TempPathFactory, levels, width, scalar_alias
+) -> None:
+    """Billion-laughs documents of any depth and width (and harmless aliases of single values):
+    one line, bounded memory and time (before: 8.4 GB and 160 s for 9 levels of 9)."""
+    path = tmp_path_factory.mktemp("yaml") / "params.yaml"
+    text = hostile.billion_laughs(levels, width)
+    if scalar_alias:
+        text = "scan_height: &h 3\nblock_size: *h\n" + text
+    path.write_text(text)
+    with hostile.PeakMemory() as peak:
+        with hostile.Watchdog():
+            clean(lambda: build_config([path]), (ConfigError,), str(path))
+    assert peak.growth_mb is None or peak.growth_mb < 100, peak.growth_mb
+
+
+NPZ_NAMES = [
+    "depth_mm.npy",
+    "depth_mm",
+    "timestamp_s.npy",
+    "intrinsics.npy",
+    "accel_mps2.npy",
+    "other.npy",
+]
+MEMBER = st.one_of(
+    st.just("valid"),
+    st.tuples(
+        st.sampled_from(["bomb", "lie"]),
+        st.sampled_from(["<u2", "<f8", ">u2", "<i4", "|b1", "<c16", "|O"]),
+        st.lists(st.integers(0, 40000), min_size=1, max_size=3),
+    ),
+)
+
+
+def _member(name: str, spec: Any) -> hostile.Deflated:
+    valid = hostile.valid_arrays()
+    if spec == "valid":
+        key = "depth_mm.npy" if name.startswith("depth_mm") else name.removesuffix(".npy")
+        return hostile.deflate(hostile.npy_bytes(valid.get(key, np.zeros(3))))
+    kind, dtype, shape = spec
+    shape = tuple(shape)
+    elements = int(np.prod(shape, dtype=object))
+    if kind == "bomb" and dtype != "|O" and elements * np.dtype(dtype).itemsize <= 300 << 20:
+        return hostile.bomb(dtype, shape)  # header and zeros agree: up to 300 MB decoded
+    header = hostile.npy_header(dtype if dtype != "|O" else "<u2", shape)  # claims, holds little
+    return hostile.deflate(header + bytes(64))
+
+
+@REPLAY_PATHS
+@fuzz(120)
+@given(members=st.lists(st.tuples(st.sampled_from(NPZ_NAMES), MEMBER), min_size=1, max_size=6))
+def test_fuzz_npz_members_bombs_and_duplicates(
+    tmp_path_factory: pytest.TempPathFactory, monkeypatch: pytest.MonkeyPatch, cap, members
+) -> None:
+    """Archives built member by member: names repeated (depth_mm.npy beside depth_mm), zip bombs
+    of up to 300 MB in any member, headers that claim up to 40000^3 elements of any dtype over a
+    few bytes: one line, and the process's peak memory grows by less than 200 MB per case
+    (before: every member decoded in full before its shape was checked, 2.4 GB from 2.8 MB)."""
+    monkeypatch.setattr("drivers.replay.CACHE_MAX_BYTES", cap)
+    path = tmp_path_factory.mktemp("npz") / "x.npz"
+    hostile.write_zip(path, [(name, _member(name, spec)) for name, spec in members])
+    with hostile.PeakMemory() as peak:
+        _guarded(lambda p: replay_all(f"replay:{p}?rate=max", str(p)), path)
+    assert peak.growth_mb is None or peak.growth_mb < 200, peak.growth_mb
+
+
+@fuzz(80)
+@given(
+    width=st.integers(1, 40000),
+    height=st.integers(1, 40000),
+    tail=st.one_of(st.none(), st.binary(max_size=64)),
+)
+def test_fuzz_huge_frames(tmp_path_factory: pytest.TempPathFactory, width, height, tail) -> None:
+    """PNGs claiming any size up to 40000x40000 (a real image of zeros when it is small, a bare
+    header with garbage otherwise) and .npz depth claiming the same: refused from the header
+    when too big (drivers.limits), one line, peak memory bounded (before: Pillow's
+    DecompressionBombError at 20000x20000, 3.2 GB before refusing 12000x12000)."""
+    folder = tmp_path_factory.mktemp("huge") / "png"
+    folder.mkdir()
+    if tail is None and width * height <= 4_000_000:
+        hostile.png_of_zeros(folder / "000.png", width, height)
+    else:
+        hostile.png_header_only(folder / "000.png", width, height, tail or b"")
+    npz = folder.parent / "x.npz"
+    hostile.npz(npz, {"depth_mm.npy": hostile.Deflated(*_claim((1, height, width)))})
+    with hostile.PeakMemory() as peak:
+        _guarded(_replay, folder)
+        _guarded(_replay_recording, npz)
+    assert peak.growth_mb is None or peak.growth_mb < 300, peak.growth_mb
+    problem = image_size_problem(width, height)
+    assert (problem is None) == (
+        max(width, height) <= 8192 and width * height <= max_image_pixels()
+    )
+
+
+def _claim(shape: tuple[int, ...]) -> tuple[bytes, int, int]:
+    d = hostile.deflate(hostile.npy_header("<u2", shape) + bytes(16))
+    return d.data, d.crc, d.size
+
+
+def test_image_size_limit_follows_memory() -> None:
+    """The largest image is set from memory: the tables take ~200 B a pixel, and may use half."""
+    assert image_size_problem(640, 480, memory=1 << 30) is None  # a Kinect on a 1 GB board
+    too_big = image_size_problem(4096, 4096, memory=4 << 30)  # 16.8 M pixels, 3.4 GB of tables
+    assert too_big is not None and "4096x4096" in too_big and "allow 10737418 pixels" in too_big
+    assert max_image_pixels(1 << 50) == 8192 * 8192  # never beyond 8192 each way

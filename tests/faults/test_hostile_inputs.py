@@ -408,12 +408,12 @@ ONE_LINE_CASES: dict[str, tuple[Callable[[Path], list[str]], int, str]] = {
     "a recording name of 300 bytes": (
         lambda d: ["replay", str(d / ("x" * 300))],
         1,
-        "is 300 bytes long, longer than the 255 a file name may have",
+        "xxxxxxxxxx...: a name of 300 bytes, longer than the 255 a file name may have",
     ),
     "a config name of 300 bytes": (
         lambda d: ["run", "--device", FAST, "-c", str(d / ("c" * 300 + ".toml"))],
         2,
-        "is 305 bytes long, longer than the 255 a file name may have",
+        "a name of 305 bytes, longer than the 255 a file name may have",
     ),
     # sink hosts and ports
     "udp://a..b:5": (
