@@ -47,6 +47,7 @@ from drivers.spec import (
     intrinsics_options,
     with_overrides,
 )
+from drivers.values import NumberError, short_repr, to_number
 
 log = logging.getLogger(__name__)
 
@@ -141,12 +142,11 @@ class KinectDriver:
         """Build from ``kinect[://INDEX]?...``."""
         check_options(spec, OPTIONS, GRAMMAR)
         try:
-            index = int(spec.target or 0)
-            if index < 0:
-                raise ValueError
-        except ValueError:
+            index = int(to_number(spec.target or "0", integer=True, low=0, high=255))
+        except NumberError:
             raise DeviceSpecError(
-                f"{spec.text!r}: device index {spec.target!r} is not a number >= 0",
+                f"{short_repr(spec.text)}: device index {short_repr(spec.target)} is not a "
+                "number in 0..255",
                 hint=f"the kinect spec is {GRAMMAR}",
             ) from None
         fakenect = Path(spec.options["fakenect"]) if "fakenect" in spec.options else None
@@ -155,7 +155,9 @@ class KinectDriver:
         )
         led = spec.options.get("led")
         if led is not None and led not in LED:
-            raise DeviceSpecError(f"led={led!r} in {spec.text!r} is not one of {', '.join(LED)}")
+            raise DeviceSpecError(
+                f"led={short_repr(led)} in {short_repr(spec.text)} is not one of {', '.join(LED)}"
+            )
         driver = cls(
             index,
             accel=accel,

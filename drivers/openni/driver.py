@@ -27,10 +27,11 @@ from typing import Any
 
 import numpy as np
 
-from drivers.base import DeviceInfo, Frame, Intrinsics
+from drivers.base import MAX_IMAGE_SIDE, DeviceInfo, Frame, Intrinsics
 from drivers.errors import (
     DeviceLost,
     DeviceOpenError,
+    DeviceSpecError,
     DriverError,
     FrameTimeout,
     OpenFailure,
@@ -47,6 +48,7 @@ from drivers.spec import (
     intrinsics_options,
     with_overrides,
 )
+from drivers.values import NumberError, short_repr, to_number
 
 log = logging.getLogger(__name__)
 
@@ -84,15 +86,18 @@ def _parse_mode(spec: Spec) -> tuple[int, int, int] | None:
     text = spec.options.get("mode")
     if text is None:
         return None
-    try:
-        size, _, fps = text.partition("@")
-        width, _, height = size.lower().partition("x")
-        return int(width), int(height), int(fps or 30)
-    except ValueError:
-        from drivers.errors import DeviceSpecError
-
+    size, _, fps = text.partition("@")
+    width, _, height = size.lower().partition("x")
+    try:  # ASCII digits, sizes within what depthnav takes (drivers.values.to_number)
+        return (
+            int(to_number(width, integer=True, low=1, high=MAX_IMAGE_SIDE)),
+            int(to_number(height, integer=True, low=1, high=MAX_IMAGE_SIDE)),
+            int(to_number(fps or "30", integer=True, low=1, high=1000)),
+        )
+    except NumberError:
         raise DeviceSpecError(
-            f"mode={text!r} in {spec.text!r} is not WxH@FPS, e.g. 640x480@30"
+            f"mode={short_repr(text)} in {short_repr(spec.text)} is not WxH@FPS, e.g. 640x480@30 "
+            f"(1..{MAX_IMAGE_SIDE} pixels each way)"
         ) from None
 
 

@@ -189,7 +189,11 @@ class Finished:
 
 
 def run_measured(
-    args: Sequence[str], *, env: dict[str, str] | None = None, timeout: float = 120
+    args: Sequence[str],
+    *,
+    env: dict[str, str] | None = None,
+    timeout: float = 120,
+    cwd: Path = ROOT,
 ) -> Finished:
     """Run a child to its end and return its output and peak memory.
 
@@ -198,7 +202,7 @@ def run_measured(
     running after ``timeout`` is killed and fails the test.
     """
     with tempfile.TemporaryFile("w+") as out, tempfile.TemporaryFile("w+") as err:
-        proc = subprocess.Popen(list(args), stdout=out, stderr=err, text=True, cwd=ROOT, env=env)
+        proc = subprocess.Popen(list(args), stdout=out, stderr=err, text=True, cwd=cwd, env=env)
         timer = threading.Timer(timeout, proc.kill)
         timer.start()
         try:
