@@ -516,6 +516,12 @@ def test_stdout_reader_that_stalls_does_not_freeze_the_other_outputs(tmp_path: P
     """The consumer of stdout stops reading (hung, SIGSTOPped) without closing the pipe. Before the
     fix the next full pipe blocked the frame loop: the UDP scan (and MAVLink) stopped too."""
     rx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    # room for every datagram while this process waits for a CPU (a loaded 2-core machine lost
+    # 14 of them with the default buffer: a gap in seq that was the test's, not the daemon's)
+    for opt in (getattr(socket, "SO_RCVBUFFORCE", None), socket.SO_RCVBUF):
+        with contextlib.suppress(OSError, TypeError):
+            rx.setsockopt(socket.SOL_SOCKET, opt, 16 << 20)
+            break
     rx.bind(("127.0.0.1", 0))
     rx.settimeout(WAIT_S)
     err = tmp_path / "err.txt"
