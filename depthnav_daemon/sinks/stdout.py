@@ -95,16 +95,18 @@ class StdoutSink:
         stream.flush()  # what was printed before goes first; from now on the thread writes the fd
         self._fd = fd
         self._queue = queue.Queue(maxsize=1)
-        self._thread = threading.Thread(target=self._writer, name=f"sink {self.name}", daemon=True)
+        # the thread gets the queue and fd it serves: a close() right after open() (a stop
+        # signal at once) may clear the attributes before the thread has run a line
+        self._thread = threading.Thread(
+            target=self._writer, args=(self._queue, fd), name=f"sink {self.name}", daemon=True
+        )
         self._thread.start()
 
-    def _writer(self) -> None:
+    def _writer(self, lines: queue.Queue[bytes | None], fd: int) -> None:
         """Write whole lines to the fd; a stalled reader blocks this thread, not the frame loop."""
-        assert self._queue is not None and self._fd is not None
-        fd = self._fd
         regular = _is_regular(fd)
         while True:
-            data = self._queue.get()
+            data = lines.get()
             if data is None:
                 return
             start = _end_of(fd) if regular else None
