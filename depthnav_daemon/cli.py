@@ -344,14 +344,18 @@ def entry_point() -> None:
     for sig in STOP_SIGNALS:
         signal.signal(sig, _stop_early)
     _early["installed"] = True
-    try:
-        code = main()
-    except _EarlyStop as stop:
-        code = stopped_code({"signal": stop.args[0]})
-    except KeyboardInterrupt:
-        code = EXIT_INTERRUPTED
-    for sig in STOP_SIGNALS:  # everything is closed: a late signal changes nothing
-        signal.signal(sig, _note_only)
+    code: int | None = None
+    while True:  # a stop signal may land anywhere, even while main() returns: each lap takes one
+        try:
+            if code is None:
+                code = main()
+            for sig in STOP_SIGNALS:  # everything is closed: a late signal changes nothing
+                signal.signal(sig, _note_only)
+            break
+        except _EarlyStop as stop:
+            code = stopped_code({"signal": stop.args[0]}) if code is None else code
+        except KeyboardInterrupt:
+            code = EXIT_INTERRUPTED if code is None else code
     received = stop_signal_received()
     if received is not None and code == EXIT_OK:
         code = stopped_code({"signal": received})  # noted during an import, never raised
