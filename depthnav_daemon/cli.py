@@ -154,16 +154,47 @@ def _add_setup_commands(sub: Any) -> None:
     )
     p.add_argument("--vfov-deg", type=float, help="vertical field of view, overrides --sensor")
     p.add_argument("--distances-m", default="0.5,1,1.5,2,3,4,5", help="comma-separated distances")
-    p.add_argument("--plot", type=Path, metavar="PNG", help="also draw the side view to this PNG")
+    p.add_argument(
+        "--robot-height-m",
+        type=float,
+        metavar="M",
+        help="the robot's height: from where obstacles that high are seen (eq. 16)",
+    )
+    p.add_argument(
+        "--plot", type=Path, metavar="FILE", help="draw the side view to scale (.png or .svg)"
+    )
+    p.add_argument(
+        "--sweep",
+        type=Path,
+        metavar="FILE",
+        help="draw dead zone and highest obstacle seen against tilt (fig. 6; .png or .svg)",
+    )
     p.set_defaults(handler="mount:cmd_mount")
 
 
 def _add_tool_commands(sub: Any) -> None:
-    """``devices``, ``info`` and ``bench``."""
+    """``devices``, ``info``, ``snapshot`` and ``bench``."""
     p = sub.add_parser("devices", help="list the devices that can be opened here")
     p.set_defaults(handler="info:cmd_devices")
     p = sub.add_parser("info", help="versions, drivers and native libraries found")
     p.set_defaults(handler="info:cmd_info")
+
+    p = sub.add_parser(
+        "snapshot", help="draw one frame: depth with obstacles and drop-offs, and a top-down view"
+    )
+    p.add_argument("--device", required=True, help="device spec or recording (replay:PATH)")
+    p.add_argument(
+        "--frame", type=int, default=0, metavar="N", help="the frame to draw, from 0 (default 0)"
+    )
+    p.add_argument(
+        "--footprint-m",
+        default="0.45,0.40",
+        metavar="LENGTH,WIDTH",
+        help="the robot drawn behind the sensor, metres (default 0.45,0.40)",
+    )
+    p.add_argument("out", type=Path, help="the picture to write (.png or .svg)")
+    _add_config_args(p)
+    p.set_defaults(handler="snapshot:cmd_snapshot")
 
     p = sub.add_parser("bench", help="time every stage and the whole pipeline")
     p.add_argument(
