@@ -1,6 +1,6 @@
 """Regenerate the README's figures (docs/img/*.png) from depthnav's own outputs.
 
-    python scripts/make_figures.py [OUT_DIR]      (default docs/img; needs depthnav[plot])
+    python scripts/make_figures.py [--viewer] [OUT_DIR]    (default docs/img; needs depthnav[plot])
 
 - mount_side.png: ``depthnav mount`` side view of the bundled fixture's mount (0.55 m, 15 deg down,
   Kinect) on a robot 0.9 m high;
@@ -8,14 +8,21 @@
 - corridor_snapshot.png: ``depthnav snapshot`` of fixtures/corridor_step, frame 3;
 - box_experiment.png: the box experiment of figs. 11-12 (``paper_experiment --plot``).
 
+With ``--viewer`` also viewer.png: the rerun viewer's default layout on the corridor's recording,
+rendered headless (rerun's ViewerClient; needs a Vulkan driver, e.g. Debian's mesa-vulkan-drivers).
+
 The PNGs are reduced to a 256-colour palette so they stay small in the repository.
 """
 
 from __future__ import annotations
 
 import io
+import os
+import socket
 import sys
+import tempfile
 import threading
+import time
 from pathlib import Path
 
 from PIL import Image
@@ -71,12 +78,50 @@ def figures() -> dict[str, object]:
     }
 
 
+VIEWER_SIZE = (1200, 675)
+VIEWER_LOAD_S = 8.0  # the headless viewer loads the file and renders on the CPU
+
+
+def viewer_png(path: Path) -> None:
+    """The viewer's default layout on the corridor's recording, at its last frame."""
+    import rerun_cli
+    from rerun.experimental import ViewerClient
+
+    from depthnav_daemon.daemon.loop import run
+
+    with tempfile.TemporaryDirectory() as tmp:
+        rrd = Path(tmp) / "corridor.rrd"
+        cfg = build_config([], [], {"device": f"replay:{FIXTURE}", "sinks": [f"rerun:{rrd}"]})
+        frames = run(cfg, threading.Event()).frames
+        with socket.socket() as s:
+            s.bind(("127.0.0.1", 0))
+            port = s.getsockname()[1]
+        binary = str(Path(rerun_cli.__file__).with_name("rerun"))
+        with ViewerClient.spawn(
+            headless=True, port=port, hide_welcome_screen=True, executable_path=binary
+        ) as viewer:
+            viewer.open(str(rrd))
+            time.sleep(VIEWER_LOAD_S / 2)
+            viewer.set_time("frame", sequence=frames - 1, play_state="paused")
+            time.sleep(VIEWER_LOAD_S / 2)
+            shot = viewer.take_screenshot()
+    with Image.open(io.BytesIO(shot)) as img:
+        small = img.convert("RGB").resize(VIEWER_SIZE, Image.Resampling.LANCZOS)
+        small.quantize(256, method=Image.Quantize.MEDIANCUT).save(path, optimize=True)
+
+
 def main(argv: list[str]) -> int:
-    out = Path(argv[0]) if argv else ROOT / "docs" / "img"
+    viewer = "--viewer" in argv
+    args = [a for a in argv if a != "--viewer"]
+    out = Path(args[0]) if args else ROOT / "docs" / "img"
     out.mkdir(parents=True, exist_ok=True)
     for name, fig in figures().items():
         write_png(fig, out / name)
         print(f"{out / name}: {(out / name).stat().st_size // 1024} KB")
+    if viewer:
+        os.environ.setdefault("XDG_RUNTIME_DIR", tempfile.mkdtemp())
+        viewer_png(out / "viewer.png")
+        print(f"{out / 'viewer.png'}: {(out / 'viewer.png').stat().st_size // 1024} KB")
     return 0
 
 

@@ -14,7 +14,7 @@ from PIL import Image  # after the skip: the figures need the plot extra
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "scripts"))
-from make_figures import SIZES  # noqa: E402  (scripts/ is not a package)
+from make_figures import SIZES, VIEWER_SIZE  # noqa: E402  (scripts/ is not a package)
 
 MAX_TOTAL_BYTES = 400 * 1024  # the committed figures stay small
 
@@ -49,7 +49,9 @@ def test_script_writes_every_figure(tmp_path: Path) -> None:
 
 def test_committed_figures_are_the_scripts_and_the_readme_shows_them() -> None:
     img = ROOT / "docs" / "img"
-    assert check_pngs(img) < MAX_TOTAL_BYTES
+    assert check_pngs(img) + (img / "viewer.png").stat().st_size < MAX_TOTAL_BYTES
+    with Image.open(img / "viewer.png") as shot:  # made by --viewer: needs a Vulkan driver
+        assert shot.format == "PNG" and shot.size == VIEWER_SIZE
     readme = (ROOT / "README.md").read_text()
-    for name in SIZES:
+    for name in [*SIZES, "viewer.png"]:
         assert f"](docs/img/{name})" in readme, name

@@ -110,7 +110,7 @@ def run(
     sinks: list[Sink] = []
     notifier = ServiceNotifier()
     try:
-        context = SinkContext(info, cfg.scan, cfg.cliff.block_size, __version__)
+        context = SinkContext(info, cfg.scan, cfg.cliff.block_size, __version__, cfg.mount)
         sinks = _open_sinks(cfg.sinks, context, sink_factory)
         # the obstacle mask costs a pass over the image: only when a sink draws it
         wanted = any(getattr(sink, "needs_obstacle_mask", False) for sink in sinks)

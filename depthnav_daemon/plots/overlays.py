@@ -6,6 +6,7 @@ never runs a stage. Level frame at the sensor's foot: x forward, y left, metres.
 
 from __future__ import annotations
 
+import functools
 import math
 from typing import TYPE_CHECKING
 
@@ -17,9 +18,11 @@ from depthnav_daemon.pipeline.geometry import level_rays
 if TYPE_CHECKING:
     from depthnav_daemon.pipeline import Result
     from depthnav_daemon.pipeline.scan import LaserScan
+    from drivers.base import Intrinsics
 
 F64 = npt.NDArray[np.float64]
 BREAK_JUMP_M = 0.25  # neighbouring readings further apart than this are not joined by a line
+RANGE_SPAN_M = 1024.0  # larger than any range: bin * this + range sorts by bin, then range
 SOURCE_MATCH_M = 0.03  # an obstacle pixel this close to its bin's range produced the reading
 DEFAULT_FOOTPRINT_M = (0.45, 0.40)  # length, width of the robot drawn when none is given
 
@@ -53,6 +56,21 @@ def scan_strips(scan: LaserScan, jump_m: float = BREAK_JUMP_M) -> list[F64]:
     return strips
 
 
+@functools.lru_cache(maxsize=4)
+def _bin_table(
+    intr: Intrinsics, tilt_rad: float, roll_rad: float, angle_min: float, inc: float, n: int
+) -> tuple[npt.NDArray[np.int32], npt.NDArray[np.float32]]:
+    """Per pixel: the scan bin of its bearing (-1 outside the scan) and its horizontal range per
+    millimetre of depth, metres; (H, W) each, read-only."""
+    k = level_rays(intr, tilt_rad, roll_rad)
+    bins = np.rint((np.arctan2(k[..., 1], k[..., 0]) - angle_min) / inc)
+    bins = np.where((bins >= 0) & (bins < n), bins, -1).astype(np.int32)
+    per_mm = (np.hypot(k[..., 0], k[..., 1]) * 1e-3).astype(np.float32)
+    bins.setflags(write=False)
+    per_mm.setflags(write=False)
+    return bins, per_mm
+
+
 def scan_source_pixels(depth_mm: np.ndarray, result: Result) -> npt.NDArray[np.int64]:
     """(K, 2) (row, col) of the obstacle pixel that produced each finite scan reading.
 
@@ -60,24 +78,27 @@ def scan_source_pixels(depth_mm: np.ndarray, result: Result) -> npt.NDArray[np.i
     bin, the nearest one when it lies within SOURCE_MATCH_M of that bin's range. Empty without a
     mask or for a float depth image.
     """
-    mask, scan = result.obstacle_mask, result.scan
-    if mask is None or depth_mm.dtype != np.uint16 or not mask.any():
+    mask, scan, m = result.obstacle_mask, result.scan, result.mount
+    if mask is None or depth_mm.dtype != np.uint16:
         return np.empty((0, 2), dtype=np.int64)
-    rows, cols = np.nonzero(mask)
-    m = result.mount
-    k = level_rays(result.intrinsics, m.tilt_rad, m.roll_rad)[rows, cols]
-    z = depth_mm[rows, cols] * 1e-3
-    rng = z * np.hypot(k[:, 0], k[:, 1])
-    bins = np.rint((np.arctan2(k[:, 1], k[:, 0]) - scan.angle_min) / scan.angle_increment)
-    n = scan.ranges.size
-    inside = (bins >= 0) & (bins < n)
-    rows, cols, rng, bins = rows[inside], cols[inside], rng[inside], bins[inside].astype(np.int64)
-    order = np.lexsort((rng, bins))
-    first = order[np.unique(bins[order], return_index=True)[1]]
-    want = np.asarray(scan.ranges, dtype=np.float64)[bins[first]]
+    table, per_mm = _bin_table(
+        result.intrinsics,
+        m.tilt_rad,
+        m.roll_rad,
+        scan.angle_min,
+        scan.angle_increment,
+        scan.ranges.size,
+    )
+    flat = np.flatnonzero(mask)  # flat indexing: 4x faster than (rows, cols) here
+    bins = table.ravel()[flat]
+    rng = depth_mm.ravel()[flat] * per_mm.ravel()[flat]
+    want = np.append(np.asarray(scan.ranges, dtype=np.float32), np.nan)[bins]  # -1: NaN
     with np.errstate(invalid="ignore"):
-        hit = np.abs(rng[first] - want) <= SOURCE_MATCH_M
-    return np.stack([rows[first][hit], cols[first][hit]], axis=1)
+        near = np.abs(rng - want) <= SOURCE_MATCH_M
+    flat, rng, bins = flat[near], rng[near], bins[near]
+    order = np.argsort(bins * RANGE_SPAN_M + rng)  # by bin, then by range (lexsort: 10x slower)
+    first = flat[order[np.unique(bins[order], return_index=True)[1]]]
+    return np.stack(np.divmod(first, mask.shape[1]), axis=1).astype(np.int64)
 
 
 def footprint_xy(length_m: float, width_m: float) -> F64:
