@@ -1,4 +1,5 @@
-"""The ``depthnav`` command line: run, replay, calibrate, record, mount, devices, info, bench.
+"""The ``depthnav`` command line: run, replay, calibrate, record, mount, snapshot, devices, info,
+bench.
 
 The only module that prints to stderr or chooses exit codes: 0 ok (or stopped by SIGTERM), 1 runtime
 failure, 2 bad usage or config, 130 interrupted (Ctrl-C).

@@ -230,3 +230,22 @@ def test_snapshot_of_a_missing_device(tmp_path: Path) -> None:
     p = depthnav("snapshot", "--device", "replay:/nonexistent/rec", str(tmp_path / "s.png"))
     assert p.returncode == 1 and "/nonexistent/rec" in p.stderr, p.stderr
     assert "Traceback" not in p.stderr and not os.listdir(tmp_path)
+
+
+def test_without_matplotlib_the_text_still_prints_and_figures_say_what_to_install(
+    tmp_path: Path,
+) -> None:
+    code = (
+        "import sys\n"
+        "sys.modules['matplotlib'] = None  # as if the plot extra were not installed\n"
+        "from depthnav_daemon.cli import main\n"
+        "args = ['mount', '--height-m', '0.5', '--tilt-deg', '15']\n"
+        "print('rc', main(args))\n"
+        f"print('rc', main([*args, '--plot', '{tmp_path / 'side.png'}']))\n"
+    )
+    p = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, timeout=120
+    )
+    assert p.stdout.count("lower dead zone") == 1 and "rc 0" in p.stdout and "rc 1" in p.stdout
+    assert "needs matplotlib" in p.stderr and "depthnav[plot]" in p.stderr
+    assert "Traceback" not in p.stderr and not (tmp_path / "side.png").exists()

@@ -49,6 +49,7 @@ def check_output(path: Path | str, option: str) -> tuple[Path, str]:
 
     Raises:
         ConfigError: another extension, a folder that does not exist, or a directory.
+        DepthnavError: matplotlib is not installed.
     """
     p = Path(path)
     fmt = FORMATS.get(p.suffix.lower())
@@ -67,7 +68,17 @@ def check_output(path: Path | str, option: str) -> tuple[Path, str]:
             f"{option} {str(p)!r}: folder {str(parent)!r} does not exist",
             hint=f"create it first (mkdir -p {parent})",
         )
+    _require_matplotlib()
     return p, fmt
+
+
+def _require_matplotlib() -> None:
+    try:
+        import matplotlib  # noqa: F401  (only whether it imports)
+    except ModuleNotFoundError:
+        raise DepthnavError(
+            "drawing figures needs matplotlib, which is not installed", hint=INSTALL_HINT
+        ) from None
 
 
 def new_figure(width_in: float, height_in: float, **kw: Any) -> Figure:
@@ -76,12 +87,9 @@ def new_figure(width_in: float, height_in: float, **kw: Any) -> Figure:
     Raises:
         DepthnavError: matplotlib is not installed.
     """
-    try:
-        from matplotlib.figure import Figure
-    except ModuleNotFoundError:
-        raise DepthnavError(
-            "drawing figures needs matplotlib, which is not installed", hint=INSTALL_HINT
-        ) from None
+    _require_matplotlib()
+    from matplotlib.figure import Figure
+
     return Figure(figsize=(width_in, height_in), dpi=DPI, layout="constrained", **kw)
 
 

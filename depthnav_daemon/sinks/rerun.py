@@ -197,32 +197,9 @@ class RerunSink:
         st = self._state
         st.reach_m, st.block_size = context.scan_params.range_max_m, context.cliff_block_size
         st.configured = context.mount
-        layout = blueprint(context)
         rec = rr.RecordingStream(APP_ID, recording_id=uuid.uuid4())
         try:
-            if self.mode == "save":
-                parent = os.path.dirname(os.path.abspath(self.target))
-                if not os.path.isdir(parent):
-                    raise SinkError(f"rerun sink: folder {parent!r} does not exist")
-                try:  # fail with a plain message before rerun does (it also warns about lost data)
-                    with open(self.target, "ab"):
-                        pass
-                except OSError as exc:
-                    raise SinkError(
-                        f"rerun sink: cannot write {self.target!r}: {exc.strerror}"
-                    ) from exc
-                rec.save(self.target, default_blueprint=layout)
-            elif self.mode == "connect":
-                rec.connect_grpc(self.target, default_blueprint=layout)
-            else:
-                # without a display the viewer dies and spawn() blocks ~11 s, then drops data
-                if not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
-                    raise SinkError(
-                        "rerun sink: no display to spawn a viewer on",
-                        hint="use --sink rerun:FILE.rrd or --sink rerun+grpc://HOST:PORT "
-                        "on a headless robot",
-                    )
-                rec.spawn(default_blueprint=layout)
+            self._attach(rec, blueprint(context))
         except Exception as exc:  # rerun raises plain RuntimeError/OSError subclasses
             _discard(rec)
             if isinstance(exc, SinkError):
@@ -239,6 +216,32 @@ class RerunSink:
             )
             self._thread.start()
         log.info("rerun sink: %s %s", self.mode, self.target or "viewer")
+
+    def _attach(self, rec: Any, layout: Any) -> None:
+        """Send the recording (with its default layout) to the file, the viewer or a new one."""
+        if self.mode == "save":
+            parent = os.path.dirname(os.path.abspath(self.target))
+            if not os.path.isdir(parent):
+                raise SinkError(f"rerun sink: folder {parent!r} does not exist")
+            try:  # fail with a plain message before rerun does (it also warns about lost data)
+                with open(self.target, "ab"):
+                    pass
+            except OSError as exc:
+                raise SinkError(
+                    f"rerun sink: cannot write {self.target!r}: {exc.strerror}"
+                ) from exc
+            rec.save(self.target, default_blueprint=layout)
+        elif self.mode == "connect":
+            rec.connect_grpc(self.target, default_blueprint=layout)
+        else:
+            # without a display the viewer dies and spawn() blocks ~11 s, then drops data
+            if not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
+                raise SinkError(
+                    "rerun sink: no display to spawn a viewer on",
+                    hint="use --sink rerun:FILE.rrd or --sink rerun+grpc://HOST:PORT "
+                    "on a headless robot",
+                )
+            rec.spawn(default_blueprint=layout)
 
     def write(self, frame: Frame, result: Result) -> None:
         """Log one frame (every Nth).
