@@ -1,10 +1,14 @@
 """Synthetic depth scenes with exact ground truth: floor, boxes, walls, table tops, steps down
 and holes.
 
-The world frame is the level frame at the sensor's foot: x forward, y left, z up, floor at z = 0,
-sensor optical centre at (0, 0, height_m). A scene is ray-cast for a camera at any height, tilt and
-roll (drivers.base / pipeline.geometry conventions); optional Kinect-like noise comes from a seeded
-``numpy.random.Generator``. Used by the tests, the benchmark and the bundled fixtures.
+The world frame: x forward, y left, z up, floor at z = 0. The robot's base frame sits at
+``robot_pose`` (x, y, yaw) in the world (default: the world origin, so world = base frame); the
+sensor's foot sits at the mount's placement (x_m, y_m, yaw_deg) in the base frame, its optical
+centre height_m above the floor. With the default placement and pose the world is the level frame
+at the sensor's foot. A scene is ray-cast for a camera at any height, tilt and roll
+(drivers.base / pipeline.geometry conventions); optional Kinect-like noise comes from a seeded
+``numpy.random.Generator``. Used by the tests, the benchmark and the bundled fixtures; ``sim.drive``
+renders sequences along a robot trajectory with it.
 """
 
 from __future__ import annotations
@@ -211,22 +215,29 @@ def render(
     rng: np.random.Generator | None = None,
     min_range_m: float = 0.35,
     max_range_m: float = 8.0,
+    robot_pose: tuple[float, float, float] = (0.0, 0.0, 0.0),
 ) -> SyntheticView:
-    """Ray-cast ``scene`` for a sensor at ``mount``.
+    """Ray-cast ``scene`` for a sensor at ``mount`` on a robot at ``robot_pose``.
 
     Args:
         scene: floor, boxes and holes.
         intr: camera intrinsics (any resolution).
-        mount: sensor height, tilt (positive down) and roll (positive left side up).
+        mount: sensor height, tilt (positive down) and roll (positive left side up), and its
+            placement on the robot (x_m, y_m, yaw_deg in the base frame).
         noise: Kinect-like noise model, or None for exact depth.
         rng: randomness for the noise; required when ``noise`` is given.
         min_range_m, max_range_m: the sensor reads 0 outside this optical-axis depth range.
+        robot_pose: (x_m, y_m, yaw_rad) of the robot's base frame in the world.
 
     Returns:
-        The depth image and its ground truth.
+        The depth image and its ground truth (points in the world frame).
     """
     dirs = level_rays(intr, mount.tilt_rad, mount.roll_rad).reshape(-1, 3)  # per unit optical depth
-    origin = np.array([0.0, 0.0, mount.height_m])
+    sx, sy, syaw = sensor_world_pose(mount, robot_pose)
+    if syaw != 0.0:
+        c, s = math.cos(syaw), math.sin(syaw)
+        dirs = dirs @ np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]).T
+    origin = np.array([sx, sy, mount.height_m])
     t, label = cast(scene, origin, dirs)
     shape = (intr.height, intr.width)
     t = t.reshape(shape)
@@ -245,6 +256,20 @@ def render(
     depth_mm = np.where(in_range, np.rint(np.where(in_range, z, 0) * 1000.0), 0).astype(np.uint16)
     label = np.where(np.isfinite(t) & (t <= max_range_m), label, LABEL_NONE).astype(np.int16)
     return SyntheticView(depth_mm, t, points, points[..., 2].copy(), label, intr, mount, scene)
+
+
+def sensor_world_pose(
+    mount: Mount, robot_pose: tuple[float, float, float] = (0.0, 0.0, 0.0)
+) -> tuple[float, float, float]:
+    """(x_m, y_m, yaw_rad) of the sensor's foot in the world: the robot's pose composed with the
+    mount's placement on the robot."""
+    rx, ry, ryaw = robot_pose
+    c, s = math.cos(ryaw), math.sin(ryaw)
+    return (
+        rx + c * mount.x_m - s * mount.y_m,
+        ry + s * mount.x_m + c * mount.y_m,
+        ryaw + mount.yaw_rad,
+    )
 
 
 def _apply_noise(z: F64, noise: KinectNoise, rng: np.random.Generator, max_range_m: float) -> F64:

@@ -111,6 +111,9 @@ def _pose_to_json(result: Result) -> dict[str, Any]:
         "height_m": _num(m.height_m, MM),
         "tilt_deg": _num(m.tilt_deg, DEG),
         "roll_deg": _num(m.roll_deg, DEG),
+        "x_m": _num(m.x_m, MM),
+        "y_m": _num(m.y_m, MM),
+        "yaw_deg": _num(m.yaw_deg, DEG),
         "source": result.mount_source,
         "estimate": None,
     }
