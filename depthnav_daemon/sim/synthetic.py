@@ -143,7 +143,16 @@ def _box_local(box: Box, origin: F64, dirs: F64) -> tuple[F64, F64]:
     c, s = math.cos(math.radians(box.yaw_deg)), math.sin(math.radians(box.yaw_deg))
     rot = np.array([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]])  # world -> box
     o = rot @ (origin - np.array([box.x_m, box.y_m, 0.0]))
-    return o, dirs @ rot.T
+    return o, _rotate(dirs, rot)
+
+
+def _rotate(dirs: F64, rot: F64) -> F64:
+    """``dirs @ rot.T`` for (N, 3) rows, column by column (numpy's matmul with an inner size of 3
+    is ~10x slower than this on large N)."""
+    out = np.empty_like(dirs)
+    for i in range(3):
+        out[:, i] = rot[i, 0] * dirs[:, 0] + rot[i, 1] * dirs[:, 1] + rot[i, 2] * dirs[:, 2]
+    return out
 
 
 def _slab(o: F64, d: F64, lo: F64, hi: F64) -> tuple[F64, F64]:
@@ -236,7 +245,7 @@ def render(
     sx, sy, syaw = sensor_world_pose(mount, robot_pose)
     if syaw != 0.0:
         c, s = math.cos(syaw), math.sin(syaw)
-        dirs = dirs @ np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]).T
+        dirs = _rotate(dirs, np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]))
     origin = np.array([sx, sy, mount.height_m])
     t, label = cast(scene, origin, dirs)
     shape = (intr.height, intr.width)
