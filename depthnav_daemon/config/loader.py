@@ -19,6 +19,7 @@ from typing import Any
 from depthnav_daemon.errors import ConfigError
 from depthnav_daemon.pipeline.cliff import CliffParams
 from depthnav_daemon.pipeline.geometry import Mount, check_int, check_range
+from depthnav_daemon.pipeline.memory import MemoryParams
 from depthnav_daemon.pipeline.pose import PoseParams
 from depthnav_daemon.pipeline.scan import ScanParams
 
@@ -91,6 +92,66 @@ class DaemonParams:
 
 
 @dataclass(frozen=True, slots=True)
+class MemorySettings:
+    """The obstacle memory ([memory]); see pipeline/memory.py.
+
+    Attributes:
+        enabled: "auto" (on whenever odometry is available), true (on; says why not when there is
+            no odometry), false (off).
+        size_m, cell_m, max_age_s, scan_increment_deg: as pipeline.memory.MemoryParams.
+    """
+
+    enabled: str | bool = "auto"
+    size_m: float = 8.0
+    cell_m: float = 0.05
+    max_age_s: float = 0.0
+    scan_increment_deg: float = 1.0
+
+    def __post_init__(self) -> None:
+        e = self.enabled
+        if isinstance(e, str) and e.strip().lower() in ("auto", "true", "false"):
+            e = e.strip().lower()
+            object.__setattr__(self, "enabled", "auto" if e == "auto" else e == "true")
+        if not (self.enabled == "auto" or isinstance(self.enabled, bool)):
+            raise ConfigError(
+                f"memory.enabled={self.enabled!r} is not known (accepted: auto, true, false)"
+            )
+        self.params()  # checks the ranges
+
+    def params(self) -> MemoryParams:
+        """The memory stage's parameters."""
+        return MemoryParams(self.size_m, self.cell_m, self.max_age_s, self.scan_increment_deg)
+
+
+@dataclass(frozen=True, slots=True)
+class OdometrySettings:
+    """Where the robot's motion comes from ([odometry]); the memory needs it.
+
+    Attributes:
+        source: an odometry spec (drivers.odometry: odom+udp://127.0.0.1:PORT for JSON lines,
+            mavlink+udp://HOST:PORT or mavlink:SERIALPORT for an autopilot), or "" for none; a
+            recording whose frames carry odometry gives it without a source.
+        timeout_s: a source that has sent nothing for this long is reported (once) and the memory
+            stays off until it speaks.
+        stale_s: odometry older than this at a frame freezes the memory (reported).
+        max_jump_m, max_jump_deg: odometry that moves more than this between two frames resets
+            the memory (reported): a jump is a relocalisation, not motion.
+    """
+
+    source: str = ""
+    timeout_s: float = 2.0
+    stale_s: float = 0.5
+    max_jump_m: float = 0.5
+    max_jump_deg: float = 45.0
+
+    def __post_init__(self) -> None:
+        check_range("odometry.timeout_s", self.timeout_s, 0.05, 3600.0, " s")
+        check_range("odometry.stale_s", self.stale_s, 0.01, 60.0, " s")
+        check_range("odometry.max_jump_m", self.max_jump_m, 0.001, 100.0, " m")
+        check_range("odometry.max_jump_deg", self.max_jump_deg, 0.1, 180.0, " deg")
+
+
+@dataclass(frozen=True, slots=True)
 class Config:
     """Everything ``depthnav run`` needs. Each stage owns its parameter class."""
 
@@ -101,6 +162,8 @@ class Config:
     cliff: CliffParams = field(default_factory=CliffParams)
     pose: PoseParams = field(default_factory=PoseParams)
     daemon: DaemonParams = field(default_factory=DaemonParams)
+    memory: MemorySettings = field(default_factory=MemorySettings)
+    odometry: OdometrySettings = field(default_factory=OdometrySettings)
 
 
 SECTIONS: dict[str, type] = {
@@ -109,8 +172,12 @@ SECTIONS: dict[str, type] = {
     "cliff": CliffParams,
     "pose": PoseParams,
     "daemon": DaemonParams,
+    "memory": MemorySettings,
+    "odometry": OdometrySettings,
 }
 TOP_LEVEL = ("device", "sinks")
+# keys whose values are checked by their section's class rather than by the default's type
+FREE_TYPED = {("memory", "enabled")}
 
 
 def valid_keys() -> list[str]:
@@ -242,7 +309,10 @@ def config_from_dict(data: Mapping[str, Any]) -> Config:
     for section, cls in SECTIONS.items():
         values = data.get(section, {})
         defaults = _field_types(cls)
-        checked = {k: _coerce(f"{section}.{k}", v, defaults[k]) for k, v in values.items()}
+        checked = {
+            k: v if (section, k) in FREE_TYPED else _coerce(f"{section}.{k}", v, defaults[k])
+            for k, v in values.items()
+        }
         try:
             kwargs[section] = cls(**checked)
         except ConfigError:

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 import numpy.typing as npt
@@ -27,6 +27,7 @@ from depthnav_daemon.pipeline.scan import (
 from depthnav_daemon.pipeline.scan_table import scan_rows
 
 if TYPE_CHECKING:
+    from depthnav_daemon.pipeline.memory import MemoryResult
     from depthnav_daemon.pipeline.pose import PoseEstimate
     from drivers.base import Frame, Intrinsics
 
@@ -67,6 +68,8 @@ class Result:
         sensor_scan: the scan in the sensor's level frame (what the memory ray-casts from the
             sensor); the same object as ``scan`` when the sensor sits at the base origin.
         sensor_cliff: the cliff result in the sensor's level frame (likewise), or None.
+        memory: the obstacle memory after this frame (the daemon adds it when odometry allows),
+            or None: a 360 deg memory scan, cell counts and the grid for a viewer.
         pose: a floor pose estimate made on this frame, or None when none ran.
         obstacle_mask: (H, W) bool, the pixels the exact scan counts as obstacles, when asked for
             (StageParams.obstacle_mask) and the method is exact; else None.
@@ -88,7 +91,7 @@ class Result:
     warning: str | None = None
     sensor_scan: LaserScan | None = None
     sensor_cliff: CliffResult | None = None
-    memory: Any = None
+    memory: MemoryResult | None = None
 
     @property
     def level_scan(self) -> LaserScan:

@@ -137,8 +137,11 @@ class SensorView:
         scan: the level-frame scan at the sensor (Result.level_scan).
         cliff_scan: the level-frame cliff scan in the same bins, or None without a cliff stage.
         rows: (start, stop, step) image rows the scan used (its view's lower edge).
-        row_step: the coarser of the scan's and the cliff stage's row strides (how far apart,
-            along the floor, the rows that tell floor from obstacle or drop-off are).
+        scan_margin_rows: image rows between the last floor row the scan read and an obstacle
+            (its row stride).
+        cliff_margin_rows: image rows between the last floor row and the first drop-off the cliff
+            stage counts (a block plus a sample stride: a block straddling the edge may not reach
+            the threshold).
     """
 
     mount: Mount
@@ -146,7 +149,8 @@ class SensorView:
     scan: LaserScan
     cliff_scan: LaserScan | None = None
     rows: tuple[int, int, int] = (0, -1, 1)
-    row_step: int = 1
+    scan_margin_rows: int = 1
+    cliff_margin_rows: int = 1
 
 
 @dataclass(frozen=True, slots=True)
@@ -217,7 +221,7 @@ def update(
         t_s: the views' time, seconds.
         views: what the sensors saw at that pose.
         margin_m: a remembered point this close to what a sensor sees now is kept (default a
-            fifth of a cell), or a row spacing of the sensor's floor samples if that is more.
+            fifth of a cell), or the floor spanned by the view's margin rows if that is more.
 
     Returns:
         Cells cleared, marked and expired.
@@ -261,8 +265,10 @@ def update(
             float(sc.angle_increment),
             float(sc.range_max),
             margin,
-            v.row_step / (m.height_m * v.intrinsics.fy),
+            1.0 / (m.height_m * v.intrinsics.fy),
             m.height_m**2,
+            float(v.scan_margin_rows),
+            float(v.cliff_margin_rows),
             t_rel,
         )
         cleared += k
@@ -340,6 +346,7 @@ def snapshot(state: MemoryState) -> GridSnapshot:
 __all__ = [
     "GridSnapshot",
     "MemoryParams",
+    "MemoryResult",
     "MemoryScan",
     "MemoryState",
     "SensorView",
@@ -351,3 +358,29 @@ __all__ = [
     "snapshot",
     "update",
 ]
+
+
+@dataclass(frozen=True, slots=True)
+class MemoryResult:
+    """The memory as it goes out with a frame (Result.memory).
+
+    Attributes:
+        status: "on" (updated with this frame), "reset" (odometry jumped: forgotten, then updated
+            with this frame) or "frozen" (odometry stale: not updated, nothing read back).
+        scan: the 360 deg memory scan in the base frame (REP 117), or None when frozen.
+        obstacle_cells, cliff_cells: remembered cells of each kind.
+        pose: (x_m, y_m, yaw_rad) of the robot in the odometry frame used, or None when frozen.
+        grid: the grid for a viewer (window order, origin, cell), or None when frozen.
+        size_m, cell_m: the grid's side and cell, metres.
+        note: why the status is not "on", or None.
+    """
+
+    status: str
+    scan: LaserScan | None
+    obstacle_cells: int
+    cliff_cells: int
+    pose: tuple[float, float, float] | None
+    grid: GridSnapshot | None
+    size_m: float
+    cell_m: float
+    note: str | None = None

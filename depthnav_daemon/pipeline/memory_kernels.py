@@ -87,6 +87,8 @@ def update_view(
     margin,
     k_spacing,
     h2,
+    rows_scan,
+    rows_cliff,
     t_rel,
 ):
     """Fold one sensor view into the grid: clear what it sees free, then mark what it sees.
@@ -101,10 +103,13 @@ def update_view(
         cliff: (M,) float32 its cliff scan in the same bins, or an empty array (no cliff stage).
         near: (M,) float32 nearest floor range the sensor sees per bin (its lower dead zone).
         rmax: the scan's range_max (a +inf bin saw floor or beyond up to here).
-        margin, k_spacing, h2: a remembered point within max(margin, k_spacing (h2 + d^2)) of
-            what the sensor sees at range d is not cleared: the floor is seen up to the last
-            sampled row before the obstacle or drop-off, one row spacing ((h^2 + d^2) / (h f_y)
-            per row) short of it, so nothing beyond that is known to be free.
+        margin, k_spacing, h2, rows_scan, rows_cliff: a remembered point within
+            max(margin, rows * k_spacing (h2 + d^2)) of what the sensor sees at range d is not
+            cleared. The floor is known free only up to the last floor row the stage read, which
+            lies up to ``rows`` image rows short of the obstacle (``rows_scan``: the scan's row
+            stride) or of the first drop-off it counts (``rows_cliff``: a block and a sample
+            stride, as a block straddling the edge may not reach the threshold), one row spanning
+            (h^2 + d^2) / (h f_y) metres of floor at range d (k_spacing = 1 / (h f_y)).
         t_rel: this view's time, seconds since the memory's epoch.
 
     Returns:
@@ -121,13 +126,15 @@ def update_view(
         d = 0.0
         if not np.isnan(v) and v != -inf:
             d = rmax if v == inf else np.float64(v)
+        d -= max(margin, rows_scan * k_spacing * (h2 + d * d))
         if has_cliff:
             c = cliff[i]
             if np.isnan(c) or c == -inf:
                 d = 0.0  # the floor there was not read: keep what is remembered
             elif c != inf:
-                d = min(d, np.float64(c))
-        clear[i] = d - max(margin, k_spacing * (h2 + d * d))
+                c = np.float64(c)
+                d = min(d, c - max(margin, rows_cliff * k_spacing * (h2 + c * c)))
+        clear[i] = d
     c0 = np.cos(syaw)
     s0 = np.sin(syaw)
     lo_b = a0 - 0.5 * inc

@@ -104,6 +104,24 @@ def _cliff_to_json(cliff: Any, max_points: int | None) -> dict[str, Any]:
     }
 
 
+def memory_to_json(memory: Any) -> dict[str, Any] | None:
+    """The memory object (docs/json_schema.md): status, the 360 deg memory scan, cell counts."""
+    if memory is None:
+        return None
+    pose = memory.pose
+    return {
+        "status": memory.status,
+        "scan": None if memory.scan is None else scan_to_json(memory.scan),
+        "cells": {"obstacle": int(memory.obstacle_cells), "cliff": int(memory.cliff_cells)},
+        "odom": None
+        if pose is None
+        else {"x_m": _num(pose[0], MM), "y_m": _num(pose[1], MM), "yaw_rad": _num(pose[2], RAD)},
+        "size_m": _num(memory.size_m, MM),
+        "cell_m": _num(memory.cell_m, MM),
+        "note": memory.note,
+    }
+
+
 def _pose_to_json(result: Result) -> dict[str, Any]:
     """The mount used for this frame, where it came from, and this frame's floor estimate if any."""
     m = result.mount
@@ -164,6 +182,7 @@ def frame_message(
         "scan": scan_to_json(result.scan),
         "cliff": None if result.cliff is None else _cliff_to_json(result.cliff, max_cliff_points),
         "pose": _pose_to_json(result),
+        "memory": memory_to_json(result.memory),
         "timings_s": {k: _num(v, SEC) for k, v in sorted(result.timings_s.items())},
         "warning": result.warning,
         "message": message,

@@ -49,7 +49,11 @@ SPEED_MPS, FPS = 0.3, 10.0
 def view_of(result: Result, mount: Mount = MOUNT) -> SensorView:
     cliff = result.level_cliff
     return SensorView(
-        mount, result.intrinsics, result.level_scan, None if cliff is None else cliff.scan
+        mount,
+        result.intrinsics,
+        result.level_scan,
+        None if cliff is None else cliff.scan,
+        cliff_margin_rows=DENSE_CLIFF.block_size + DENSE_CLIFF.row_step,
     )
 
 
@@ -100,8 +104,9 @@ def test_step_edge_is_kept_through_the_dead_zone_with_exact_odometry(step_drive)
     assert np.abs(mem[lost]).max() <= 0.05
 
 
-def test_step_edge_with_2_percent_odometry_scale_error(step_drive) -> None:
-    mem, _ = _drive_errors(step_drive, OdometryNoise(scale_error=0.02))
+@pytest.mark.parametrize("scale_error", [0.02, -0.02])
+def test_step_edge_with_2_percent_odometry_scale_error(step_drive, scale_error: float) -> None:
+    mem, _ = _drive_errors(step_drive, OdometryNoise(scale_error=scale_error))
     assert np.abs(mem).max() <= 0.10
 
 
