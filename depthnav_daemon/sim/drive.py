@@ -76,6 +76,31 @@ def turn_in_place(
     return [(i / fps, x0, y0, yaw0 + math.radians(rate_dps) * i / fps) for i in range(frames)]
 
 
+def arc(
+    speed_mps: float,
+    rate_dps: float,
+    fps: float,
+    frames: int,
+    start: Pose = (0.0, 0.0, 0.0),
+) -> list[tuple[float, float, float, float]]:
+    """Driving and turning at once: a circular arc at ``speed_mps`` turning ``rate_dps``
+    (counter-clockwise positive; 0 = straight)."""
+    x0, y0, a0 = start
+    w = math.radians(rate_dps)
+    out = []
+    for i in range(frames):
+        t = i / fps
+        a = a0 + w * t
+        if w == 0.0:
+            x, y = x0 + speed_mps * t * math.cos(a0), y0 + speed_mps * t * math.sin(a0)
+        else:
+            r = speed_mps / w
+            x = x0 + r * (math.sin(a) - math.sin(a0))
+            y = y0 - r * (math.cos(a) - math.cos(a0))
+        out.append((t, x, y, a))
+    return out
+
+
 def odometry(
     poses: Sequence[Pose],
     noise: OdometryNoise | None = None,
