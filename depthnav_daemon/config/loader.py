@@ -51,6 +51,8 @@ class DaemonParams:
         reconnect_attempts: give up after this many reconnects in a row (0 = never give up).
         reconnect_backoff_s, reconnect_backoff_max_s: first wait between reconnects, and its cap.
         seed: seed of the random generator that RANSAC uses (runs are reproducible).
+        sensor_max_age_s: several sensors ([[sensor]]): a sensor whose latest frame is older
+            than this is left out of the merged scan (and reported) until it delivers again.
     """
 
     cliff: bool = True
@@ -68,6 +70,7 @@ class DaemonParams:
     reconnect_backoff_s: float = 0.5
     reconnect_backoff_max_s: float = 8.0
     seed: int = 0
+    sensor_max_age_s: float = 0.5
 
     def __post_init__(self) -> None:
         check_int("daemon.pose_every_frames", self.pose_every_frames, 0, 1_000_000)
@@ -89,6 +92,7 @@ class DaemonParams:
             "daemon.reconnect_backoff_max_s", self.reconnect_backoff_max_s, 0.0, 3600.0, " s"
         )
         check_int("daemon.seed", self.seed, 0, 2**63 - 1)
+        check_range("daemon.sensor_max_age_s", self.sensor_max_age_s, 0.01, 3600.0, " s")
 
 
 @dataclass(frozen=True, slots=True)
@@ -151,6 +155,67 @@ class OdometrySettings:
         check_range("odometry.max_jump_deg", self.max_jump_deg, 0.1, 180.0, " deg")
 
 
+SENSOR_KEYS = ("name", "device", "mount")
+MAX_SENSORS = 16
+
+
+@dataclass(frozen=True, slots=True)
+class SensorConfig:
+    """One of several sensors in one daemon (a ``[[sensor]]`` table).
+
+    Attributes:
+        name: unique name, for messages and the JSON ``sensors`` list.
+        device: its device spec.
+        mount: its mount and placement on the robot ([sensor.mount], as [mount]).
+    """
+
+    name: str
+    device: str
+    mount: Mount = field(default_factory=Mount)
+
+
+def _sensors(value: Any, origin: str = "config") -> tuple[SensorConfig, ...]:
+    """``[[sensor]]`` tables -> SensorConfigs, checked: unique names, devices, mounts in range."""
+    if not isinstance(value, (list, tuple)) or not all(isinstance(v, Mapping) for v in value):
+        raise ConfigError(f"{origin}: sensor must be a list of [[sensor]] tables, got {value!r}")
+    if len(value) > MAX_SENSORS:
+        raise ConfigError(f"{origin}: {len(value)} sensors (accepted: up to {MAX_SENSORS})")
+    out: list[SensorConfig] = []
+    for i, table in enumerate(value):
+        where = f"sensor {i + 1}"
+        unknown = [k for k in table if k not in SENSOR_KEYS]
+        if unknown:
+            raise ConfigError(
+                f"{where}: unknown key {unknown[0]!r}", hint=f"valid keys: {', '.join(SENSOR_KEYS)}"
+            )
+        name, device = table.get("name"), table.get("device")
+        if not isinstance(name, str) or not name.strip():
+            raise ConfigError(f"{where}: needs a name (a non-empty string)")
+        where = f"sensor {name!r}"
+        if not isinstance(device, str) or not device.strip():
+            raise ConfigError(f"{where}: needs a device spec")
+        if any(s.name == name for s in out):
+            raise ConfigError(
+                f"two sensors are named {name!r}", hint="give every [[sensor]] its own name"
+            )
+        mount_table = table.get("mount", {})
+        if not isinstance(mount_table, Mapping):
+            raise ConfigError(f"{where}: mount must be a table of keys")
+        defaults = _field_types(Mount)
+        for k in mount_table:
+            if k not in defaults:
+                raise ConfigError(
+                    f"{where}: unknown key 'mount.{k}'", hint=f"valid keys: {', '.join(defaults)}"
+                )
+        checked = {k: _coerce(f"{where} mount.{k}", v, defaults[k]) for k, v in mount_table.items()}
+        try:
+            mount = Mount(**checked)
+        except ConfigError as exc:
+            raise ConfigError(f"{where}: {exc}") from None
+        out.append(SensorConfig(name, device, mount))
+    return tuple(out)
+
+
 @dataclass(frozen=True, slots=True)
 class Config:
     """Everything ``depthnav run`` needs. Each stage owns its parameter class."""
@@ -164,6 +229,7 @@ class Config:
     daemon: DaemonParams = field(default_factory=DaemonParams)
     memory: MemorySettings = field(default_factory=MemorySettings)
     odometry: OdometrySettings = field(default_factory=OdometrySettings)
+    sensors: tuple[SensorConfig, ...] = ()
 
 
 SECTIONS: dict[str, type] = {
@@ -175,7 +241,7 @@ SECTIONS: dict[str, type] = {
     "memory": MemorySettings,
     "odometry": OdometrySettings,
 }
-TOP_LEVEL = ("device", "sinks")
+TOP_LEVEL = ("device", "sinks", "sensor")
 # keys whose values are checked by their section's class rather than by the default's type
 FREE_TYPED = {("memory", "enabled")}
 
@@ -306,6 +372,13 @@ def config_from_dict(data: Mapping[str, Any]) -> Config:
         if not isinstance(sinks, (list, tuple)) or not all(isinstance(s, str) for s in sinks):
             raise ConfigError(f"sinks={sinks!r} must be a list of sink specs")
         kwargs["sinks"] = tuple(sinks)
+    if "sensor" in data:
+        kwargs["sensors"] = _sensors(data["sensor"])
+        if kwargs["sensors"] and data.get("device"):
+            raise ConfigError(
+                "both device and [[sensor]] tables are given",
+                hint="one sensor: device (or --device); several: [[sensor]] tables only",
+            )
     for section, cls in SECTIONS.items():
         values = data.get(section, {})
         defaults = _field_types(cls)
@@ -328,4 +401,9 @@ def config_to_dict(cfg: Config) -> dict[str, Any]:
     out: dict[str, Any] = {"device": cfg.device, "sinks": list(cfg.sinks)}
     for section in SECTIONS:
         out[section] = dataclasses.asdict(getattr(cfg, section))
+    if cfg.sensors:
+        out["sensor"] = [
+            {"name": sc.name, "device": sc.device, "mount": dataclasses.asdict(sc.mount)}
+            for sc in cfg.sensors
+        ]
     return out

@@ -43,11 +43,12 @@ class RunReport:
     dropped_sinks: list[str] = field(default_factory=list)
     rejected_pose_jumps: int = 0
     memory_resets: int = 0
+    lost_sensors: list[str] = field(default_factory=list)
     last_result: Result | None = None
     stopped: bool = False  # ended by the stop event rather than by the source
 
 
-def _open_sinks(
+def open_sinks(
     specs: tuple[str, ...], context: SinkContext, factory: Callable[[str], Sink]
 ) -> list[Sink]:
     sinks: list[Sink] = []
@@ -66,7 +67,7 @@ def _open_sinks(
     return sinks
 
 
-def _fan_out(sinks: list[Sink], frame: Frame, result: Result, report: RunReport) -> None:
+def fan_out(sinks: list[Sink], frame: Frame, result: Result, report: RunReport) -> None:
     for sink in list(sinks):
         try:
             sink.write(frame, result)
@@ -94,7 +95,8 @@ def run(
     """Run the frame loop until the source ends, ``max_frames`` frames, or ``stop`` is set.
 
     Args:
-        cfg: the effective configuration (cfg.device names the device).
+        cfg: the effective configuration (cfg.device names the device; with [[sensor]] tables,
+            cfg.sensors, the several-sensor loop of daemon/multi.py runs instead).
         stop: set it to stop the loop (signal handlers do).
         max_frames: stop after this many frames; None = no limit.
         driver_factory, sink_factory: how specs become drivers and sinks.
@@ -103,6 +105,10 @@ def run(
     Raises:
         DepthnavError, DriverError: what ended the run; the message is fit for the user.
     """
+    if cfg.sensors:
+        from depthnav_daemon.daemon.multi import run_sensors
+
+        return run_sensors(cfg, stop, max_frames, driver_factory, sink_factory)  # type: ignore[return-value]
     report = RunReport()
     params = StageParams(scan=cfg.scan, cliff=cfg.cliff if cfg.daemon.cliff else None)
     step = FrameStep(cfg, params, serial_tilt)
@@ -113,11 +119,11 @@ def run(
     keeper = MemoryKeeper(cfg.memory, cfg.odometry, odometry)
     try:
         context = SinkContext(info, cfg.scan, cfg.cliff.block_size, __version__)
-        sinks = _open_sinks(cfg.sinks, context, sink_factory)
+        sinks = open_sinks(cfg.sinks, context, sink_factory)
         # the obstacle mask costs a pass over the image: only when a sink draws it
         wanted = any(getattr(sink, "needs_obstacle_mask", False) for sink in sinks)
         step.params = dataclasses.replace(params, obstacle_mask=wanted)
-        for frame, arrival_s in _frames(source, cfg, stop, report):
+        for frame, arrival_s in frames_of(source, cfg, stop, report):
             try:
                 result = step.run(frame)
             except FrameError as exc:
@@ -126,7 +132,7 @@ def run(
             result = with_memory(keeper, frame, arrival_s, [(result, step.params)], result)
             if result.warning:
                 log.debug("frame %d: %s", frame.seq, result.warning)
-            _fan_out(sinks, frame, result, report)
+            fan_out(sinks, frame, result, report)
             report.frames += 1
             report.last_result = result
             if max_frames is not None and report.frames >= max_frames:
@@ -166,7 +172,7 @@ def with_memory(
     return dataclasses.replace(out, memory=memory)
 
 
-def _frames(
+def frames_of(
     source: DeviceSource, cfg: Config, stop: threading.Event, report: RunReport
 ) -> Iterator[tuple[Frame, float]]:
     """The device's frames, each with its host arrival time (monotonic seconds), until it ends or

@@ -28,6 +28,7 @@ from depthnav_daemon.pipeline.scan_table import scan_rows
 
 if TYPE_CHECKING:
     from depthnav_daemon.pipeline.memory import MemoryResult
+    from depthnav_daemon.pipeline.merge import SensorState
     from depthnav_daemon.pipeline.pose import PoseEstimate
     from drivers.base import Frame, Intrinsics
 
@@ -70,6 +71,8 @@ class Result:
         sensor_cliff: the cliff result in the sensor's level frame (likewise), or None.
         memory: the obstacle memory after this frame (the daemon adds it when odometry allows),
             or None: a 360 deg memory scan, cell counts and the grid for a viewer.
+        sensors: several sensors: each one's name, status, age and latest Result (``scan`` and
+            ``cliff`` are then the merge of those in it); () with one sensor.
         pose: a floor pose estimate made on this frame, or None when none ran.
         obstacle_mask: (H, W) bool, the pixels the exact scan counts as obstacles, when asked for
             (StageParams.obstacle_mask) and the method is exact; else None.
@@ -92,6 +95,7 @@ class Result:
     sensor_scan: LaserScan | None = None
     sensor_cliff: CliffResult | None = None
     memory: MemoryResult | None = None
+    sensors: tuple[SensorState, ...] = ()
 
     @property
     def level_scan(self) -> LaserScan:

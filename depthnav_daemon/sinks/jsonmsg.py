@@ -122,6 +122,30 @@ def memory_to_json(memory: Any) -> dict[str, Any] | None:
     }
 
 
+def sensors_to_json(sensors: Sequence[Any], max_cliff_points: int | None) -> list | None:
+    """Several sensors: each one's name, status, age and own latest scan, cliff and pose (its base
+    frame results); None with one sensor."""
+    if not sensors:
+        return None
+    out = []
+    for s in sensors:
+        r = s.result
+        out.append(
+            {
+                "name": s.name,
+                "status": s.status,
+                "age_s": _num(s.age_s, SEC),
+                "seq": None if r is None else int(r.seq),
+                "scan": None if r is None else scan_to_json(r.scan),
+                "cliff": None
+                if r is None or r.cliff is None
+                else _cliff_to_json(r.cliff, max_cliff_points),
+                "pose": None if r is None else _pose_to_json(r),
+            }
+        )
+    return out
+
+
 def _pose_to_json(result: Result) -> dict[str, Any]:
     """The mount used for this frame, where it came from, and this frame's floor estimate if any."""
     m = result.mount
@@ -183,6 +207,7 @@ def frame_message(
         "cliff": None if result.cliff is None else _cliff_to_json(result.cliff, max_cliff_points),
         "pose": _pose_to_json(result),
         "memory": memory_to_json(result.memory),
+        "sensors": sensors_to_json(result.sensors, max_cliff_points),
         "timings_s": {k: _num(v, SEC) for k, v in sorted(result.timings_s.items())},
         "warning": result.warning,
         "message": message,
