@@ -32,6 +32,7 @@ import numpy.typing as npt
 
 from depthnav_daemon.pipeline._jit import kernel
 from depthnav_daemon.pipeline.geometry import F32, F64, Mount, frozen_table
+from depthnav_daemon.pipeline.memory_kernels import fast_atan2
 from depthnav_daemon.pipeline.scan import LaserScan
 
 SEEN = np.float32(1e30)  # "valid readings, no obstacle": sorts between ranges and no data (+inf)
@@ -44,14 +45,22 @@ def base_pose(mount: Mount) -> tuple[float, float, float]:
 
 def points_to_base(points_m: np.ndarray, mount: Mount) -> F32:
     """Level-frame floor points (K, 2) at the sensor's foot -> base frame (K, 2) float32."""
-    pts = np.asarray(points_m, dtype=np.float64).reshape(-1, 2)
+    pts = np.asarray(points_m, dtype=np.float32).reshape(-1, 2)
     if not mount.placed:
-        return np.asarray(points_m, dtype=np.float32).reshape(-1, 2)
-    c, s = math.cos(mount.yaw_rad), math.sin(mount.yaw_rad)
+        return pts
     out = np.empty_like(pts)
-    out[:, 0] = c * pts[:, 0] - s * pts[:, 1] + mount.x_m
-    out[:, 1] = s * pts[:, 0] + c * pts[:, 1] + mount.y_m
-    return out.astype(np.float32)
+    _place_points(pts, math.cos(mount.yaw_rad), math.sin(mount.yaw_rad), mount.x_m, mount.y_m, out)
+    return out
+
+
+@kernel
+def _place_points(pts, c, s, tx, ty, out):
+    """out = Rz(yaw) pts + (tx, ty) for (K, 2) points (c, s: cos and sin of the yaw)."""
+    for k in range(pts.shape[0]):
+        x = np.float64(pts[k, 0])
+        y = np.float64(pts[k, 1])
+        out[k, 0] = c * x - s * y + tx
+        out[k, 1] = s * x + c * y + ty
 
 
 @functools.lru_cache(maxsize=32)
@@ -246,7 +255,7 @@ def arcs_to_base_kernel(ranges, phi, a, c, far_lo, far_hi, near_lo, near_hi, inc
         w = a[i] + s
         rho2 = w * w + c[i] * c[i]
         rho = np.sqrt(rho2)
-        beta = phi[i] + np.arctan2(c[i], w)
+        beta = phi[i] + fast_atan2(c[i], w)  # within 2e-6 rad
         hw = 0.5 * inc_s * abs(s * w) / max(rho2, 1e-12)
         slope = c[i] * rho / w if w != 0.0 else 0.0
         j0 = np.int64(np.ceil((beta - hw - a0) / inc - 1e-9))
