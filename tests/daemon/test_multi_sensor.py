@@ -240,3 +240,27 @@ def test_a_silent_sensor_is_left_out_reported_once_and_taken_back(recordings, ca
     said = [r.getMessage() for r in caplog.records if "sensor right" in r.getMessage()]
     assert len(said) == 2
     assert "left out of the merged scan" in said[0] and "back in" in said[1]
+
+
+def test_json_lists_every_sensor_with_its_own_results(recordings) -> None:
+    import json
+
+    from depthnav_daemon.sinks import jsonmsg
+
+    both_ok = lambda r: all(s.status == "ok" for s in r.sensors)  # noqa: E731
+    sink = UntilSink(both_ok, 1)
+    run(
+        _config(recordings, "daemon.sensor_max_age_s=600"),
+        sink.stop,
+        2000,
+        sink_factory=lambda _s: sink,
+    )
+    last = next(r for r in reversed(sink.results) if both_ok(r))
+    frame = Frame(0, 0.0, np.zeros((240, 424), np.uint16), WIDE)
+    msg = json.loads(jsonmsg.dumps(jsonmsg.frame_message(frame, last, "0", 0.0)))
+    assert [s["name"] for s in msg["sensors"]] == ["left", "right"]
+    for s, state in zip(msg["sensors"], last.sensors, strict=True):
+        assert s["status"] == "ok" and s["age_s"] >= 0
+        assert len(s["scan"]["ranges"]) == state.result.scan.ranges.size
+        assert s["pose"]["yaw_deg"] == state.result.mount.yaw_deg
+    assert len(msg["scan"]["ranges"]) == last.scan.ranges.size  # the merged one on top
