@@ -219,3 +219,32 @@ def test_drop_off_cells_are_marked_as_cliff(step_drive) -> None:
     pts = _box_points(state, CLIFF)
     assert len(pts) > 20 and pts[:, 0].min() >= STEP_M - 1e-3  # all on the far side of the edge
     assert len(_box_points(state, OBSTACLE)) == 0
+
+
+def test_a_sensor_placed_on_the_robot_marks_the_world_where_it_looks() -> None:
+    # the sensor looks left (yaw 90 deg) from (0.2, 0.1) on a robot at (1, 2) heading 30 deg:
+    # it looks along 120 deg in the world; a box there must be remembered where it is
+    mount = Mount(0.5, 15.0, 0.0, x_m=0.2, y_m=0.1, yaw_deg=90.0)
+    pose = (1.0, 2.0, math.radians(30.0))
+    sx = 1.0 + 0.2 * math.cos(pose[2]) - 0.1 * math.sin(pose[2])
+    sy = 2.0 + 0.2 * math.sin(pose[2]) + 0.1 * math.cos(pose[2])
+    box = Box(
+        sx + 1.8 * math.cos(math.radians(120)),
+        sy + 1.8 * math.sin(math.radians(120)),
+        0.3,
+        0.3,
+        0.5,
+    )
+    state = new_state(MemoryParams())
+    (d,) = render_drive(Scene(boxes=(box,)), QVGA, mount, [(0.0, *pose)])
+    r = process(d.frame, mount, StageParams(scan=ScanParams()))
+    update(state, d.frame.odom, 0.0, [view_of(r, mount)])
+    pts = _box_points(state, OBSTACLE)
+    assert len(pts) > 3 and _dist_to_box(pts, box).max() <= state.params.cell_m
+    # read back from the robot: in the base frame the box centre is at (0.2, 0.1) + 1.8 (0, 1),
+    # bearing atan2(1.9, 0.2) = 84 deg on the robot's left, 1.91 m away (its near face ~0.15 m
+    # nearer)
+    scan = read_scan(state, pose).scan
+    j = int(np.nanargmin(scan.ranges))
+    assert abs(math.degrees(scan.angles[j]) - 84.0) < 5.0
+    assert scan.ranges[j] == pytest.approx(math.hypot(1.9, 0.2) - 0.15, abs=0.05)

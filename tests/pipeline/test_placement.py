@@ -173,3 +173,13 @@ def test_mavlink_sectors_follow_the_base_frame() -> None:
 def test_placement_out_of_range_is_one_line(kwargs: dict, text: str) -> None:
     with pytest.raises(ConfigError, match=text):
         Mount(0.5, 10.0, 0.0, **kwargs)
+
+
+def test_a_sensor_looking_backwards_across_pi() -> None:
+    # at the back of the robot, looking back: its bins run on past +pi (a continuous layout);
+    # the boxes behind are at their base-frame bearings (about +-170 deg) and ranges
+    mount = Mount(0.5, 12.0, 0.0, x_m=-0.3, y_m=0.1, yaw_deg=180.0)
+    scene = Scene(boxes=(Box(-2.0, 0.45, 0.3, 0.3, 0.5), Box(-1.7, -0.5, 0.3, 0.3, 0.5)))
+    r = _run(scene, mount)
+    assert r.scan.angle_min < math.pi < r.scan.angle_max
+    assert _check_against_truth(r, scene) > 40
