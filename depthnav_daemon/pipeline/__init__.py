@@ -17,6 +17,7 @@ import numpy.typing as npt
 
 from depthnav_daemon.pipeline.cliff import CliffParams, CliffResult, detect_cliffs
 from depthnav_daemon.pipeline.geometry import Mount
+from depthnav_daemon.pipeline.memory import near_limits
 from depthnav_daemon.pipeline.placement import base_layout, points_to_base, scan_to_base
 from depthnav_daemon.pipeline.scan import (
     LaserScan,
@@ -225,3 +226,13 @@ def prepare(intr: Intrinsics, mount: Mount, params: StageParams) -> None:
         )
     if mount.placed:
         to_base_frame(scan, cliff, mount, params)
+    # the memory's view of this mount (its lower dead zone per bin), for when odometry is on
+    rows = scan_rows(intr, params.scan)
+    near_limits(
+        intr,
+        level,
+        float(scan.angle_min),
+        float(scan.angle_increment),
+        int(scan.ranges.size),
+        (rows.start, rows.stop, rows.step or 1),
+    )
