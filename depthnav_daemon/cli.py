@@ -74,6 +74,12 @@ def _add_run_args(p: argparse.ArgumentParser, device_required: bool) -> None:
         "mavlink:PORT?baud=N, mavlink+udp://HOST:PORT, null; repeat for several",
     )
     p.add_argument("--max-frames", type=int, metavar="N", help="stop after N frames")
+    p.add_argument(
+        "--odometry",
+        metavar="SPEC",
+        help="the robot's odometry, for the obstacle memory: odom+udp://127.0.0.1:PORT, "
+        "mavlink+udp://HOST:PORT, mavlink:SERIALPORT (sets [odometry] source)",
+    )
     _add_config_args(p)
 
 
@@ -142,6 +148,12 @@ def _add_setup_commands(sub: Any) -> None:
         "--frames", type=int, default=30, metavar="N", help="frames to record (default 30)"
     )
     p.add_argument("--description", default="", help="one line about the scene")
+    p.add_argument(
+        "--odometry",
+        metavar="SPEC",
+        help="also store the robot's odometry with every frame (odom+udp://127.0.0.1:PORT, "
+        "mavlink+udp://HOST:PORT, mavlink:SERIALPORT)",
+    )
     p.add_argument("out", type=Path, help="new folder to write")
     p.set_defaults(handler="record:cmd_record")
 
