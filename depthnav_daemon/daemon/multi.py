@@ -24,6 +24,7 @@ from depthnav_daemon import __version__
 from depthnav_daemon.config.loader import Config, SensorConfig
 from depthnav_daemon.daemon.frame_step import FrameStep
 from depthnav_daemon.daemon.memory_keeper import MemoryKeeper, open_odometry
+from depthnav_daemon.daemon.notify import ServiceNotifier
 from depthnav_daemon.daemon.source import DeviceSource
 from depthnav_daemon.errors import DepthnavError, FrameError
 from depthnav_daemon.pipeline import Result, StageParams
@@ -189,6 +190,7 @@ def run_sensors(
     sinks: list[Sink] = []
     odometry = open_odometry(cfg.odometry) if cfg.memory.enabled is not False else None
     keeper = MemoryKeeper(cfg.memory, cfg.odometry, odometry)
+    notifier = ServiceNotifier()
     try:
         context = SinkContext(opened[0], cfg.scan, cfg.cliff.block_size, __version__)
         sinks = open_sinks(cfg.sinks, context, sink_factory)
@@ -196,9 +198,12 @@ def run_sensors(
         for w in started:
             w.thread.start()
         merger = Merger([w.name for w in workers], cfg.daemon.sensor_max_age_s)
-        _serve(started, workers, inbox, merger, keeper, sinks, stop, max_frames, report)
+        notifier.ready(f"running on {len(started)} of {len(workers)} sensors")
+        _serve(started, workers, inbox, merger, keeper, sinks, stop, max_frames, report, notifier)
         report.stopped = stop.is_set()
     finally:
+        notifier.stopping(f"stopping after {report.frames} frames")
+        notifier.close()
         halt.set()
         for sink in sinks:
             try:
@@ -225,6 +230,7 @@ def _serve(
     stop: threading.Event,
     max_frames: int | None,
     report: object,
+    notifier: ServiceNotifier,
 ) -> None:
     """Merge and fan out every sensor result until every sensor ends, ``max_frames`` or ``stop``."""
     from depthnav_daemon.daemon.loop import fan_out, with_memory
@@ -252,5 +258,10 @@ def _serve(
         fan_out(sinks, frame, out, report)  # type: ignore[arg-type]
         report.frames += 1  # type: ignore[attr-defined]
         report.last_result = out  # type: ignore[attr-defined]
+        sensors = len(running)
+        notifier.frame(
+            report.frames,  # type: ignore[attr-defined]
+            lambda fps, n=sensors: f"{fps:.1f} frames/s from {n} sensors",
+        )
         if max_frames is not None and report.frames >= max_frames:  # type: ignore[attr-defined]
             return
