@@ -238,7 +238,7 @@ class ReplayDriver:
         self._has_accel = probe.imu_topic is not None
         base = None if probe.camera is None else probe.camera.intrinsics
         intr = self._intrinsics_with(base, probe.shape)
-        items = ((stamp, depth, accel, None) for stamp, depth, accel in bag.frames())
+        items = ((stamp, depth, accel, None, None) for stamp, depth, accel in bag.frames())
         return items, intr, f"{self.path.name} {probe.depth_topic}"
 
     def _start(self) -> None:
