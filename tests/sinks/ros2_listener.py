@@ -2,13 +2,13 @@
 types from DDS discovery alone (the builtin DCPSPublication topic and XTypes type lookup, as
 ``cyclonedds subscribe`` does) and prints what it receives as JSON lines.
 
-usage: python ros2_listener.py DOMAIN COUNT TIMEOUT_S DDS_TOPIC...
+usage: python ros2_listener.py DOMAIN COUNT TIMEOUT_S DDS_TOPIC[@best_effort]...
 
 Prints one ``{"event": "endpoint", ...}`` line per writer of a wanted topic (topic, type name,
 reliability, durability, history, user data), then ``{"event": "sample", ...}`` lines (COUNT per
-topic, read with a BEST_EFFORT reader on every other topic and RELIABLE on the rest): the sample
-as a dict (floats exact, NaN and infinities as Python's json writes them), byte sequences as
-their length. Exits 0 when done, 2 after TIMEOUT_S.
+topic, read with a RELIABLE reader, or BEST_EFFORT for a topic given with ``@best_effort``): the
+sample as a dict (floats exact, NaN and infinities as Python's json writes them), byte sequences
+as their length. Exits 0 when done, 2 after TIMEOUT_S.
 """
 
 from __future__ import annotations
@@ -48,7 +48,9 @@ def main(argv: list[str]) -> int:
     from cyclonedds.topic import Topic
     from cyclonedds.util import duration
 
-    domain, count, timeout_s, wanted = int(argv[0]), int(argv[1]), float(argv[2]), argv[3:]
+    domain, count, timeout_s = int(argv[0]), int(argv[1]), float(argv[2])
+    wanted = [arg.split("@")[0] for arg in argv[3:]]
+    best_effort = {arg.split("@")[0] for arg in argv[3:] if arg.endswith("@best_effort")}
     deadline = time.monotonic() + timeout_s
     dp = DomainParticipant(domain)
     builtin = BuiltinDataReader(dp, BuiltinTopicDcpsPublication)
@@ -74,12 +76,12 @@ def main(argv: list[str]) -> int:
                 )
         time.sleep(0.05)
     readers = {}
-    for i, name in enumerate(wanted):
+    for name in wanted:
         ep = endpoints[name]
         datatype, _ = get_types_for_typeid(dp, ep.type_id, duration(seconds=max(1, timeout_s)))
         reliability = (
             Policy.Reliability.BestEffort
-            if i % 2
+            if name in best_effort
             else Policy.Reliability.Reliable(duration(seconds=1))
         )
         qos = Qos(reliability, Policy.Durability.Volatile, Policy.History.KeepLast(10))

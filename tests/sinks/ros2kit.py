@@ -4,10 +4,19 @@ whose scans differ frame to frame (so a received scan names its frame)."""
 from __future__ import annotations
 
 import contextlib
+import glob
+import hashlib
+import importlib.util
 import os
+import platform
 import random
+import shutil
 import socket
+import subprocess
+import tempfile
 from pathlib import Path
+
+import pytest
 
 from depthnav_daemon.sim.synthetic import Box, Scene, render, step_down
 from drivers.base import KINECT_V1, Frame, tilt_roll_to_accel
@@ -26,6 +35,81 @@ CYCLONE_LOOPBACK = (
     "</Domain></CycloneDDS>"
 )
 PORTS_PER_DOMAIN = 250  # RTPS: port = 7400 + 250 * domain + offsets (participant index * 2)
+FASTDDS_SUB = Path(__file__).parent / "fastdds_sub"  # LaserScan.idl, subscriber.cpp, CMakeLists
+FASTDDS_TOOLS = "libfastrtps-dev fastddsgen cmake g++"
+BUILD_TIMEOUT_S = 600
+
+
+def require_cyclonedds() -> None:
+    """Skip without the cyclonedds package; fail instead under DEPTHNAV_REQUIRE_NATIVE=1 on
+    x86_64, where the dev install brings it."""
+    if importlib.util.find_spec("cyclonedds") is not None:
+        return
+    message = "cyclonedds not installed (pip install 'depthnav[ros2]')"
+    if os.environ.get("DEPTHNAV_REQUIRE_NATIVE") == "1" and platform.machine() == "x86_64":
+        pytest.fail(message + "; DEPTHNAV_REQUIRE_NATIVE=1 forbids skipping", pytrace=False)
+    pytest.skip(message)
+
+
+def _fastrtps_cmake() -> str | None:
+    """The Fast DDS CMake package's version file, if libfastrtps-dev is installed."""
+    found = sorted(glob.glob("/usr/lib/*/cmake/fastrtps/fastrtps-config-version.cmake"))
+    found += sorted(glob.glob("/usr/local/lib/cmake/fastrtps/fastrtps-config-version.cmake"))
+    return found[0] if found else None
+
+
+def fastdds_tools_missing() -> bool:
+    return _fastrtps_cmake() is None or not all(
+        shutil.which(tool) for tool in ("fastddsgen", "cmake", "c++")
+    )
+
+
+def _run(cmd: list[str], cwd: Path, what: str) -> None:
+    p = subprocess.run(
+        cmd, cwd=cwd, capture_output=True, text=True, timeout=BUILD_TIMEOUT_S, check=False
+    )
+    if p.returncode != 0:
+        tail = "\n".join((p.stdout + p.stderr).splitlines()[-30:])
+        pytest.fail(f"{what} failed ({p.returncode}):\n{tail}", pytrace=False)
+
+
+def fastdds_subscriber() -> Path:
+    """The Fast DDS subscriber of tests/sinks/fastdds_sub, generated with fastddsgen and built
+    with cmake once per source and Fast DDS version (cached in the temp folder, built under a
+    private name and renamed into place, so parallel runs never see half a build)."""
+    key = hashlib.sha256()
+    for name in ("LaserScan.idl", "subscriber.cpp", "CMakeLists.txt"):
+        key.update((FASTDDS_SUB / name).read_bytes())
+    key.update(Path(_fastrtps_cmake() or "").read_bytes())
+    home = Path(tempfile.gettempdir()) / f"depthnav-fastdds-sub-{key.hexdigest()[:16]}"
+    exe = home / "build" / "subscriber"
+    if exe.exists():
+        return exe
+    work = Path(tempfile.mkdtemp(prefix=home.name + ".building-"))
+    try:
+        (work / "gen").mkdir()
+        _run(
+            ["fastddsgen", "-replace", "-d", str(work / "gen"), str(FASTDDS_SUB / "LaserScan.idl")],
+            work,
+            "fastddsgen",
+        )
+        _run(
+            [
+                "cmake", "-S", str(FASTDDS_SUB), "-B", str(work / "build"),
+                f"-DGEN_DIR={work / 'gen'}", "-DCMAKE_BUILD_TYPE=Release",
+            ],
+            work,
+            "cmake (configure)",
+        )  # fmt: skip
+        _run(["cmake", "--build", str(work / "build"), "-j2"], work, "cmake --build")
+        try:
+            os.rename(work, home)  # atomic; fails if a parallel run got there first
+        except OSError:
+            shutil.rmtree(work, ignore_errors=True)
+    except BaseException:
+        shutil.rmtree(work, ignore_errors=True)
+        raise
+    return exe
 
 
 def loopback_env() -> dict[str, str]:
