@@ -132,7 +132,7 @@ def _udp_free(port: int) -> bool:
 def free_domain() -> int:
     """A DDS domain in 100..232 whose discovery and user ports on 127.0.0.1 are all free (others
     on this machine may be running DDS tests at the same time)."""
-    rng = random.Random(os.getpid())
+    rng = random.SystemRandom()
     for _ in range(200):
         domain = rng.randint(100, 232)
         base = 7400 + PORTS_PER_DOMAIN * domain
