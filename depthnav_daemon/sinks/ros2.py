@@ -157,12 +157,12 @@ def _import_cyclonedds() -> Any:
 class Ros2Sink:
     """Publishes each frame's messages on ROS 2 DDS topics (see the module docstring)."""
 
-    def __init__(self, name: str, domain: int, names: RosNames, spec_text: str = "") -> None:
+    def __init__(self, name: str, domain: int, names: RosNames) -> None:
         self.name = name
         self.domain = domain
         self.names = names
         self.topics = {  # ROS topic -> DDS topic, checked now so a bad name fails before open
-            names[key]: dds_topic(names[key], spec_text or name)
+            names[key]: dds_topic(names[key], name)
             for key in NAME_OPTIONS
             if key.endswith("_topic")
         }
@@ -170,7 +170,7 @@ class Ros2Sink:
         for ros_topic, dds in self.topics.items():
             if dds in seen:
                 raise ConfigError(
-                    f"topics {seen[dds]!r} and {ros_topic!r} in sink spec {spec_text or name!r} "
+                    f"topics {seen[dds]!r} and {ros_topic!r} in sink spec {name!r} "
                     "are the same ROS 2 topic",
                     hint="give each topic its own name",
                 )
@@ -191,7 +191,7 @@ class Ros2Sink:
                 f"sink spec {spec.text!r}: ros2 takes no target, only options",
                 hint="e.g. ros2 or ros2:?domain=7",
             )
-        env = os.environ.get("ROS_DOMAIN_ID", "").strip()
+        env = "" if "domain" in spec.options else os.environ.get("ROS_DOMAIN_ID", "").strip()
         if env and not (env.isdigit() and int(env) <= MAX_DOMAIN):
             raise ConfigError(
                 f"ROS_DOMAIN_ID={env!r} is not a domain id 0..{MAX_DOMAIN}",
@@ -199,7 +199,7 @@ class Ros2Sink:
             )
         default = int(env) if env else 0
         domain = int(number_option(spec, "domain", default, 0, MAX_DOMAIN, integer=True))
-        return cls(spec.text, domain, RosNames.from_spec(spec), spec.text)
+        return cls(spec.text, domain, RosNames.from_spec(spec))
 
     def open(self, context: SinkContext) -> None:
         """Join the domain and create one writer per topic.
@@ -261,6 +261,8 @@ class Ros2Sink:
             pad = -len(data) % 4  # DDS wants whole 4-byte words; the header's options say so
             data += bytes(pad)
             data[3] |= pad
+            # cyclonedds' DataWriter.write serialises a sample in Python and hands the bytes to
+            # this call: we hand it rosbags' CDR of the same layout (checked in the tests)
             rc = self._write(self._writers[topic]._ref, data)
             if rc < 0:
                 self.failures.failed("ros2 sink: publishing %s failed (DDS code %d)", topic, rc)

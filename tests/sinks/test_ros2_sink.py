@@ -311,11 +311,15 @@ def test_a_bad_spec_is_one_line_before_anything_opens(spec, says):
     assert len(errors) == 1 and says in errors[0] and "Traceback" not in p.stderr
 
 
-def test_a_bad_ros_domain_id_is_one_line():
+def test_a_bad_ros_domain_id_is_one_line_unless_the_spec_names_the_domain(monkeypatch):
     env = {**loopback_env(), "ROS_DOMAIN_ID": "300"}
     p = depthnav("run", "--device", FAST, "--sink", "ros2", env=env)
     assert p.returncode == 2 and "Traceback" not in p.stderr
     assert "depthnav: error: ROS_DOMAIN_ID='300' is not a domain id 0..232" in p.stderr
+    monkeypatch.setenv("ROS_DOMAIN_ID", "300")
+    assert create_sink("ros2:?domain=9").domain == 9
+    monkeypatch.setenv("ROS_DOMAIN_ID", "42")
+    assert create_sink("ros2").domain == 42
 
 
 BLOCK_CYCLONEDDS = """
