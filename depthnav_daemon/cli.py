@@ -70,8 +70,10 @@ def _add_run_args(p: argparse.ArgumentParser, device_required: bool) -> None:
         action="append",
         default=None,
         metavar="SPEC",
-        help="output: stdout, udp://HOST:PORT, rerun, rerun:FILE.rrd, rerun+grpc://HOST:PORT, "
-        "mavlink:PORT?baud=N, mavlink+udp://HOST:PORT, null; repeat for several",
+        help="output: stdout, text, udp://HOST:PORT, rerun, rerun:FILE.rrd, "
+        "rerun+grpc://HOST:PORT, mavlink:PORT?baud=N, mavlink+udp://HOST:PORT, "
+        "rosbag:FILE.mcap|.bag, ros2[?domain=N], foxglove://HOST:PORT, foxglove:FILE.mcap, null; "
+        "repeat for several",
     )
     p.add_argument("--max-frames", type=int, metavar="N", help="stop after N frames")
     p.add_argument(
