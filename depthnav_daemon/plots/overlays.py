@@ -132,3 +132,22 @@ def range_rings(reach_m: float, step_m: float = 1.0) -> list[tuple[float, F64]]:
         (float(d), np.stack([d * np.cos(a), d * np.sin(a)], axis=1))
         for d in np.arange(step_m, reach_m + 1e-9, step_m)
     ]
+
+
+def memory_cells_xy(result: Result) -> tuple[F64, F64, float]:
+    """The obstacle memory's remembered cells in the base frame: (obstacle centres (K, 2),
+    drop-off centres (M, 2), cell side m), x forward, y left; empty without a memory grid."""
+    empty = np.empty((0, 2))
+    mem = result.memory
+    if mem is None or mem.grid is None or mem.pose is None:
+        return empty, empty, 0.0
+    snap = mem.grid
+    x, y, yaw = mem.pose
+    c, s = math.cos(yaw), math.sin(yaw)
+    out = []
+    for kind in (1, 2):  # pipeline.memory's OBSTACLE, CLIFF
+        i, j = np.nonzero(snap.grid == kind)
+        ox = snap.origin_m[0] + (i + 0.5) * snap.cell_m - x  # odometry frame, robot at origin
+        oy = snap.origin_m[1] + (j + 0.5) * snap.cell_m - y
+        out.append(np.stack([c * ox + s * oy, -s * ox + c * oy], axis=1))  # into the base frame
+    return out[0], out[1], snap.cell_m

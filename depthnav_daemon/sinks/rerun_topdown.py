@@ -17,6 +17,7 @@ from depthnav_daemon.plots.overlays import (
     cliff_cell_sizes_m,
     footprint_xy,
     fov_xy,
+    memory_cells_xy,
     range_rings,
     scan_strips,
 )
@@ -30,6 +31,8 @@ __all__ = ["DEFAULT_FOOTPRINT_M", "log_fov", "log_frame", "log_static", "view"]
 TOPDOWN = "/topdown"
 SCAN_RGB = (0, 200, 80)
 CLIFF_RGB = (230, 0, 230)
+MEMORY_OBSTACLE_RGB = (150, 150, 40)  # remembered: muted, under what is seen now
+MEMORY_CLIFF_RGB = (120, 40, 120)
 RING_RGB = (90, 90, 90)
 FOV_RGBA = (74, 144, 217, 160)
 MAX_REACH_M = 8.0  # the view's default bounds stop here (zoom out for more)
@@ -104,7 +107,8 @@ def log_fov(rr: Any, rec: Any, scan: LaserScan, reach_m: float) -> None:
 
 
 def log_frame(rr: Any, rec: Any, result: Result) -> None:
-    """The scan (lines and points) and the cliff cells of one frame."""
+    """The scan (lines and points) and the cliff cells of one frame, over the memory's cells."""
+    log_memory(rr, rec, result)
     strips = [uv(s) for s in scan_strips(result.scan)]
     rec.log(f"{TOPDOWN}/scan", rr.LineStrips2D(strips, radii=0.015, colors=[SCAN_RGB]))
     pts = [p for s in strips for p in s]
@@ -128,3 +132,22 @@ def log_frame(rr: Any, rec: Any, result: Result) -> None:
             draw_order=5,
         ),
     )
+
+
+def log_memory(rr: Any, rec: Any, result: Result) -> None:
+    """The obstacle memory's remembered cells, filled and muted under what is seen now."""
+    obstacles, cliffs, cell = memory_cells_xy(result)
+    for name, xy, rgb in (
+        ("obstacles", obstacles, MEMORY_OBSTACLE_RGB),
+        ("cliffs", cliffs, MEMORY_CLIFF_RGB),
+    ):
+        rec.log(
+            f"{TOPDOWN}/memory/{name}",
+            rr.Boxes2D(
+                centers=uv(xy),
+                half_sizes=np.full((len(xy), 2), cell / 4),
+                radii=cell / 4 * 1.15,  # a thick outline fills the square (no fill mode)
+                colors=[rgb],
+                draw_order=2,
+            ),
+        )

@@ -186,3 +186,44 @@ def test_robot_footprint_option(tmp_path, context) -> None:
     record(path, [(frame, result)], context, "?robot_length_m=0.8&robot_width_m=0.6")
     robot = static_rows(path)["/world/robot"]
     assert np.allclose(robot.column("Boxes3D:half_sizes").to_pylist()[0][0][:2], [0.4, 0.3])
+
+
+def test_top_down_draws_the_obstacle_memory_in_the_base_frame(tmp_path) -> None:
+    """The drive fixture (odometry per frame): the remembered step edge 3 m ahead of the start
+    is drawn where it is relative to the robot at the last frame, as filled muted cells."""
+    import json
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[2]
+    path = tmp_path / "drive.rrd"
+    device = f"replay:{root / 'fixtures' / 'drive_step'}?rate=max"
+    proc = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "depthnav_daemon",
+            "run",
+            "-q",
+            "--device",
+            device,
+            "--sink",
+            f"rerun:{path}",
+            "--sink",
+            "stdout",
+        ],
+        capture_output=True,
+        text=True,
+        cwd=root,
+        timeout=300,
+    )
+    assert proc.returncode == 0, proc.stderr
+    last = json.loads(proc.stdout.splitlines()[-1])["memory"]
+    ent = temporal(path)
+    cliffs = column(ent["/topdown/memory/cliffs"], "Boxes2D:centers")[-1]
+    assert len(cliffs) == last["cells"]["cliff"] > 0
+    # view (u, v) = (-y, -x): the step edge is ahead of the robot at 3 m - odometry x
+    ahead_m = 3.0 - last["odom"]["x_m"]
+    xs = sorted(-v for _, v in cliffs)
+    assert xs[0] == pytest.approx(ahead_m, abs=0.1)
