@@ -1,4 +1,5 @@
-"""The ``depthnav`` command line: run, replay, calibrate, record, mount, devices, info, bench.
+"""The ``depthnav`` command line: run, replay, calibrate, record, mount, snapshot, devices, info,
+bench.
 
 The only module that prints to stderr or chooses exit codes: 0 ok (or stopped by SIGTERM), 1 runtime
 failure, 2 bad usage or config, 130 interrupted (Ctrl-C).
@@ -79,10 +80,18 @@ def _add_run_args(p: argparse.ArgumentParser, device_required: bool) -> None:
         action="append",
         default=None,
         metavar="SPEC",
-        help="output: stdout, udp://HOST:PORT, rerun, rerun:FILE.rrd, rerun+grpc://HOST:PORT, "
-        "mavlink:PORT?baud=N, mavlink+udp://HOST:PORT, null; repeat for several",
+        help="output: stdout, text, udp://HOST:PORT, rerun, rerun:FILE.rrd, "
+        "rerun+grpc://HOST:PORT, mavlink:PORT?baud=N, mavlink+udp://HOST:PORT, "
+        "rosbag:FILE.mcap|.bag, ros2[?domain=N], foxglove://HOST:PORT, foxglove:FILE.mcap, null; "
+        "repeat for several",
     )
     p.add_argument("--max-frames", type=int, metavar="N", help="stop after N frames")
+    p.add_argument(
+        "--odometry",
+        metavar="SPEC",
+        help="the robot's odometry, for the obstacle memory: odom+udp://127.0.0.1:PORT, "
+        "mavlink+udp://HOST:PORT, mavlink:SERIALPORT (sets [odometry] source)",
+    )
     _add_config_args(p)
 
 
@@ -151,6 +160,12 @@ def _add_setup_commands(sub: Any) -> None:
         "--frames", type=int, default=30, metavar="N", help="frames to record (default 30)"
     )
     p.add_argument("--description", default="", help="one line about the scene")
+    p.add_argument(
+        "--odometry",
+        metavar="SPEC",
+        help="also store the robot's odometry with every frame (odom+udp://127.0.0.1:PORT, "
+        "mavlink+udp://HOST:PORT, mavlink:SERIALPORT)",
+    )
     p.add_argument("out", type=Path, help="new folder to write")
     p.set_defaults(handler="record:cmd_record")
 
@@ -164,16 +179,47 @@ def _add_setup_commands(sub: Any) -> None:
     )
     p.add_argument("--vfov-deg", type=float, help="vertical field of view, overrides --sensor")
     p.add_argument("--distances-m", default="0.5,1,1.5,2,3,4,5", help="comma-separated distances")
-    p.add_argument("--plot", type=Path, metavar="PNG", help="also draw the side view to this PNG")
+    p.add_argument(
+        "--robot-height-m",
+        type=float,
+        metavar="M",
+        help="the robot's height: from where obstacles that high are seen (eq. 16)",
+    )
+    p.add_argument(
+        "--plot", type=Path, metavar="FILE", help="draw the side view to scale (.png or .svg)"
+    )
+    p.add_argument(
+        "--sweep",
+        type=Path,
+        metavar="FILE",
+        help="draw dead zone and highest obstacle seen against tilt (fig. 6; .png or .svg)",
+    )
     p.set_defaults(handler="mount:cmd_mount")
 
 
 def _add_tool_commands(sub: Any) -> None:
-    """``devices``, ``info`` and ``bench``."""
+    """``devices``, ``info``, ``snapshot`` and ``bench``."""
     p = sub.add_parser("devices", help="list the devices that can be opened here")
     p.set_defaults(handler="info:cmd_devices")
     p = sub.add_parser("info", help="versions, drivers and native libraries found")
     p.set_defaults(handler="info:cmd_info")
+
+    p = sub.add_parser(
+        "snapshot", help="draw one frame: depth with obstacles and drop-offs, and a top-down view"
+    )
+    p.add_argument("--device", required=True, help="device spec or recording (replay:PATH)")
+    p.add_argument(
+        "--frame", type=int, default=0, metavar="N", help="the frame to draw, from 0 (default 0)"
+    )
+    p.add_argument(
+        "--footprint-m",
+        default="0.45,0.40",
+        metavar="LENGTH,WIDTH",
+        help="the robot drawn behind the sensor, metres (default 0.45,0.40)",
+    )
+    p.add_argument("out", type=Path, help="the picture to write (.png or .svg)")
+    _add_config_args(p)
+    p.set_defaults(handler="snapshot:cmd_snapshot")
 
     p = sub.add_parser("bench", help="time every stage and the whole pipeline")
     p.add_argument(

@@ -131,6 +131,8 @@ class Frame:
         intrinsics: intrinsics of ``depth_mm``.
         accel_mps2: specific force in the camera frame (m/s^2), or None without an accelerometer.
         tilt: motor state of a motorised mount, or None.
+        odom: the robot's pose (x_m, y_m, yaw_rad) in the odometry frame at this frame, when the
+            source has it (a recording with ``odom``), else None.
     """
 
     seq: int
@@ -139,6 +141,7 @@ class Frame:
     intrinsics: Intrinsics
     accel_mps2: tuple[float, float, float] | None = None
     tilt: TiltState | None = field(default=None)
+    odom: tuple[float, float, float] | None = None
 
     def __post_init__(self) -> None:
         expected = (self.intrinsics.height, self.intrinsics.width)

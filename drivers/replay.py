@@ -69,7 +69,9 @@ OPTIONS += ("topic", "info_topic")
 # on every pass cost 40 % of the daemon's CPU at 30 frames/s); above it frames are streamed.
 CACHE_MAX_BYTES = 256 << 20
 
-Item = tuple[float, npt.NDArray[np.uint16], tuple[float, float, float] | None, TiltState | None]
+Vec3 = tuple[float, float, float]
+# (timestamp, depth, accelerometer, tilt motor, odometry)
+Item = tuple[float, npt.NDArray[np.uint16], Vec3 | None, TiltState | None, Vec3 | None]
 
 
 class ReplayDriver:
@@ -182,7 +184,8 @@ class ReplayDriver:
         def items() -> Iterator[Item]:
             for i, frame in enumerate(depth):
                 accel = None if rec.accel_mps2 is None else tuple(map(float, rec.accel_mps2[i]))
-                yield float(rec.timestamp_s[i]), frame, accel, None  # type: ignore[misc]
+                odom = None if rec.odom is None else tuple(map(float, rec.odom[i]))
+                yield float(rec.timestamp_s[i]), frame, accel, None, odom  # type: ignore[misc]
 
         return items(), intr, rec.description or self.path.name
 
@@ -196,7 +199,7 @@ class ReplayDriver:
 
         def items() -> Iterator[Item]:
             for stamp, depth in png_folder.iter_png_folder(self.path, intr, scale, self.fps):
-                yield stamp, depth, None, None
+                yield stamp, depth, None, None, None
 
         return items(), intr, self.path.name
 
@@ -211,7 +214,7 @@ class ReplayDriver:
                 if dump is not None:
                     accel = accel_counts_to_camera(*dump[:3])
                     tilt = TiltState(dump[3] / 2.0, tilt_status_name(dump[4]))
-                yield stamp, depth, accel, tilt
+                yield stamp, depth, accel, tilt, None
 
         return items(), intr, self.path.name
 
@@ -230,7 +233,7 @@ class ReplayDriver:
         self._has_accel = probe.imu_topic is not None
         base = None if probe.camera is None else probe.camera.intrinsics
         intr = self._intrinsics_with(base, probe.shape)
-        items = ((stamp, depth, accel, None) for stamp, depth, accel in bag.frames())
+        items = ((stamp, depth, accel, None, None) for stamp, depth, accel in bag.frames())
         return items, intr, f"{self.path.name} {probe.depth_topic}"
 
     def _start(self) -> None:
@@ -339,7 +342,7 @@ class ReplayDriver:
             item = next(self._items, None)
         if item is None:
             return None
-        stamp, depth, accel, tilt = item
+        stamp, depth, accel, tilt, odom = item
         t_s = stamp + self._t_offset_s
         if self.realtime:
             now = time.monotonic()
@@ -359,6 +362,7 @@ class ReplayDriver:
             intrinsics=self._intrinsics,
             accel_mps2=accel,
             tilt=tilt,
+            odom=odom,
         )
         self._seq += 1
         self._last_t_s = t_s

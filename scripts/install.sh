@@ -6,8 +6,9 @@ cd "$(dirname "$0")/.."
 
 # systemd: systemd-analyze and systemd-sysusers check the shipped unit in the tests
 # python3-rosbag: ROS 1's own rosbag (Debian), the tests check our .bag files with it
+# libfastrtps-dev fastddsgen cmake g++: the tests build a Fast DDS subscriber to our ros2 sink
 APT_PACKAGES=(libopenni2-0 libfreenect0.5 libfreenect-bin libusb-1.0-0 python3-venv systemd
-  python3-rosbag)
+  python3-rosbag libfastrtps-dev fastddsgen cmake g++)
 missing=()
 for p in "${APT_PACKAGES[@]}"; do
   dpkg -s "$p" >/dev/null 2>&1 || missing+=("$p")

@@ -13,6 +13,7 @@ And in a fresh interpreter, importing the pipeline loads no device, viewer or pl
 from __future__ import annotations
 
 import ast
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -162,3 +163,23 @@ def test_importing_the_pipeline_loads_no_device_viewer_or_plot_library() -> None
         [sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, check=True
     )
     assert proc.stdout.strip() == ""
+
+
+def test_depthnav_run_loads_no_plot_library(tmp_path: Path) -> None:
+    """The daemon with every drawing sink there is (the rerun file sink shares the figures'
+    overlay geometry) never imports matplotlib: it is the optional ``plot`` extra."""
+    rrd = tmp_path / "run.rrd"
+    fixture = ROOT / "fixtures" / "corridor_step"
+    code = (
+        "import sys\n"
+        "from depthnav_daemon.cli import main\n"
+        f"rc = main(['-q', 'run', '--device', 'replay:{fixture}', '--sink', 'null', "
+        f"'--sink', 'rerun:{rrd}', '--max-frames', '2'])\n"
+        "print(rc, [m for m in sys.modules if m.split('.')[0] == 'matplotlib'])"
+    )
+    env = {**os.environ, "HOME": str(tmp_path)}  # rerun's config stays out of the real home
+    proc = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, env=env, check=True
+    )
+    assert proc.stdout.split() == ["0", "[]"], proc.stderr
+    assert rrd.stat().st_size > 0

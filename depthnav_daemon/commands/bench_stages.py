@@ -3,6 +3,7 @@ np.copy of the same frame, in interleaved rounds (method in ``bench``'s docstrin
 
 from __future__ import annotations
 
+import dataclasses
 import gc
 import itertools
 import math
@@ -249,6 +250,7 @@ def stage_work(frames: Sequence[Frame], mount: Mount, pipeline: bool = True) -> 
         ),
         Work("pose: candidates + RANSAC 200 x 5000 (no early stop) + refine", ransac_target),
     ]
+    work += robot_work(frames, mount, cliff)
     if pipeline:
         work.append(
             Work(
@@ -258,6 +260,58 @@ def stage_work(frames: Sequence[Frame], mount: Mount, pipeline: bool = True) -> 
             )
         )
     return work
+
+
+def robot_work(frames: Sequence[Frame], mount: Mount, cliff: CliffParams) -> list[Work]:
+    """The robot's view: the base-frame conversion of an off-origin sensor, the memory update and
+    read-back, and the merge of two sensors (their inputs made once, up front)."""
+    from depthnav_daemon.pipeline import to_base_frame
+    from depthnav_daemon.pipeline.memory import (
+        MemoryParams,
+        SensorView,
+        new_state,
+        read_scan,
+        update,
+    )
+    from depthnav_daemon.pipeline.merge import merge_scans
+
+    params = StageParams(scan=ScanParams(), cliff=cliff)
+    placed = dataclasses.replace(mount, x_m=0.2, y_m=-0.1, yaw_deg=30.0)
+    left = dataclasses.replace(mount, x_m=0.3, y_m=0.12, yaw_deg=40.0)
+    right = dataclasses.replace(mount, x_m=0.1, y_m=-0.2, yaw_deg=-40.0)
+    level = [process(f, mount, params) for f in frames]
+    pairs = [(process(f, left, params).scan, process(f, right, params).scan) for f in frames]
+    views = [
+        SensorView(
+            mount, f.intrinsics, r.scan, r.cliff.scan if r.cliff else None, (0, -1, 1), 1, 17
+        )
+        for f, r in zip(frames, level, strict=True)
+    ]
+    state = new_state(MemoryParams())
+    step = itertools.count()
+    for i, v in enumerate(views):  # a memory that holds what these frames show
+        update(state, (0.01 * i, 0.0, 0.0), i / 30.0, [v])
+    nv = itertools.cycle(views).__next__
+    nl = itertools.cycle(level).__next__
+    npair = itertools.cycle(pairs).__next__
+
+    def memory_update() -> None:
+        k = next(step) + len(views)  # the robot drives on at 1 cm a frame (0.3 m/s at 30 Hz)
+        update(state, (0.01 * k, 0.0, 0.0), k / 30.0, [nv()])
+
+    def base_frame() -> None:
+        r = nl()
+        to_base_frame(r.scan, r.cliff, placed, params)
+
+    return [
+        Work("placement: scan + cliff to the base frame (0.2, -0.1 m, 30 deg)", base_frame),
+        Work("memory update, one view (8 x 8 m grid at 5 cm)", memory_update),
+        Work(
+            "memory read-back: 360 deg memory scan",
+            lambda: read_scan(state, (0.01 * len(views), 0.0, 0.0)),
+        ),
+        Work("merge two sensors' base-frame scans (+-40 deg)", lambda: merge_scans(npair())),
+    ]
 
 
 def _pipeline_fn(

@@ -47,6 +47,8 @@ def overrides(args: argparse.Namespace, device: str | None = None) -> dict[str, 
         out["device"] = device
     if getattr(args, "sink", None):
         out["sinks"] = args.sink
+    if getattr(args, "odometry", None):
+        out["odometry"] = {"source": args.odometry}
     return out
 
 

@@ -1,5 +1,9 @@
-"""``depthnav mount``: dead zones and the highest visible obstacle per distance, as text and a
-PNG."""
+"""``depthnav mount``: dead zones and the highest obstacle seen per distance, as text and figures.
+
+The numbers come from ``plots.mount_side.plan_mount`` (eq. 15 and 16 of the mount planner); the
+side view (``--plot``) draws that same plan, the sweep (``--sweep``) the paper's fig. 6 for this
+sensor. Figures need the ``depthnav[plot]`` extra (matplotlib).
+"""
 
 from __future__ import annotations
 
@@ -7,15 +11,14 @@ import argparse
 import math
 from pathlib import Path
 
-import numpy as np
-
 from depthnav_daemon.commands.common import EXIT_OK
 from depthnav_daemon.errors import ConfigError
-from depthnav_daemon.pipeline.geometry import Mount, check_range
-from depthnav_daemon.pipeline.mount_planner import lower_dead_zone_m, max_visible_height_m
+from depthnav_daemon.pipeline.geometry import MAX_MOUNT_HEIGHT_M, Mount, check_range
+from depthnav_daemon.plots import check_output
+from depthnav_daemon.plots.mount_side import MountPlan, describe_robot_top, plan_mount
 
-# vertical field of view of the depth image, degrees (vendor data sheets)
 MAX_DISTANCE_M = 100.0
+# vertical field of view of the depth image, degrees (vendor data sheets)
 SENSOR_VFOV_DEG = {
     "kinect": 43.0,
     "xtion": 45.0,
@@ -25,7 +28,7 @@ SENSOR_VFOV_DEG = {
 }
 
 
-def _distances(text: str) -> list[float]:
+def _distances(text: str) -> tuple[float, ...]:
     try:
         values = [float(t) for t in text.split(",") if t.strip()]
     except ValueError:
@@ -34,19 +37,15 @@ def _distances(text: str) -> list[float]:
         ) from None
     if not values or any(not (0 < v <= MAX_DISTANCE_M) for v in values):
         raise ConfigError(f"--distances-m={text!r} is out of range (accepted: numbers in 0..100 m)")
-    return values
+    return tuple(values)
 
 
-def mount_report(
-    height_m: float,
-    tilt_deg: float,
-    sensor: str,
-    vfov_deg: float | None,
-    distances: str,
-    plot: Path | None,
-) -> str:
-    """The text table (and optionally a PNG side view) for one mount."""
-    Mount(height_m, tilt_deg, 0.0)  # validates height and tilt with the usual messages
+def sensor_vfov_deg(sensor: str, vfov_deg: float | None) -> float:
+    """The vertical field of view: given, or the named sensor's.
+
+    Raises:
+        ConfigError: an unknown sensor name or a field of view out of range.
+    """
     if vfov_deg is None:
         if sensor not in SENSOR_VFOV_DEG:
             raise ConfigError(
@@ -54,22 +53,42 @@ def mount_report(
                 hint="or give --vfov-deg",
             )
         vfov_deg = SENSOR_VFOV_DEG[sensor]
-    vfov_deg = check_range("--vfov-deg", vfov_deg, 1.0, 170.0, " deg")
-    ds = _distances(distances)
-    dead = float(lower_dead_zone_m(height_m, tilt_deg, vfov_deg))
+    return check_range("--vfov-deg", vfov_deg, 1.0, 170.0, " deg")
+
+
+def mount_plan(
+    height_m: float,
+    tilt_deg: float,
+    sensor: str,
+    vfov_deg: float | None,
+    distances: str,
+    robot_height_m: float | None = None,
+) -> MountPlan:
+    """The checked inputs' plan (what is printed and drawn).
+
+    Raises:
+        ConfigError: a value out of range.
+    """
+    Mount(height_m, tilt_deg, 0.0)  # validates height and tilt with the usual messages
+    vfov = sensor_vfov_deg(sensor, vfov_deg)
+    if robot_height_m is not None:
+        check_range("--robot-height-m", robot_height_m, 0.01, MAX_MOUNT_HEIGHT_M, " m")
+    return plan_mount(height_m, tilt_deg, vfov, _distances(distances), robot_height_m)
+
+
+def format_plan(plan: MountPlan) -> str:
+    """The text table of a plan."""
     lines = [
-        f"sensor height {height_m:.2f} m, tilt {tilt_deg:.1f} deg down, "
-        f"vertical FOV {vfov_deg:.1f} deg",
-        f"lower dead zone (floor not seen): {_fmt(dead)}  (eq. 15)",
-        "",
-        f"{'distance m':>10}  {'highest obstacle seen m':>24}  (eq. 16)",
+        f"sensor height {plan.height_m:.2f} m, tilt {plan.tilt_deg:.1f} deg down, "
+        f"vertical FOV {plan.vfov_deg:.1f} deg",
+        f"lower dead zone (floor not seen): {_fmt(plan.dead_zone_m)}  (eq. 15)",
     ]
-    tops = np.atleast_1d(max_visible_height_m(height_m, tilt_deg, vfov_deg, np.array(ds)))
-    for d, top in zip(ds, tops, strict=True):
-        lines.append(f"{d:>10.2f}  {top:>24.2f}")
-    if plot is not None:
-        draw_side_view(plot, height_m, tilt_deg, vfov_deg, max(ds))
-        lines.append(f"\nside view written to {plot}")
+    if plan.robot_height_m is not None:
+        lines.append(describe_robot_top(plan))
+    lines += ["", f"{'distance m':>10}  {'highest obstacle seen m':>24}  (eq. 16)"]
+    for d, top in zip(plan.distances_m, plan.highest_m, strict=True):
+        seen = f"{top:.2f}" if top >= 0 else f"nothing (the view ends at {plan.view_ends_m:.2f} m)"
+        lines.append(f"{d:>10.2f}  {seen:>24}")
     return "\n".join(lines)
 
 
@@ -77,64 +96,37 @@ def _fmt(value: float) -> str:
     return f"{value:.2f} m" if math.isfinite(value) else "none (the floor is never seen)"
 
 
-def draw_side_view(
-    path: Path, height_m: float, tilt_deg: float, vfov_deg: float, max_dist_m: float
-) -> None:
-    """A side view: floor, sensor, the field of view wedge, the dead zone, to a PNG."""
-    from PIL import Image, ImageDraw
-
-    w, h, margin = 800, 400, 40
-    top_m = max(2.0 * height_m, 2.0)
-    sx = (w - 2 * margin) / max_dist_m
-    sy = (h - 2 * margin) / top_m
-
-    def px(x: float, z: float) -> tuple[float, float]:
-        return margin + x * sx, h - margin - z * sy
-
-    img = Image.new("RGB", (w, h), "white")
-    g = ImageDraw.Draw(img)
-    lo = math.radians(tilt_deg + vfov_deg / 2)  # lower edge, below the horizon
-    hi = math.radians(tilt_deg - vfov_deg / 2)  # upper edge
-    far = max_dist_m * 2
-
-    def edge(angle: float) -> tuple[float, float]:
-        if angle > 0:  # meets the floor
-            x = height_m / math.tan(angle)
-            if x < far:
-                return x, 0.0
-        return far, height_m - far * math.tan(angle)
-
-    wedge = [px(0, height_m), px(*edge(lo)), px(*edge(hi))]
-    if edge(lo)[1] == 0.0 and edge(hi)[1] > 0.0:
-        wedge.insert(2, px(far, 0.0))
-    g.polygon(wedge, fill=(200, 225, 255))
-    g.line([px(0, 0), px(max_dist_m, 0)], fill="black", width=2)
-    dead = float(lower_dead_zone_m(height_m, tilt_deg, vfov_deg))
-    if math.isfinite(dead):
-        g.line([px(0, 0), px(min(dead, max_dist_m), 0)], fill="red", width=5)
-        g.text(px(0, 0.05 * top_m), f"dead zone {dead:.2f} m", fill="red")
-    g.ellipse(
-        [
-            px(0, height_m)[0] - 5,
-            px(0, height_m)[1] - 5,
-            px(0, height_m)[0] + 5,
-            px(0, height_m)[1] + 5,
-        ],
-        fill="black",
-    )
-    g.text(
-        (margin, 10),
-        f"h {height_m:.2f} m, tilt {tilt_deg:.1f} deg, vfov {vfov_deg:.1f} deg",
-        fill="black",
-    )
-    for d in np.arange(0, max_dist_m + 1e-9, 0.5):
-        g.text((px(float(d), 0)[0] - 8, h - margin + 8), f"{d:g}", fill="black")
-    img.save(path)
-
-
 def cmd_mount(args: argparse.Namespace) -> int:
-    text = mount_report(
-        args.height_m, args.tilt_deg, args.sensor, args.vfov_deg, args.distances_m, args.plot
+    # the figure files are checked before any work, so a bad name fails at once
+    plot = check_output(args.plot, "--plot")[0] if args.plot else None
+    sweep = check_output(args.sweep, "--sweep")[0] if args.sweep else None
+    plan = mount_plan(
+        args.height_m,
+        args.tilt_deg,
+        args.sensor,
+        args.vfov_deg,
+        args.distances_m,
+        args.robot_height_m,
     )
-    print(text)  # noqa: T201
+    print(format_plan(plan))  # noqa: T201
+    if plot is not None:
+        _write_side_view(plan, plot)
+    if sweep is not None:
+        _write_sweep(plan, args.sensor if args.vfov_deg is None else "", sweep)
     return EXIT_OK
+
+
+def _write_side_view(plan: MountPlan, path: Path) -> None:
+    from depthnav_daemon.plots import save
+    from depthnav_daemon.plots.mount_side import draw_side_view
+
+    save(draw_side_view(plan), path, "--plot")
+    print(f"side view written to {path}")  # noqa: T201
+
+
+def _write_sweep(plan: MountPlan, sensor: str, path: Path) -> None:
+    from depthnav_daemon.plots import save
+    from depthnav_daemon.plots.sweep import draw_sweep
+
+    save(draw_sweep(plan, sensor), path, "--sweep")
+    print(f"dead-zone sweep written to {path}")  # noqa: T201

@@ -22,26 +22,26 @@ from depthnav_daemon.errors import ConfigError
 log = logging.getLogger(__name__)
 
 
-def _utf8(text: str) -> bool:
-    """True if ``text`` can be written as UTF-8 (command-line bytes that were not UTF-8 come in
-    as lone surrogates, which cannot)."""
+def _device_text(args: argparse.Namespace) -> str:
+    """The device as recording.toml names it, after checking the text given for the metadata.
+
+    Checked before a frame is read: the metadata is written last, after every frame, and failing
+    then lost them all. Command-line bytes that are not UTF-8 come in as lone surrogates: a
+    ``--description`` of them is refused; a device path of them still records, named with U+FFFD.
+    """
     try:
-        text.encode("utf-8")
+        args.description.encode("utf-8")
     except UnicodeEncodeError:
-        return False
-    return True
+        raise ConfigError(
+            "--description is not UTF-8 text", hint="write it in a UTF-8 terminal or locale"
+        ) from None
+    return str(args.device.encode("utf-8", "surrogateescape").decode("utf-8", "replace"))
 
 
 def cmd_record(args: argparse.Namespace) -> int:
     if args.frames < 1:
         raise ConfigError(f"--frames={args.frames} is out of range (accepted: 1 or more)")
-    # checked before a frame is read: the metadata is written last, after every frame
-    if not _utf8(args.description):
-        raise ConfigError(
-            "--description is not UTF-8 text", hint="write it in a UTF-8 terminal or locale"
-        )
-    # a device path that is not UTF-8 still records; recording.toml names it with U+FFFD
-    device_text = args.device.encode("utf-8", "surrogateescape").decode("utf-8", "replace")
+    device_text = _device_text(args)
     stop = threading.Event()
     got = install_stop_handlers(stop)  # before the heavy imports: see install_stop_handlers
     from drivers import create_driver, iter_frames, opened
@@ -49,6 +49,7 @@ def cmd_record(args: argparse.Namespace) -> int:
     from drivers.formats.recording_writer import write_recording
 
     driver = create_driver(args.device)
+    odometry = _start_odometry(args.odometry, stop) if args.odometry else None
     recording = progress_bar("recording")
     compressing = progress_bar("compressing", unit="MiB")
     taken = [0]
@@ -78,7 +79,7 @@ def cmd_record(args: argparse.Namespace) -> int:
         for i, frame in enumerate(iter_frames(driver, stop)):
             if i >= args.frames:
                 break
-            yield frame
+            yield frame if odometry is None else _with_odometry(frame, odometry)
         driver.close()  # the device is not needed while the frames are compressed
         for sig in STOP_SIGNALS:
             signal.signal(sig, while_compressing)
@@ -99,6 +100,9 @@ def cmd_record(args: argparse.Namespace) -> int:
         # a stop before the first frame is a clean stop, not a failed recording
         log.warning("stopped before the first frame: nothing was recorded into %s", args.out)
         return stopped_code(got)
+    finally:
+        if odometry is not None:
+            odometry.stop()
     if n < args.frames and "signal" not in got:
         log.warning(
             "%s ended after %d of the %d frames asked for; recorded %d into %s",
@@ -111,3 +115,52 @@ def cmd_record(args: argparse.Namespace) -> int:
     else:
         log.info("recorded %d frames into %s", n, args.out)
     return stopped_code(got) if "signal" in got else EXIT_OK
+
+
+ODOMETRY_WAIT_S = 2.0  # for the source's first sample before the first frame
+ODOMETRY_MAX_AGE_S = 0.5  # a frame whose newest odometry is older gets none
+
+
+def _start_odometry(spec: str, stop: threading.Event):
+    """The started odometry source, once it has spoken; None (said in one line) when it cannot
+    start or says nothing within ODOMETRY_WAIT_S: the recording is then made without it."""
+    from drivers.errors import DriverError
+    from drivers.odometry import create_odometry
+
+    try:
+        source = create_odometry(spec)
+        source.start()
+    except DriverError as exc:
+        log.warning("odometry %s cannot start: %s; recording without it", spec, exc)
+        return None
+    log.info("waiting for odometry from %s", spec)
+    if stop.wait(0) or not _spoke(source, stop):
+        log.warning(
+            "odometry %s has sent nothing in %g s; recording without it", spec, ODOMETRY_WAIT_S
+        )
+        source.stop()
+        return None
+    return source
+
+
+def _spoke(source, stop: threading.Event) -> bool:
+    for _ in range(int(ODOMETRY_WAIT_S / 0.05)):
+        if source.buffer.count:
+            return True
+        if stop.wait(0.05):
+            return False
+    return bool(source.buffer.count)
+
+
+def _with_odometry(frame, source):
+    """The frame with the odometry pose at its arrival (or its timestamp, for a source that sends
+    the frames' clock); without one when the newest is older than ODOMETRY_MAX_AGE_S (the writer
+    then stores no odometry, and says so)."""
+    import dataclasses
+    import time
+
+    t = time.monotonic() if source.uses_arrival_clock else frame.timestamp_s
+    at = source.buffer.pose_at(t)
+    if at is None or at[1] > ODOMETRY_MAX_AGE_S:
+        return frame
+    return dataclasses.replace(frame, odom=tuple(float(v) for v in at[0]))

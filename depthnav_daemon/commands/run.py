@@ -28,9 +28,10 @@ def _run(args: argparse.Namespace, device: str | None) -> int:
     announce_compiles()
 
     cfg = load_config(args, device)
-    if not cfg.device:
+    if not cfg.device and not cfg.sensors:
         raise ConfigError(
-            "no device given", hint="use --device SPEC or set device in a config file"
+            "no device given",
+            hint="use --device SPEC, or set device (or [[sensor]] tables) in a config file",
         )
     if args.max_frames is not None and args.max_frames < 1:
         raise ConfigError(f"--max-frames={args.max_frames} is out of range (accepted: 1 or more)")

@@ -17,6 +17,12 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from depthnav_daemon.config.robot import (
+    MemorySettings,
+    OdometrySettings,
+    SensorConfig,
+    parse_sensors,
+)
 from depthnav_daemon.errors import ConfigError
 from depthnav_daemon.pipeline.cliff import CliffParams
 from depthnav_daemon.pipeline.geometry import Mount, check_int, check_range
@@ -55,6 +61,8 @@ class DaemonParams:
         wait_for_device_s: at start, wait up to this long for a device that cannot be opened yet
             (not enumerated at boot), retrying with the reconnect backoff; 0 = fail at once.
         seed: seed of the random generator that RANSAC uses (runs are reproducible).
+        sensor_max_age_s: several sensors ([[sensor]]): a sensor whose latest frame is older
+            than this is left out of the merged scan (and reported) until it delivers again.
     """
 
     cliff: bool = True
@@ -73,6 +81,7 @@ class DaemonParams:
     reconnect_backoff_max_s: float = 8.0
     wait_for_device_s: float = 0.0
     seed: int = 0
+    sensor_max_age_s: float = 0.5
 
     def __post_init__(self) -> None:
         check_int("daemon.pose_every_frames", self.pose_every_frames, 0, 1_000_000)
@@ -95,6 +104,7 @@ class DaemonParams:
         )
         check_range("daemon.wait_for_device_s", self.wait_for_device_s, 0.0, 1e9, " s")
         check_int("daemon.seed", self.seed, 0, 2**63 - 1)
+        check_range("daemon.sensor_max_age_s", self.sensor_max_age_s, 0.01, 3600.0, " s")
 
 
 @dataclass(frozen=True, slots=True)
@@ -108,6 +118,9 @@ class Config:
     cliff: CliffParams = field(default_factory=CliffParams)
     pose: PoseParams = field(default_factory=PoseParams)
     daemon: DaemonParams = field(default_factory=DaemonParams)
+    memory: MemorySettings = field(default_factory=MemorySettings)
+    odometry: OdometrySettings = field(default_factory=OdometrySettings)
+    sensors: tuple[SensorConfig, ...] = ()
 
 
 SECTIONS: dict[str, type] = {
@@ -116,8 +129,12 @@ SECTIONS: dict[str, type] = {
     "cliff": CliffParams,
     "pose": PoseParams,
     "daemon": DaemonParams,
+    "memory": MemorySettings,
+    "odometry": OdometrySettings,
 }
-TOP_LEVEL = ("device", "sinks")
+TOP_LEVEL = ("device", "sinks", "sensor")
+# keys whose values are checked by their section's class rather than by the default's type
+FREE_TYPED = {("memory", "enabled")}
 
 
 def valid_keys() -> list[str]:
@@ -270,10 +287,20 @@ def config_from_dict(data: Mapping[str, Any]) -> Config:
         if not isinstance(sinks, (list, tuple)) or not all(isinstance(s, str) for s in sinks):
             raise ConfigError(f"sinks={short_repr(sinks)} must be a list of sink specs")
         kwargs["sinks"] = tuple(_coerce("sinks", s, "") for s in sinks)
+    if "sensor" in data:
+        kwargs["sensors"] = parse_sensors(data["sensor"], _coerce)
+        if kwargs["sensors"] and data.get("device"):
+            raise ConfigError(
+                "both device and [[sensor]] tables are given",
+                hint="one sensor: device (or --device); several: [[sensor]] tables only",
+            )
     for section, cls in SECTIONS.items():
         values = data.get(section, {})
         defaults = _field_types(cls)
-        checked = {k: _coerce(f"{section}.{k}", v, defaults[k]) for k, v in values.items()}
+        checked = {
+            k: v if (section, k) in FREE_TYPED else _coerce(f"{section}.{k}", v, defaults[k])
+            for k, v in values.items()
+        }
         try:
             kwargs[section] = cls(**checked)
         except ConfigError:
@@ -289,4 +316,9 @@ def config_to_dict(cfg: Config) -> dict[str, Any]:
     out: dict[str, Any] = {"device": cfg.device, "sinks": list(cfg.sinks)}
     for section in SECTIONS:
         out[section] = dataclasses.asdict(getattr(cfg, section))
+    if cfg.sensors:
+        out["sensor"] = [
+            {"name": sc.name, "device": sc.device, "mount": dataclasses.asdict(sc.mount)}
+            for sc in cfg.sensors
+        ]
     return out

@@ -17,6 +17,7 @@ from depthnav_daemon.config.loader import Config
 from depthnav_daemon.daemon.mount_tracker import MountTracker, TrackerParams
 from depthnav_daemon.daemon.stage_tables import StageTables
 from depthnav_daemon.pipeline import Result, StageParams, prepare, process
+from depthnav_daemon.pipeline.geometry import MAX_MOUNT_HEIGHT_M, MAX_ROLL_DEG, MAX_TILT_DEG
 from depthnav_daemon.pipeline.pose import (
     PoseEstimate,
     PoseParams,
@@ -30,6 +31,8 @@ from drivers.tilt import TiltSource
 log = logging.getLogger(__name__)
 
 PRIOR_HALF_WIDTH_DEG = 10.0
+PRIOR_HALF_HEIGHT_M = 0.3
+MIN_PRIOR_HEIGHT_M = 0.05
 
 
 class FrameStep:
@@ -116,18 +119,42 @@ class FrameStep:
 
 
 def pose_prior(params: PoseParams, tracker: MountTracker) -> PoseParams:
-    """The floor search's tilt window: centred on a tilt sensor's reading while one gives the mount.
+    """The floor search's window for this frame.
 
-    Rounded to whole degrees, so the pose stage's per-prior tables are reused frame after frame.
+    - While a tilt sensor gives the mount: the configured window's tilt, narrowed to its reading
+      +-10 deg.
+    - A mount outside the configured window (calibrated on a mast, say: ``depthnav calibrate``
+      searches every plausible mount): a narrow window around it, +-0.3 m and +-10 deg, so live
+      tracking follows it instead of finding no floor.
+    - Else the configured window.
+
+    Rounded (0.1 m, whole degrees) so the pose stage's per-prior tables are reused frame after
+    frame.
     """
-    if tracker.source not in ("accel", "serial"):
+    m = tracker.mount
+    if tracker.source in ("accel", "serial"):
+        t = round(m.tilt_deg)
+        lo = max(params.tilt_min_deg, t - PRIOR_HALF_WIDTH_DEG)
+        hi = min(params.tilt_max_deg, t + PRIOR_HALF_WIDTH_DEG)
+        if lo < hi:  # else the sensor disagrees with the configured window: trust the window
+            return dataclasses.replace(params, tilt_min_deg=lo, tilt_max_deg=hi)
         return params
-    t = round(tracker.mount.tilt_deg)
-    lo = max(params.tilt_min_deg, t - PRIOR_HALF_WIDTH_DEG)
-    hi = min(params.tilt_max_deg, t + PRIOR_HALF_WIDTH_DEG)
-    if lo >= hi:  # the sensor disagrees with the configured window: trust the configured window
+    inside = (
+        params.height_min_m <= m.height_m <= params.height_max_m
+        and params.tilt_min_deg <= m.tilt_deg <= params.tilt_max_deg
+        and abs(m.roll_deg) <= params.roll_max_deg
+    )
+    if inside:
         return params
-    return dataclasses.replace(params, tilt_min_deg=lo, tilt_max_deg=hi)
+    h, t = round(m.height_m, 1), round(m.tilt_deg)
+    return dataclasses.replace(
+        params,
+        height_min_m=max(MIN_PRIOR_HEIGHT_M, h - PRIOR_HALF_HEIGHT_M),
+        height_max_m=min(MAX_MOUNT_HEIGHT_M, h + PRIOR_HALF_HEIGHT_M),
+        tilt_min_deg=max(-MAX_TILT_DEG, t - PRIOR_HALF_WIDTH_DEG),
+        tilt_max_deg=min(MAX_TILT_DEG, t + PRIOR_HALF_WIDTH_DEG),
+        roll_max_deg=min(MAX_ROLL_DEG, max(params.roll_max_deg, abs(round(m.roll_deg)) + 10.0)),
+    )
 
 
 def _update_tilt_prior(

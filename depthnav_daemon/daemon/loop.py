@@ -18,6 +18,7 @@ from dataclasses import dataclass, field
 from depthnav_daemon import __version__
 from depthnav_daemon.config.loader import Config
 from depthnav_daemon.daemon.frame_step import FrameStep
+from depthnav_daemon.daemon.memory_keeper import MemoryKeeper, open_odometry
 from depthnav_daemon.daemon.notify import ServiceNotifier
 from depthnav_daemon.daemon.source import DeviceSource
 from depthnav_daemon.errors import DepthnavError, FrameError, SinkError
@@ -42,11 +43,13 @@ class RunReport:
     reconnects: int = 0
     dropped_sinks: list[str] = field(default_factory=list)
     rejected_pose_jumps: int = 0
+    memory_resets: int = 0
+    lost_sensors: list[str] = field(default_factory=list)
     last_result: Result | None = None
     stopped: bool = False  # ended by the stop event rather than by the source
 
 
-def _open_sinks(
+def open_sinks(
     specs: tuple[str, ...], context: SinkContext, factory: Callable[[str], Sink]
 ) -> list[Sink]:
     sinks: list[Sink] = []
@@ -65,7 +68,7 @@ def _open_sinks(
     return sinks
 
 
-def _fan_out(sinks: list[Sink], frame: Frame, result: Result, report: RunReport) -> None:
+def fan_out(sinks: list[Sink], frame: Frame, result: Result, report: RunReport) -> None:
     for sink in list(sinks):
         try:
             sink.write(frame, result)
@@ -93,7 +96,8 @@ def run(
     """Run the frame loop until the source ends, ``max_frames`` frames, or ``stop`` is set.
 
     Args:
-        cfg: the effective configuration (cfg.device names the device).
+        cfg: the effective configuration (cfg.device names the device; with [[sensor]] tables,
+            cfg.sensors, the several-sensor loop of daemon/multi.py runs instead).
         stop: set it to stop the loop (signal handlers do).
         max_frames: stop after this many frames; None = no limit.
         driver_factory, sink_factory: how specs become drivers and sinks.
@@ -102,29 +106,36 @@ def run(
     Raises:
         DepthnavError, DriverError: what ended the run; the message is fit for the user.
     """
+    if cfg.sensors:
+        from depthnav_daemon.daemon.multi import run_sensors
+
+        return run_sensors(cfg, stop, max_frames, driver_factory, sink_factory)  # type: ignore[return-value]
     report = RunReport()
     params = StageParams(scan=cfg.scan, cliff=cfg.cliff if cfg.daemon.cliff else None)
     step = FrameStep(cfg, params, serial_tilt)
     source = DeviceSource(cfg.device, cfg.daemon, stop, driver_factory)
     info = source.open()
     sinks: list[Sink] = []
+    odometry = open_odometry(cfg.odometry) if cfg.memory.enabled is not False else None
+    keeper = MemoryKeeper(cfg.memory, cfg.odometry, odometry)
     notifier = ServiceNotifier()
     try:
-        context = SinkContext(info, cfg.scan, cfg.cliff.block_size, __version__)
-        sinks = _open_sinks(cfg.sinks, context, sink_factory)
+        context = SinkContext(info, cfg.scan, cfg.cliff.block_size, __version__, cfg.mount)
+        sinks = open_sinks(cfg.sinks, context, sink_factory)
         # the obstacle mask costs a pass over the image: only when a sink draws it
         wanted = any(getattr(sink, "needs_obstacle_mask", False) for sink in sinks)
         step.params = dataclasses.replace(params, obstacle_mask=wanted)
         notifier.ready(f"running on {info.name}")
-        for frame in _frames(source, cfg, stop, report):
+        for frame, arrival_s in frames_of(source, cfg, stop, report):
             try:
                 result = step.run(frame)
             except FrameError as exc:
                 log.warning("frame %d skipped: %s", frame.seq, exc)
                 continue
+            result = with_memory(keeper, frame, arrival_s, [(result, step.params)], result)
             if result.warning:
                 log.debug("frame %d: %s", frame.seq, result.warning)
-            _fan_out(sinks, frame, result, report)
+            fan_out(sinks, frame, result, report)
             report.frames += 1
             report.last_result = result
             notifier.frame(report.frames, lambda fps, r=result: _status(fps, r))
@@ -141,15 +152,37 @@ def run(
                 log.error("sink %s did not close cleanly: %s", sink.name, exc)
         source.close()
         step.close()
+        if odometry is not None:
+            odometry.stop()
+        report.memory_resets = keeper.resets
         report.reconnects = source.reconnects
         report.rejected_pose_jumps = step.rejected_pose_jumps
     return report
 
 
-def _frames(
+def with_memory(
+    keeper: MemoryKeeper,
+    frame: Frame,
+    arrival_s: float,
+    results: list[tuple[Result, StageParams]],
+    out: Result,
+) -> Result:
+    """``out`` with the memory updated by ``results`` (and its time in timings_s["memory"])."""
+    if not keeper.enabled:
+        return out
+    t0 = time.perf_counter()
+    memory = keeper.step(frame, arrival_s, results)
+    if memory is None:
+        return out
+    out.timings_s["memory"] = time.perf_counter() - t0
+    return dataclasses.replace(out, memory=memory)
+
+
+def frames_of(
     source: DeviceSource, cfg: Config, stop: threading.Event, report: RunReport
-) -> Iterator[Frame]:
-    """The device's frames until it ends or ``stop`` is set; reconnects a silent or lost device."""
+) -> Iterator[tuple[Frame, float]]:
+    """The device's frames, each with its host arrival time (monotonic seconds), until it ends or
+    ``stop`` is set; reconnects a silent or lost device."""
     d = cfg.daemon
     last_frame_wall = time.monotonic()
     while not stop.is_set():
@@ -175,7 +208,7 @@ def _frames(
             log.info("end of %s after %d frames", cfg.device, report.frames)
             return
         last_frame_wall = time.monotonic()
-        yield frame
+        yield frame, last_frame_wall
 
 
 def _status(fps: float, result: Result) -> str:

@@ -52,8 +52,9 @@ def _distance(a: Mount, b: Mount) -> tuple[float, float]:
     )
 
 
-def _clamped(height_m: float, tilt_deg: float, roll_deg: float) -> Mount:
-    return Mount(
+def _clamped(like: Mount, height_m: float, tilt_deg: float, roll_deg: float) -> Mount:
+    """``like``'s placement on the robot with this height, tilt and roll (clamped to range)."""
+    return like.with_level(
         min(max(height_m, 0.01), 10.0),
         min(max(tilt_deg, -MAX_TILT_DEG), MAX_TILT_DEG),
         min(max(roll_deg, -MAX_ROLL_DEG), MAX_ROLL_DEG),
@@ -82,12 +83,13 @@ class MountTracker:
             return
         if self.source != source:
             log.info("mount tilt %.1f deg, roll %.1f deg from the %s", tilt_deg, roll_deg, source)
-            self._apply(_clamped(self.mount.height_m, tilt_deg, roll_deg), force=True)
+            self._apply(_clamped(self.mount, self.mount.height_m, tilt_deg, roll_deg), force=True)
         else:  # smooth sensor noise
             a = self._params.smoothing
             m = self._smoothed
             self._apply(
                 _clamped(
+                    m,
                     m.height_m,
                     m.tilt_deg + a * (tilt_deg - m.tilt_deg),
                     m.roll_deg + a * (roll_deg - m.roll_deg),
@@ -105,7 +107,7 @@ class MountTracker:
     def from_floor(self, height_m: float, tilt_deg: float, roll_deg: float) -> str | None:
         """Apply a confident floor estimate; returns a log-worthy note when something notable
         happened."""
-        new = _clamped(height_m, tilt_deg, roll_deg)
+        new = _clamped(self.mount, height_m, tilt_deg, roll_deg)
         if not self._floor_seen:
             self._floor_seen = True
             old, self.source = self.mount, "floor"
@@ -124,6 +126,7 @@ class MountTracker:
             a = p.smoothing
             self._apply(
                 _clamped(
+                    m,
                     m.height_m + a * (new.height_m - m.height_m),
                     m.tilt_deg + a * (new.tilt_deg - m.tilt_deg),
                     m.roll_deg + a * (new.roll_deg - m.roll_deg),

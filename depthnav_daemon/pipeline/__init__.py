@@ -17,6 +17,8 @@ import numpy.typing as npt
 
 from depthnav_daemon.pipeline.cliff import CliffParams, CliffResult, detect_cliffs
 from depthnav_daemon.pipeline.geometry import Mount
+from depthnav_daemon.pipeline.memory import near_limits
+from depthnav_daemon.pipeline.placement import base_layout, points_to_base, scan_to_base
 from depthnav_daemon.pipeline.scan import (
     LaserScan,
     ScanParams,
@@ -26,6 +28,8 @@ from depthnav_daemon.pipeline.scan import (
 from depthnav_daemon.pipeline.scan_table import scan_rows
 
 if TYPE_CHECKING:
+    from depthnav_daemon.pipeline.memory import MemoryResult
+    from depthnav_daemon.pipeline.merge import SensorState
     from depthnav_daemon.pipeline.pose import PoseEstimate
     from drivers.base import Frame, Intrinsics
 
@@ -54,11 +58,22 @@ class Result:
         seq: the frame's sequence number.
         timestamp_s: the frame's timestamp, seconds.
         intrinsics: intrinsics of the frame.
-        mount: the sensor height/tilt/roll the stages used for this frame.
+        mount: the sensor height/tilt/roll the stages used for this frame, and its placement on
+            the robot (x_m, y_m, yaw_deg).
         mount_source: where that mount came from ("config", "accel", "serial" or "floor").
-        scan: obstacles per bearing (level frame, REP 117).
+        scan: obstacles per bearing in the robot's base frame (ranges from the base origin,
+            bearings from the robot's forward axis; REP 117). With the default placement (x = y =
+            yaw = 0) the base frame is the level frame at the sensor.
         scan_band: [first, stop) image rows the scan read.
-        cliff: drop-offs (floor points and a polar cliff scan), or None when the stage is off.
+        cliff: drop-offs (floor points and a polar cliff scan) in the base frame, or None when
+            the stage is off.
+        sensor_scan: the scan in the sensor's level frame (what the memory ray-casts from the
+            sensor); the same object as ``scan`` when the sensor sits at the base origin.
+        sensor_cliff: the cliff result in the sensor's level frame (likewise), or None.
+        memory: the obstacle memory after this frame (the daemon adds it when odometry allows),
+            or None: a 360 deg memory scan, cell counts and the grid for a viewer.
+        sensors: several sensors: each one's name, status, age and latest Result (``scan`` and
+            ``cliff`` are then the merge of those in it); () with one sensor.
         pose: a floor pose estimate made on this frame, or None when none ran.
         obstacle_mask: (H, W) bool, the pixels the exact scan counts as obstacles, when asked for
             (StageParams.obstacle_mask) and the method is exact; else None.
@@ -78,6 +93,20 @@ class Result:
     obstacle_mask: npt.NDArray[np.bool_] | None = None
     timings_s: dict[str, float] = field(default_factory=dict)
     warning: str | None = None
+    sensor_scan: LaserScan | None = None
+    sensor_cliff: CliffResult | None = None
+    memory: MemoryResult | None = None
+    sensors: tuple[SensorState, ...] = ()
+
+    @property
+    def level_scan(self) -> LaserScan:
+        """The scan in the sensor's level frame."""
+        return self.scan if self.sensor_scan is None else self.sensor_scan
+
+    @property
+    def level_cliff(self) -> CliffResult | None:
+        """The cliff result in the sensor's level frame."""
+        return self.cliff if self.sensor_cliff is None else self.sensor_cliff
 
 
 def process(
@@ -108,36 +137,74 @@ def process(
     depth, intr = frame.depth_mm, frame.intrinsics
     tick = clock or (lambda: 0.0)
     timings: dict[str, float] = dict(timings_s or {})
+    level = mount.level_part()
     t0 = tick()
-    scan = depth_to_scan(depth, intr, mount, params.scan)
+    scan = depth_to_scan(depth, intr, level, params.scan)
     timings["scan"] = tick() - t0
     cliff = None
     if params.cliff is not None:
         t0 = tick()
         cliff = detect_cliffs(
-            depth, intr, mount, params.cliff, scan.angle_min, scan.angle_increment, scan.ranges.size
+            depth, intr, level, params.cliff, scan.angle_min, scan.angle_increment, scan.ranges.size
         )
         timings["cliff"] = tick() - t0
     mask = None
     if params.obstacle_mask and params.scan.method == "exact":
-        mask = obstacle_pixels(depth, intr, mount, params.scan)
+        mask = obstacle_pixels(depth, intr, level, params.scan)
     rows = scan_rows(intr, params.scan)
     # the scan already visited every used pixel: all-NaN means none of them had a reading
     warning = "no valid depth in this frame (all pixels 0)" if np.isnan(scan.ranges).all() else None
+    base_scan, base_cliff = scan, cliff
+    if mount.placed:
+        t0 = tick()
+        base_scan, base_cliff = to_base_frame(scan, cliff, mount, params)
+        timings["placement"] = tick() - t0
     return Result(
         seq=frame.seq,
         timestamp_s=frame.timestamp_s,
         intrinsics=intr,
         mount=mount,
         mount_source=mount_source,
-        scan=scan,
+        scan=base_scan,
         scan_band=(rows.start, min(rows.stop, intr.height)),
-        cliff=cliff,
+        cliff=base_cliff,
         pose=pose,
         obstacle_mask=mask,
         timings_s=timings if clock else dict(timings_s or {}),
         warning=warning,
+        sensor_scan=scan if mount.placed else None,
+        sensor_cliff=cliff if mount.placed else None,
     )
+
+
+def to_base_frame(
+    scan: LaserScan, cliff: CliffResult | None, mount: Mount, params: StageParams
+) -> tuple[LaserScan, CliffResult | None]:
+    """A sensor's level-frame scan and cliff result in the robot's base frame (one layout for
+    both, see ``placement``)."""
+    rmin, rmax = scan.range_min, scan.range_max
+    if params.cliff is not None:
+        rmin, rmax = min(rmin, params.cliff.range_min_m), max(rmax, params.cliff.range_max_m)
+    layout = base_layout(
+        scan.angle_min,
+        scan.angle_increment,
+        scan.ranges.size,
+        mount.x_m,
+        mount.y_m,
+        mount.yaw_rad,
+        rmin,
+        rmax,
+    )
+    base_scan = scan_to_base(scan, mount, layout)
+    if cliff is None:
+        return base_scan, None
+    base_cliff = CliffResult(
+        points_to_base(cliff.points_m, mount),
+        cliff.blocks,
+        cliff.block_size,
+        scan_to_base(cliff.scan, mount, layout),
+    )
+    return base_scan, base_cliff
 
 
 def prepare(intr: Intrinsics, mount: Mount, params: StageParams) -> None:
@@ -150,8 +217,22 @@ def prepare(intr: Intrinsics, mount: Mount, params: StageParams) -> None:
         ConfigError: parameters that do not fit this camera and mount (as ``process`` would).
     """
     blank = np.zeros((intr.height, intr.width), dtype=np.uint16)
-    scan = depth_to_scan(blank, intr, mount, params.scan)
+    level = mount.level_part()
+    scan = depth_to_scan(blank, intr, level, params.scan)
+    cliff = None
     if params.cliff is not None:
-        detect_cliffs(
-            blank, intr, mount, params.cliff, scan.angle_min, scan.angle_increment, scan.ranges.size
+        cliff = detect_cliffs(
+            blank, intr, level, params.cliff, scan.angle_min, scan.angle_increment, scan.ranges.size
         )
+    if mount.placed:
+        to_base_frame(scan, cliff, mount, params)
+    # the memory's view of this mount (its lower dead zone per bin), for when odometry is on
+    rows = scan_rows(intr, params.scan)
+    near_limits(
+        intr,
+        level,
+        float(scan.angle_min),
+        float(scan.angle_increment),
+        int(scan.ranges.size),
+        (rows.start, rows.stop, rows.step or 1),
+    )

@@ -5,6 +5,9 @@ Frames (DEVELOPERS.md, pinned by tests/pipeline/test_conventions.py):
 - level frame at the sensor (FLU, REP 103): x forward, y left, z up; the floor is z = -height_m.
 A camera point p maps to the level frame as Ry(tilt) Rx(roll) M p, M: (right, down, forward) ->
 (forward, left, up). Tilt positive = pitched down; roll positive = left side up.
+- robot base frame (REP 103): x forward, y left, z up, origin on the floor under the robot's centre.
+The sensor's level frame is yawed by ``yaw_deg`` (counter-clockwise) and its foot sits at
+(x_m, y_m) in the base frame: a level-frame point q maps to the base frame as Rz(yaw) q + (x, y, 0).
 """
 
 from __future__ import annotations
@@ -32,6 +35,8 @@ M_CAM_TO_FLU.setflags(write=False)
 MAX_MOUNT_HEIGHT_M = 10.0
 MAX_TILT_DEG = 89.0
 MAX_ROLL_DEG = 45.0
+MAX_PLACEMENT_M = 10.0  # |x_m|, |y_m| of a sensor on the robot
+MAX_YAW_DEG = 180.0
 
 
 def frozen_table(table: T) -> T:
@@ -77,22 +82,34 @@ def check_int(name: str, value: int, lo: int, hi: int) -> int:
 
 @dataclass(frozen=True, slots=True)
 class Mount:
-    """Pose of the depth sensor over the floor.
+    """Pose of the depth sensor over the floor and on the robot.
 
     Attributes:
         height_m: height of the optical centre above the floor, metres (0 < h <= 10).
         tilt_deg: pitch, positive = pitched down toward the floor, degrees (|tilt| <= 89).
         roll_deg: roll about the optical axis, positive = left side up, degrees (|roll| <= 45).
+        x_m, y_m: the optical centre's position in the robot's base frame (REP 103: x forward,
+            y left, origin on the floor under the robot's centre), metres (|x|, |y| <= 10).
+        yaw_deg: heading of the sensor on the robot, counter-clockwise, 0 = looking forward,
+            degrees (-180..180).
+
+    The floor pose estimate gives height, tilt and roll; x, y and yaw come from the config.
     """
 
     height_m: float = 0.5
     tilt_deg: float = 0.0
     roll_deg: float = 0.0
+    x_m: float = 0.0
+    y_m: float = 0.0
+    yaw_deg: float = 0.0
 
     def __post_init__(self) -> None:
         check_range("mount height_m", self.height_m, 0.01, MAX_MOUNT_HEIGHT_M, " m")
         check_range("mount tilt_deg", self.tilt_deg, -MAX_TILT_DEG, MAX_TILT_DEG, " deg")
         check_range("mount roll_deg", self.roll_deg, -MAX_ROLL_DEG, MAX_ROLL_DEG, " deg")
+        check_range("mount x_m", self.x_m, -MAX_PLACEMENT_M, MAX_PLACEMENT_M, " m")
+        check_range("mount y_m", self.y_m, -MAX_PLACEMENT_M, MAX_PLACEMENT_M, " m")
+        check_range("mount yaw_deg", self.yaw_deg, -MAX_YAW_DEG, MAX_YAW_DEG, " deg")
 
     @property
     def tilt_rad(self) -> float:
@@ -101,6 +118,31 @@ class Mount:
     @property
     def roll_rad(self) -> float:
         return math.radians(self.roll_deg)
+
+    @property
+    def yaw_rad(self) -> float:
+        return math.radians(self.yaw_deg)
+
+    @property
+    def placed(self) -> bool:
+        """True when the sensor is not at the base origin looking forward (x, y or yaw set)."""
+        return self.x_m != 0.0 or self.y_m != 0.0 or self.yaw_deg != 0.0
+
+    def level_part(self) -> Mount:
+        """This mount without its placement on the robot (what the sensor-frame stages use)."""
+        if not self.placed:
+            return self
+        return _level_mount(self.height_m, self.tilt_deg, self.roll_deg)
+
+    def with_level(self, height_m: float, tilt_deg: float, roll_deg: float) -> Mount:
+        """This placement with another height, tilt and roll (a floor or tilt sensor estimate)."""
+        return Mount(height_m, tilt_deg, roll_deg, self.x_m, self.y_m, self.yaw_deg)
+
+
+@functools.lru_cache(maxsize=64)
+def _level_mount(height_m: float, tilt_deg: float, roll_deg: float) -> Mount:
+    """Mount(height, tilt, roll), made once (its checks cost microseconds on the frame path)."""
+    return Mount(height_m, tilt_deg, roll_deg)
 
 
 def rot_x(angle_rad: float) -> F64:

@@ -122,10 +122,50 @@ def format_table(rows: list[Row]) -> str:
     return "\n".join(lines)
 
 
-def main() -> None:
-    """Print the table (``python -m depthnav_daemon.sim.paper_experiment``)."""
-    print(format_table(run()))  # noqa: T201
+def draw(rows: list[Row]):  # -> matplotlib Figure (the plot extra)
+    """The figs. 11-12 figure of ``rows`` (both methods side by side)."""
+    from depthnav_daemon.plots.experiment import draw_experiment
+
+    return draw_experiment(rows, POSES, MARGINS_M, BOX_HEIGHTS_M)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Print the table (``python -m depthnav_daemon.sim.paper_experiment [--plot FILE]``).
+
+    Returns:
+        The exit code: 0, or 2 / 1 with a one-line error for a bad or unwritable ``--plot`` file.
+    """
+    import argparse
+    import sys
+
+    from depthnav_daemon.errors import DepthnavError
+
+    parser = argparse.ArgumentParser(
+        prog="python -m depthnav_daemon.sim.paper_experiment", description=__doc__.split("\n")[0]
+    )
+    parser.add_argument(
+        "--plot", metavar="FILE", help="also draw the figure (.png or .svg; needs depthnav[plot])"
+    )
+    args = parser.parse_args(argv)
+    try:
+        if args.plot:
+            from depthnav_daemon.plots import check_output
+
+            check_output(args.plot, "--plot")
+        rows = run()
+        print(format_table(rows))  # noqa: T201
+        if args.plot:
+            from depthnav_daemon.plots import save
+
+            save(draw(rows), args.plot, "--plot")
+            print(f"figure written to {args.plot}")  # noqa: T201
+    except DepthnavError as exc:
+        sys.stderr.write(f"paper_experiment: error: {exc}\n")
+        if exc.hint:
+            sys.stderr.write(f"paper_experiment: hint: {exc.hint}\n")
+        return exc.exit_code
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    raise SystemExit(main())

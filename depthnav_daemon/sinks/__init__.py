@@ -8,6 +8,7 @@
     mavlink:SERIALPORT?baud=N | mavlink+udp://HOST:PORT  OBSTACLE_DISTANCE + HEARTBEAT
     rosbag:FILE.mcap | rosbag:FILE.bag   ROS 2 / ROS 1 bag: /scan, /cliff/*, /tf, pose
     foxglove://HOST:PORT | foxglove:FILE.mcap   Foxglove live view (127.0.0.1:8765) / file
+    ros2[?domain=N]                      live ROS 2 topics (DDS): /scan, /cliff/*, /tf, pose
 
 The grammar is ``scheme[://target][?key=value&...]`` (``scheme:target`` is shorthand); each sink
 module's docstring gives its options. Modules are imported only when their sink is made, so
@@ -34,6 +35,7 @@ SINKS: dict[str, tuple[str, str]] = {  # scheme -> (module, class); imported onl
     "mavlink+udp": ("depthnav_daemon.sinks.mavlink", "MavlinkSink"),
     "rosbag": ("depthnav_daemon.sinks.rosbag", "RosbagSink"),
     "foxglove": ("depthnav_daemon.sinks.foxglove", "FoxgloveSink"),
+    "ros2": ("depthnav_daemon.sinks.ros2", "Ros2Sink"),
 }
 
 

@@ -29,6 +29,7 @@ from drivers.values import short_repr
 
 if TYPE_CHECKING:
     from depthnav_daemon.pipeline import Result
+    from depthnav_daemon.pipeline.geometry import Mount
     from depthnav_daemon.pipeline.scan import ScanParams
     from drivers.base import DeviceInfo, Frame
 
@@ -51,12 +52,14 @@ class SinkContext:
         scan_params: the scan parameters in use (to draw the used rows and obstacle pixels).
         cliff_block_size: side of a cliff-detection block, pixels (to draw the blocks).
         version: the depthnav version string.
+        mount: the configured mount (what the floor estimates are compared with), or None.
     """
 
     device: DeviceInfo
     scan_params: ScanParams
     cliff_block_size: int
     version: str
+    mount: Mount | None = None
 
 
 @runtime_checkable

@@ -104,6 +104,48 @@ def _cliff_to_json(cliff: Any, max_points: int | None) -> dict[str, Any]:
     }
 
 
+def memory_to_json(memory: Any) -> dict[str, Any] | None:
+    """The memory object (docs/json_schema.md): status, the 360 deg memory scan, cell counts."""
+    if memory is None:
+        return None
+    pose = memory.pose
+    return {
+        "status": memory.status,
+        "scan": None if memory.scan is None else scan_to_json(memory.scan),
+        "cells": {"obstacle": int(memory.obstacle_cells), "cliff": int(memory.cliff_cells)},
+        "odom": None
+        if pose is None
+        else {"x_m": _num(pose[0], MM), "y_m": _num(pose[1], MM), "yaw_rad": _num(pose[2], RAD)},
+        "size_m": _num(memory.size_m, MM),
+        "cell_m": _num(memory.cell_m, MM),
+        "note": memory.note,
+    }
+
+
+def sensors_to_json(sensors: Sequence[Any], max_cliff_points: int | None) -> list | None:
+    """Several sensors: each one's name, status, age and own latest scan, cliff and pose (its base
+    frame results); None with one sensor."""
+    if not sensors:
+        return None
+    out = []
+    for s in sensors:
+        r = s.result
+        out.append(
+            {
+                "name": s.name,
+                "status": s.status,
+                "age_s": _num(s.age_s, SEC),
+                "seq": None if r is None else int(r.seq),
+                "scan": None if r is None else scan_to_json(r.scan),
+                "cliff": None
+                if r is None or r.cliff is None
+                else _cliff_to_json(r.cliff, max_cliff_points),
+                "pose": None if r is None else _pose_to_json(r),
+            }
+        )
+    return out
+
+
 def _pose_to_json(result: Result) -> dict[str, Any]:
     """The mount used for this frame, where it came from, and this frame's floor estimate if any."""
     m = result.mount
@@ -111,6 +153,9 @@ def _pose_to_json(result: Result) -> dict[str, Any]:
         "height_m": _num(m.height_m, MM),
         "tilt_deg": _num(m.tilt_deg, DEG),
         "roll_deg": _num(m.roll_deg, DEG),
+        "x_m": _num(m.x_m, MM),
+        "y_m": _num(m.y_m, MM),
+        "yaw_deg": _num(m.yaw_deg, DEG),
         "source": result.mount_source,
         "estimate": None,
     }
@@ -161,6 +206,8 @@ def frame_message(
         "scan": scan_to_json(result.scan),
         "cliff": None if result.cliff is None else _cliff_to_json(result.cliff, max_cliff_points),
         "pose": _pose_to_json(result),
+        "memory": memory_to_json(result.memory),
+        "sensors": sensors_to_json(result.sensors, max_cliff_points),
         "timings_s": {k: _num(v, SEC) for k, v in sorted(result.timings_s.items())},
         "warning": result.warning,
         "message": message,

@@ -16,6 +16,12 @@ Options (all optional):
         ToF).
     cliff: 1 = also report drop-offs (the cliff scan) as obstacles, sector-wise minimum (default 0).
 
+Memory: when the obstacle memory is on (odometry available, result.memory with a scan), the
+message is built from the 360 deg memory scan instead: 72 sectors of 5 deg all around the robot,
+so the autopilot also sees what is in the sensors' dead zones, beside and behind; the memory holds
+obstacles and drop-offs alike (``cliff`` is then moot). Otherwise (no odometry, or the memory is
+frozen) it is built from the live scan as above.
+
 Sectors (pinned by tests/sinks/test_mavlink.py): the 72 sectors split the scan's field of view
 evenly. Our scan is counter-clockwise from forward (left positive, index 0 = right-most); MAVLink's
 element 0 is the left-most sector and bearings grow clockwise (MAV_FRAME_BODY_FRD), so
@@ -45,11 +51,7 @@ from depthnav_daemon.sinks.base import (
     number_option,
     parse_host_port,
 )
-from depthnav_daemon.sinks.mavlink_sectors import (
-    Schedule,
-    merge_cliff,
-    obstacle_sectors,
-)
+from depthnav_daemon.sinks.mavlink_sectors import Schedule, sectors_for
 
 if TYPE_CHECKING:
     from depthnav_daemon.pipeline import Result
@@ -266,9 +268,7 @@ class MavlinkSink:
             )
         if self._thread is None:
             raise SinkError(f"sink {self.name!r} is not open")
-        sectors = obstacle_sectors(result.scan)
-        if self.cliff and result.cliff is not None:
-            sectors = merge_cliff(sectors, result.cliff.scan)
+        sectors = sectors_for(result, self.cliff)
         now = time.monotonic()
         with self._lock:
             self._latest = (sectors, int(now * 1e6), now)

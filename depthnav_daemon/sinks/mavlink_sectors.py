@@ -11,6 +11,7 @@ import numpy as np
 import numpy.typing as npt
 
 if TYPE_CHECKING:
+    from depthnav_daemon.pipeline import Result
     from depthnav_daemon.pipeline.scan import LaserScan
 
 SECTORS = 72
@@ -133,6 +134,36 @@ def merge_cliff(obstacles: Sectors, cliff_scan: LaserScan) -> Sectors:
         obstacles.min_cm,
         obstacles.max_cm,
     )
+
+
+def sectors_for(result: Result, cliff: bool) -> Sectors:
+    """The OBSTACLE_DISTANCE payload of a frame: from the 360 deg memory scan when the memory is on
+    (it holds obstacles and drop-offs, around the whole robot), else from the live scan (and the
+    cliff scan when ``cliff``)."""
+    memory = result.memory
+    if memory is not None and memory.scan is not None:
+        return memory_sectors(memory.scan)
+    sectors = obstacle_sectors(result.scan)
+    if cliff and result.cliff is not None:
+        sectors = merge_cliff(sectors, result.cliff.scan)
+    return sectors
+
+
+def memory_sectors(scan: LaserScan, n: int = SECTORS) -> Sectors:
+    """72 sectors of 5 deg all around the robot from a 360 deg memory scan: element 0 centred
+    straight behind (-180 deg clockwise), then clockwise. A sector with nothing remembered is
+    max_distance + 1 (no obstacle), never unknown: the memory covers every bearing."""
+    min_cm = 1
+    max_cm = min(UNKNOWN - 2, max(min_cm + 1, round(scan.range_max * 100.0)))
+    out = np.full(n, float(UNKNOWN))
+    lo, hi = _footprints_deg(scan)
+    width = 360.0 / n
+    left = -180.0 - width / 2.0
+    # every bin's footprint into [left, left + 360): the scan's -180 deg bin is sector 0's
+    shift = left + np.mod(lo - left, 360.0) - lo
+    lo, hi = lo + shift, hi + shift
+    _pool_min(out, lo, hi, bins_to_cm(scan.ranges, min_cm, max_cm), left, width)
+    return Sectors(out.astype(np.uint16), width, left + width / 2.0, min_cm, max_cm)
 
 
 def _advance(due: float, period: float, now: float) -> float:

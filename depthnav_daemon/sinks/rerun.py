@@ -6,23 +6,35 @@ Specs:
     ``rerun:FILE.rrd``               save to a file (``close()`` writes the footer: a complete .rrd)
 
 Options: ``every=N`` logs every Nth frame (default 1; depth images are ~0.6 MB each at 640x480),
-``image=0`` leaves out the depth image and its overlays.
+``image=0`` leaves out the depth image and its overlays, ``robot_length_m`` and ``robot_width_m``
+size the robot drawn behind the sensor (default 0.45 x 0.40 m).
 
 Entities (the world is the level frame at the sensor's foot, x forward, y left, z up, floor z=0):
     /world                        ViewCoordinates RIGHT_HAND_Z_UP (static)
     /world/floor                  a 1 m grid on the floor (static)
+    /world/robot                  Boxes3D: the robot up to the configured sensor height (static)
     /world/sensor                 Transform3D: mount height, tilt (nose down) and roll
-    /world/sensor/depth           Pinhole (camera_xyz=FLU) + DepthImage (mm, meter=1000)
-    /world/sensor/depth/band      Boxes2D: the rows the scan uses
+    /world/sensor/fov             LineStrips3D: the sensor's frustum, 0.5 m deep (static)
+    /world/sensor/depth           Pinhole (camera_xyz=FLU) + DepthImage (mm, meter=1000, grey)
+    /world/sensor/depth/band      Boxes2D: the rows the scan uses (none when it reads every row)
     /world/sensor/depth/obstacles SegmentationImage: pixels the scan counts as obstacles (class 1)
-    /world/sensor/depth/cliffs    Boxes2D: detected cliff blocks
-    /world/scan                   Points3D: scan hits, drawn on the floor
+    /world/sensor/depth/scan_pixels  Points2D: the pixel each scan reading came from
+    /world/sensor/depth/cliffs    Boxes2D: detected cliff blocks, filled
+    /world/scan, /world/scan/line Points3D, LineStrips3D: scan hits, drawn on the floor
     /world/cliff/points           Points3D: cliff floor points
+    /world/cliff/cells            Boxes3D: a filled cell per cliff point, a block wide
     /world/cliff/scan             Points3D: nearest drop-off per bearing
-    /stats/pose/{height_m,tilt_deg,roll_deg}, /stats/timing/<stage>_ms   Scalars
+    /topdown/...                  2-D top-down view (u = -y, v = -x metres): scan (+ /points),
+                                  cliff, robot, sensor, fov, rings (+ /labels); see rerun_topdown
+    /stats/pose/{height_m,tilt_deg,roll_deg}   Scalars: the mount in use
+    /stats/pose/{height,tilt,roll}_floor_{m,deg}, ..._config_{m,deg}   Scalars: floor estimates
+                                  (frames that ran the pose stage), the configured mount
+    /stats/timing/<stage>_ms      Scalars
     /log                          TextLog: per-frame warnings
 Timelines: ``frame`` (= seq) and ``sensor_time`` (the frame timestamp, seconds, as a duration).
-Every rerun call of depthnav lives in this module (the API moves between releases).
+The default layout and what is logged per frame live in ``rerun_layout`` (with ``rerun_depth``
+and ``rerun_topdown``); every rerun call of depthnav lives in these modules (the API moves between
+releases).
 """
 
 from __future__ import annotations
@@ -32,16 +44,12 @@ import logging
 import os
 import queue
 import shutil
-import struct
 import threading
 import time
 import uuid
 from typing import TYPE_CHECKING, Any
 
-import numpy as np
-
 from depthnav_daemon.errors import ConfigError, SinkError
-from depthnav_daemon.pipeline.geometry import rot_x, rot_y
 from depthnav_daemon.sinks.base import (
     RateLimitedLog,
     SinkContext,
@@ -51,20 +59,30 @@ from depthnav_daemon.sinks.base import (
     number_option,
     parse_host_port,
 )
+from depthnav_daemon.sinks.rerun_file import trim_partial_message
+from depthnav_daemon.sinks.rerun_layout import (
+    LayoutState,
+    blueprint,
+    log_frame,
+    log_static,
+    scan_points,
+)
+from depthnav_daemon.sinks.rerun_topdown import DEFAULT_FOOTPRINT_M
 
 if TYPE_CHECKING:
     from depthnav_daemon.pipeline import Result
-    from depthnav_daemon.pipeline.scan import LaserScan
-    from drivers.base import Frame, Intrinsics
+    from drivers.base import Frame
 
 log = logging.getLogger(__name__)
 
-GRAMMAR = "rerun[?every=N&image=0|1], rerun+grpc://HOST:PORT[?...] or rerun:FILE.rrd[?...]"
+GRAMMAR = (
+    "rerun[?every=N&image=0|1&robot_length_m=L&robot_width_m=W], rerun+grpc://HOST:PORT[?...] "
+    "or rerun:FILE.rrd[?...]"
+)
+OPTIONS = ("every", "image", "robot_length_m", "robot_width_m")
+__all__ = ["RerunSink", "abandoned_viewers", "blueprint", "scan_points", "trim_partial_message"]
 APP_ID = "depthnav"
 DEFAULT_GRPC = ("127.0.0.1", 9876)
-SCAN_Z_M = 0.01  # scan hits are drawn just above the floor, like a footprint map
-CLASS_OBSTACLE = 1
-STATS = "/stats"
 # A file sink's writer thread dies quietly when the disk fills: flush this often so the failure
 # becomes a SinkError (the sink is dropped, the others go on) instead of frames silently lost.
 FILE_CHECK_S = 1.0
@@ -77,88 +95,6 @@ LOW_SPACE_BYTES = 1 << 20
 # gives up on unsent data within 5 s at exit).
 VIEWER_QUEUE_FRAMES = 30  # 1 s at 30 frames/s: bursts pass, a dead viewer costs <= 30 frames
 VIEWER_JOIN_S = 1.5
-
-
-def _xy_to_points3d(x: np.ndarray, y: np.ndarray, z: float) -> np.ndarray:
-    return np.stack([x, y, np.full_like(x, z)], axis=1).astype(np.float32)
-
-
-def scan_points(scan: LaserScan, z: float = SCAN_Z_M) -> np.ndarray:
-    """(K, 3) float32 points of a scan's finite ranges, level frame at the sensor's foot."""
-    r = np.asarray(scan.ranges, dtype=np.float64)
-    ok = np.isfinite(r)
-    a = scan.angles[ok]
-    return _xy_to_points3d(r[ok] * np.cos(a), r[ok] * np.sin(a), z)
-
-
-def blueprint() -> Any:
-    """The default layout: depth + overlays and time series left, the 3-D view right."""
-    import rerun.blueprint as rrb
-
-    return rrb.Blueprint(
-        rrb.Horizontal(
-            rrb.Vertical(
-                rrb.Spatial2DView(name="Depth", origin="/world/sensor/depth"),
-                # metres and degrees on separate plots: 0.5 m next to 12 deg would be a flat line
-                rrb.TimeSeriesView(name="Height [m]", origin=f"{STATS}/pose/height_m"),
-                rrb.TimeSeriesView(
-                    name="Tilt, roll [deg]",
-                    origin=f"{STATS}/pose",
-                    contents=["+ $origin/tilt_deg", "+ $origin/roll_deg"],
-                ),
-                rrb.TimeSeriesView(name="Timing [ms]", origin=f"{STATS}/timing"),
-                row_shares=[3, 1, 1, 1],
-            ),
-            rrb.Vertical(
-                rrb.Spatial3DView(name="3D", origin="/world"),
-                rrb.TextLogView(name="Log", origin="/log"),
-                row_shares=[4, 1],
-            ),
-            column_shares=[2, 3],
-        ),
-        rrb.BlueprintPanel(state="collapsed"),
-        rrb.SelectionPanel(state="collapsed"),
-        rrb.TimePanel(timeline="frame"),
-    )
-
-
-RRD_MAGIC = b"RRF2"
-RRD_FILE_HEADER = 12  # magic, version, options
-RRD_MESSAGE_HEADER = struct.Struct("<QQ")  # message kind, payload length
-MAX_MESSAGE_KIND = 255
-
-
-def trim_partial_message(path: str) -> int | None:
-    """Cut an ``.rrd`` whose writing stopped mid-message (disk full) back to its last whole message.
-
-    rerun's reader refuses a file whose last message is cut short, which would make every frame
-    written before the disk filled unreadable. The result has no footer, which rerun reads
-    (``RrdReader.stream()``, the viewer). Nothing is changed unless the file walks cleanly.
-
-    Returns:
-        The new size in bytes, or None when the file was left as it was.
-    """
-    try:
-        with open(path, "r+b") as fh:
-            size = os.fstat(fh.fileno()).st_size
-            if fh.read(4) != RRD_MAGIC:
-                return None
-            pos = RRD_FILE_HEADER
-            while pos + RRD_MESSAGE_HEADER.size <= size:
-                fh.seek(pos)
-                kind, length = RRD_MESSAGE_HEADER.unpack(fh.read(RRD_MESSAGE_HEADER.size))
-                if kind > MAX_MESSAGE_KIND:  # not a message header: an unknown layout, leave it
-                    return None
-                if pos + RRD_MESSAGE_HEADER.size + length > size:
-                    break
-                pos += RRD_MESSAGE_HEADER.size + length
-            if pos == size:
-                return None
-            fh.truncate(pos)
-            return pos
-    except OSError as exc:
-        log.warning("rerun sink: could not trim %s: %s", path, exc.strerror or exc)
-        return None
 
 
 _abandoned: list[str] = []  # viewer sinks whose thread was left blocked inside rerun
@@ -190,10 +126,17 @@ class RerunSink:
         target: the gRPC URL (connect) or the file path (save); "" for spawn.
         every: log every Nth frame.
         image: log the depth image and its overlays.
+        footprint_m: length and width of the robot drawn behind the sensor, metres.
     """
 
     def __init__(
-        self, name: str, mode: str, target: str = "", every: int = 1, image: bool = True
+        self,
+        name: str,
+        mode: str,
+        target: str = "",
+        every: int = 1,
+        image: bool = True,
+        footprint_m: tuple[float, float] = DEFAULT_FOOTPRINT_M,
     ) -> None:
         self.name, self.mode, self.target, self.every, self.image = name, mode, target, every, image
         self.needs_obstacle_mask = image  # drawn over the depth image (Sink protocol)
@@ -201,7 +144,7 @@ class RerunSink:
         self._stream: Any = None
         self._rr: Any = None
         self._context: SinkContext | None = None
-        self._pinhole: Intrinsics | None = None
+        self._state = LayoutState(footprint_m=footprint_m)
         self._frames = 0
         self._next_check = 0.0
         self._file_failed = False
@@ -214,22 +157,28 @@ class RerunSink:
     @classmethod
     def from_spec(cls, spec: SinkSpec) -> RerunSink:
         """Build from a parsed spec (no I/O). Raises ConfigError for a bad target or option."""
-        check_options(spec, ("every", "image"), GRAMMAR)
+        check_options(spec, OPTIONS, GRAMMAR)
         every = int(number_option(spec, "every", 1, 1, 10000, integer=True))
         image = bool_option(spec, "image", True)
+        length, width = DEFAULT_FOOTPRINT_M
+        foot = (
+            number_option(spec, "robot_length_m", length, 0.05, 5.0),
+            number_option(spec, "robot_width_m", width, 0.05, 5.0),
+        )
         if spec.scheme == "rerun+grpc":
             host, port = parse_host_port(spec, DEFAULT_GRPC[0], DEFAULT_GRPC[1])
             host = f"[{host}]" if ":" in host else host
-            return cls(spec.text, "connect", f"rerun+http://{host}:{port}/proxy", every, image)
+            url = f"rerun+http://{host}:{port}/proxy"
+            return cls(spec.text, "connect", url, every, image, foot)
         if not spec.target:
-            return cls(spec.text, "spawn", "", every, image)
+            return cls(spec.text, "spawn", "", every, image, foot)
         if not spec.target.endswith(".rrd"):
             raise ConfigError(
                 f"rerun sink target {spec.target!r} is not an .rrd file",
                 hint="write rerun:FILE.rrd to save, rerun+grpc://HOST:PORT to connect, "
                 "rerun to spawn",
             )
-        return cls(spec.text, "save", spec.target, every, image)
+        return cls(spec.text, "save", spec.target, every, image, foot)
 
     def open(self, context: SinkContext) -> None:
         """Create the recording, attach the viewer/file, log the static scene.
@@ -245,31 +194,12 @@ class RerunSink:
                 hint="pip install 'rerun-sdk>=0.41,<0.42'",
             ) from exc
         self._rr, self._context = rr, context
+        st = self._state
+        st.reach_m, st.block_size = context.scan_params.range_max_m, context.cliff_block_size
+        st.configured = context.mount
         rec = rr.RecordingStream(APP_ID, recording_id=uuid.uuid4())
         try:
-            if self.mode == "save":
-                parent = os.path.dirname(os.path.abspath(self.target))
-                if not os.path.isdir(parent):
-                    raise SinkError(f"rerun sink: folder {parent!r} does not exist")
-                try:  # fail with a plain message before rerun does (it also warns about lost data)
-                    with open(self.target, "ab"):
-                        pass
-                except OSError as exc:
-                    raise SinkError(
-                        f"rerun sink: cannot write {self.target!r}: {exc.strerror}"
-                    ) from exc
-                rec.save(self.target, default_blueprint=blueprint())
-            elif self.mode == "connect":
-                rec.connect_grpc(self.target, default_blueprint=blueprint())
-            else:
-                # without a display the viewer dies and spawn() blocks ~11 s, then drops data
-                if not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
-                    raise SinkError(
-                        "rerun sink: no display to spawn a viewer on",
-                        hint="use --sink rerun:FILE.rrd or --sink rerun+grpc://HOST:PORT "
-                        "on a headless robot",
-                    )
-                rec.spawn(default_blueprint=blueprint())
+            self._attach(rec, blueprint(context))
         except Exception as exc:  # rerun raises plain RuntimeError/OSError subclasses
             _discard(rec)
             if isinstance(exc, SinkError):
@@ -278,7 +208,7 @@ class RerunSink:
                 f"rerun sink ({self.mode} {self.target or 'viewer'}) failed: {exc}"
             ) from exc
         self._rec = self._stream = rec  # _rec: open; _stream: what the logging calls use
-        self._log_static()
+        log_static(rr, rec, context, self._state)
         if self.mode != "save":  # a file is written in the frame loop: it must not skip frames
             self._queue = queue.Queue(maxsize=VIEWER_QUEUE_FRAMES)
             self._thread = threading.Thread(
@@ -287,38 +217,31 @@ class RerunSink:
             self._thread.start()
         log.info("rerun sink: %s %s", self.mode, self.target or "viewer")
 
-    def _log_static(self) -> None:
-        rr, rec = self._rr, self._stream
-        rec.log("/world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
-        lines = [[[x, -4.0, 0.0], [x, 4.0, 0.0]] for x in range(0, 7)]
-        lines += [[[0.0, y, 0.0], [6.0, y, 0.0]] for y in range(-4, 5)]
-        rec.log(
-            "/world/floor", rr.LineStrips3D(lines, radii=0.004, colors=[110, 110, 110]), static=True
-        )
-        rec.log(
-            "/world/sensor/depth/obstacles",
-            # class 0 must be transparent explicitly, or rerun tints the whole depth image
-            rr.AnnotationContext(
-                [(0, "", (0, 0, 0, 0)), (CLASS_OBSTACLE, "obstacle", (255, 40, 40, 220))]
-            ),
-            static=True,
-        )
-        series = {"height_m": (255, 128, 0), "tilt_deg": (0, 160, 255), "roll_deg": (160, 80, 255)}
-        for key, color in series.items():
-            rec.log(
-                f"{STATS}/pose/{key}",
-                rr.SeriesLines(colors=[color], names=key, widths=2),
-                static=True,
-            )
-        rec.log(
-            "/meta",
-            rr.AnyValues(
-                version=self._context.version,
-                device=self._context.device.name,
-                spec=self._context.device.spec,
-            ),
-            static=True,
-        )
+    def _attach(self, rec: Any, layout: Any) -> None:
+        """Send the recording (with its default layout) to the file, the viewer or a new one."""
+        if self.mode == "save":
+            parent = os.path.dirname(os.path.abspath(self.target))
+            if not os.path.isdir(parent):
+                raise SinkError(f"rerun sink: folder {parent!r} does not exist")
+            try:  # fail with a plain message before rerun does (it also warns about lost data)
+                with open(self.target, "ab"):
+                    pass
+            except OSError as exc:
+                raise SinkError(
+                    f"rerun sink: cannot write {self.target!r}: {exc.strerror}"
+                ) from exc
+            rec.save(self.target, default_blueprint=layout)
+        elif self.mode == "connect":
+            rec.connect_grpc(self.target, default_blueprint=layout)
+        else:
+            # without a display the viewer dies and spawn() blocks ~11 s, then drops data
+            if not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
+                raise SinkError(
+                    "rerun sink: no display to spawn a viewer on",
+                    hint="use --sink rerun:FILE.rrd or --sink rerun+grpc://HOST:PORT "
+                    "on a headless robot",
+                )
+            rec.spawn(default_blueprint=layout)
 
     def write(self, frame: Frame, result: Result) -> None:
         """Log one frame (every Nth).
@@ -377,105 +300,10 @@ class RerunSink:
             ) from exc
 
     def _log_frame(self, frame: Frame, result: Result) -> None:
-        rr, rec = self._rr, self._stream
+        rec = self._stream
         rec.set_time("frame", sequence=int(result.seq))
         rec.set_time("sensor_time", duration=float(result.timestamp_s))
-        m = result.mount
-        rot = rot_y(m.tilt_rad) @ rot_x(
-            m.roll_rad
-        )  # sensor body (FLU) -> level, geometry.py's order
-        rec.log("/world/sensor", rr.Transform3D(translation=[0.0, 0.0, m.height_m], mat3x3=rot))
-        if self.image:
-            self._log_image(frame, result)
-        rec.log(
-            "/world/scan", rr.Points3D(scan_points(result.scan), radii=0.02, colors=[0, 220, 0])
-        )
-        cliff = result.cliff
-        if cliff is not None:
-            pts = np.asarray(cliff.points_m, dtype=np.float32).reshape(-1, 2)
-            rec.log(
-                "/world/cliff/points",
-                rr.Points3D(
-                    _xy_to_points3d(pts[:, 0], pts[:, 1], 0.0), radii=0.015, colors=[255, 0, 200]
-                ),
-            )
-            rec.log(
-                "/world/cliff/scan",
-                rr.Points3D(scan_points(cliff.scan, 0.02), radii=0.025, colors=[255, 60, 60]),
-            )
-        rec.log(f"{STATS}/pose/height_m", rr.Scalars(m.height_m))
-        rec.log(f"{STATS}/pose/tilt_deg", rr.Scalars(m.tilt_deg))
-        rec.log(f"{STATS}/pose/roll_deg", rr.Scalars(m.roll_deg))
-        for stage, seconds in result.timings_s.items():
-            rec.log(f"{STATS}/timing/{stage}_ms", rr.Scalars(seconds * 1000.0))
-        if result.warning:
-            rec.log("/log", rr.TextLog(f"frame {result.seq}: {result.warning}", level="WARN"))
-        if result.pose is not None and not result.pose.ok:
-            rec.log(
-                "/log",
-                rr.TextLog(
-                    f"frame {result.seq}: floor estimate rejected: {result.pose.reason}",
-                    level="INFO",
-                ),
-            )
-
-    def _log_image(self, frame: Frame, result: Result) -> None:
-        rr, rec, ctx = self._rr, self._stream, self._context
-        intr = frame.intrinsics
-        if intr != self._pinhole:  # intrinsics rarely change: log the pinhole again only then
-            rec.log(
-                "/world/sensor/depth",
-                rr.Pinhole(
-                    focal_length=[intr.fx, intr.fy],
-                    principal_point=[intr.cx, intr.cy],
-                    width=intr.width,
-                    height=intr.height,
-                    camera_xyz=rr.ViewCoordinates.FLU,
-                    image_plane_distance=0.3,
-                ),
-                static=True,
-            )
-            self._pinhole = intr
-        far_mm = max(1000.0, ctx.scan_params.range_max_m * 1000.0)
-        rec.log(
-            "/world/sensor/depth",
-            rr.DepthImage(
-                frame.depth_mm, meter=1000.0, colormap="turbo", depth_range=[0.0, far_mm]
-            ),
-        )
-        first, stop = result.scan_band
-        rec.log(
-            "/world/sensor/depth/band",
-            rr.Boxes2D(
-                mins=[[-0.5, first - 0.5]],
-                sizes=[[intr.width, stop - first]],
-                colors=[[255, 220, 0]],
-                labels=["scan rows"],
-            ),
-        )
-        if result.obstacle_mask is not None:
-            rec.log(
-                "/world/sensor/depth/obstacles",
-                rr.SegmentationImage(
-                    result.obstacle_mask.astype(np.uint8) * CLASS_OBSTACLE, opacity=0.6
-                ),
-            )
-        blocks = (
-            np.empty((0, 2))
-            if result.cliff is None
-            else np.asarray(result.cliff.blocks).reshape(-1, 2)
-        )
-        # the cliff stage reports its own block size; the context's is the configured fallback
-        size = float(getattr(result.cliff, "block_size", None) or ctx.cliff_block_size)
-        # blocks are (row, col) of the top-left pixel; Boxes2D wants (x, y) = (col, row) pixel edges
-        rec.log(
-            "/world/sensor/depth/cliffs",
-            rr.Boxes2D(
-                mins=blocks[:, ::-1].astype(np.float32) - 0.5,
-                sizes=np.full((len(blocks), 2), size, np.float32),
-                colors=[[255, 0, 200]],
-            ),
-        )
+        log_frame(self._rr, rec, frame, result, self._state, self.image)
 
     def _pump(self, rec: Any) -> None:
         """The viewer thread: log queued frames until the None that close() sends, then finish."""

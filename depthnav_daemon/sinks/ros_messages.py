@@ -246,9 +246,13 @@ class MessageBuilder:
         )  # fmt: skip
         return img, info
 
-    def messages(self, frame: Frame, result: Result) -> tuple[int, list[tuple[str, Any]]]:
-        """(stamp ns, [(topic, message)]) of one frame: only what the frame has."""
-        t_ns = stamp_ns(result.timestamp_s)
+    def messages(
+        self, frame: Frame, result: Result, t_ns: int | None = None
+    ) -> tuple[int, list[tuple[str, Any]]]:
+        """(stamp ns, [(topic, message)]) of one frame: only what the frame has. The stamp is
+        ``t_ns`` when given (live topics: the wall clock), else the frame's own time."""
+        if t_ns is None:
+            t_ns = stamp_ns(result.timestamp_s)
         n = self.names
         out: list[tuple[str, Any]] = [(n["scan_topic"], self.laser_scan(result.scan, t_ns))]
         if result.cliff is not None:

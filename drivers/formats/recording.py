@@ -1,7 +1,9 @@
 """depthnav's recording format: a folder holding ``frames.npz`` and ``recording.toml``.
 
 ``frames.npz`` holds ``depth_mm`` (N, H, W) uint16, ``intrinsics`` float64 [fx, fy, cx, cy],
-``timestamp_s`` (N,) float64 and, when every frame had one, ``accel_mps2`` (N, 3) float64.
+``timestamp_s`` (N,) float64 and, when every frame had one, ``accel_mps2`` (N, 3) float64 and
+``odom`` (N, 3) float64 ``[x_m, y_m, yaw_rad]`` (the robot's pose in its odometry frame at each
+frame).
 ``recording.toml`` holds ``format_version``, ``description``, ``device``, an ``[intrinsics]``
 table and an optional ``[truth]`` table. A bare ``.npz`` with the same arrays is also readable.
 
@@ -53,6 +55,7 @@ class Recording:
         description: free text from the metadata.
         device: the device it was recorded from, free text.
         truth: the ``[truth]`` table, or {}.
+        odom: (N, 3) float64 [x_m, y_m, yaw_rad] per frame, or None.
     """
 
     depth_mm: npt.NDArray[np.uint16]
@@ -62,6 +65,7 @@ class Recording:
     description: str = ""
     device: str = ""
     truth: Mapping[str, Any] = field(default_factory=dict)
+    odom: npt.NDArray[np.float64] | None = None
 
     def frames(self) -> list[Frame]:
         """The recording as Frames, seq 0..N-1."""
@@ -74,6 +78,7 @@ class Recording:
                 accel_mps2=None
                 if self.accel_mps2 is None
                 else tuple(map(float, self.accel_mps2[i])),
+                odom=None if self.odom is None else tuple(map(float, self.odom[i])),
             )
             for i in range(len(self.depth_mm))
         ]
@@ -182,6 +187,7 @@ def _small_arrays(archive: Archive, n: int, with_intrinsics: bool) -> dict[str, 
     arrays = {
         "timestamp_s": _small(archive, "timestamp_s", (n,), f"{n} numbers"),
         "accel_mps2": _small(archive, "accel_mps2", (n, 3), f"({n}, 3) numbers"),
+        "odom": _small(archive, "odom", (n, 3), f"({n}, 3) numbers [x_m, y_m, yaw_rad]"),
     }
     if with_intrinsics:
         arrays["intrinsics"] = _small(archive, "intrinsics", (4,), "4 numbers [fx, fy, cx, cy]")
@@ -208,6 +214,22 @@ def _checked_accel(
     if not np.all(np.isfinite(accel)):
         raise RecordingError(f"{npz_path}: 'accel_mps2' has non-finite values")
     return accel
+
+
+def _checked_odom(
+    odom: npt.NDArray[Any] | None, n: int, npz_path: Path
+) -> npt.NDArray[np.float64] | None:
+    if odom is None:
+        return None
+    if odom.shape != (n, 3) or not np.issubdtype(odom.dtype, np.number):
+        raise RecordingError(
+            f"{npz_path}: 'odom' must be ({n}, 3) numbers [x_m, y_m, yaw_rad] (one row per "
+            f"frame), got {odom.dtype} {odom.shape}"
+        )
+    odom = odom.astype(np.float64)
+    if not np.all(np.isfinite(odom)):
+        raise RecordingError(f"{npz_path}: 'odom' has non-finite values")
+    return odom
 
 
 def _locate(path: str | os.PathLike[str]) -> tuple[Path, dict[str, Any], Path]:
@@ -241,6 +263,7 @@ def _described(
         "intrinsics": intr,
         "timestamp_s": _checked_stamps(arrays.get("timestamp_s"), n, npz_path, default_fps),
         "accel_mps2": _checked_accel(arrays.get("accel_mps2"), npz_path),
+        "odom": _checked_odom(arrays.get("odom"), n, npz_path),
         "description": str(meta.get("description", "")),
         "device": str(meta.get("device", "")),
         "truth": truth if isinstance(truth, dict) else {},
@@ -297,7 +320,7 @@ class RecordingStream:
     Attributes:
         npz_path: the ``.npz`` holding the frames.
         shape: (N, H, W) of ``depth_mm``.
-        intrinsics, timestamp_s, accel_mps2, description, device, truth: as in Recording.
+        intrinsics, timestamp_s, accel_mps2, description, device, truth, odom: as in Recording.
     """
 
     npz_path: Path
@@ -308,6 +331,7 @@ class RecordingStream:
     description: str = ""
     device: str = ""
     truth: Mapping[str, Any] = field(default_factory=dict)
+    odom: npt.NDArray[np.float64] | None = None
 
     @property
     def depth_nbytes(self) -> int:

@@ -167,12 +167,16 @@ class _Kept:
         stamps: timestamp of each frame, seconds.
         accel: 3 values a frame, m/s^2 (zeros where a frame had none).
         with_accel: how many frames had accelerometer data.
+        odom: 3 values a frame, [x_m, y_m, yaw_rad] (zeros where a frame had none).
+        with_odom: how many frames had odometry.
     """
 
     intrinsics: Intrinsics | None = None
     stamps: array = field(default_factory=lambda: array("d"))
     accel: array = field(default_factory=lambda: array("d"))
     with_accel: int = 0
+    odom: array = field(default_factory=lambda: array("d"))
+    with_odom: int = 0
 
     @property
     def count(self) -> int:
@@ -206,6 +210,8 @@ def _spool_frames(
         kept.stamps.append(float(frame.timestamp_s))
         kept.accel.extend(frame.accel_mps2 or (0.0, 0.0, 0.0))
         kept.with_accel += frame.accel_mps2 is not None
+        kept.odom.extend(frame.odom or (0.0, 0.0, 0.0))
+        kept.with_odom += frame.odom is not None
         if progress is not None:
             progress(kept.count)
     if kept.intrinsics is None:
@@ -214,6 +220,8 @@ def _spool_frames(
         )
     if 0 < kept.with_accel < kept.count:
         log.warning("%s: only some frames had accelerometer data; not storing it", folder)
+    if 0 < kept.with_odom < kept.count:
+        log.warning("%s: only some frames had odometry; not storing it", folder)
     return kept
 
 
@@ -263,6 +271,8 @@ def _write_npz(
     }
     if kept.with_accel == kept.count:
         small["accel_mps2"] = np.frombuffer(kept.accel, dtype=np.float64).reshape(-1, 3)
+    if kept.with_odom == kept.count:
+        small["odom"] = np.frombuffer(kept.odom, dtype=np.float64).reshape(-1, 3)
     header = {
         "descr": np.lib.format.dtype_to_descr(np.dtype("<u2")),
         "fortran_order": False,

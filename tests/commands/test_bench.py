@@ -17,6 +17,10 @@ STAGES = (
     "cliff, 8 px blocks",
     "pose, daemon defaults",
     "pose: candidates + RANSAC 200 x 5000",
+    "placement: scan + cliff to the base frame",
+    "memory update, one view",
+    "memory read-back",
+    "merge two sensors",
     "pipeline per frame",
 )
 
@@ -74,7 +78,8 @@ def test_resolutions_table_times_every_size() -> None:
         samples=1,
         min_batch_s=0.0,
     )
-    assert len(timings) == 8 and all(t.median_s > 0 for t in timings)
+    # np.copy, 7 stages and 4 pieces of the robot's view
+    assert len(timings) == 12 and all(t.median_s > 0 for t in timings)
 
 
 def test_a_recording_without_frames_is_a_one_line_error(

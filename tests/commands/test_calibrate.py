@@ -87,3 +87,39 @@ def test_the_accelerometer_centres_the_search_even_beyond_80_deg(tmp_path: Path)
     assert got["height_m"] == pytest.approx(1.1, abs=0.01)
     prior = calibration_prior(PoseParams(), accel)
     assert (prior.tilt_min_deg, prior.tilt_max_deg) == (75.0, 89.0)
+
+
+def test_the_daemon_tracks_a_calibrated_mount_outside_its_default_prior(tmp_path: Path) -> None:
+    # calibrate writes a mast mount (2.6 m, 35 deg); the daemon's live floor tracking must keep
+    # finding the floor around it, not give up for its default 0.1-1.5 m window
+    mount = Mount(2.6, 35.0, 4.0)
+    depth = render(Scene(), ASYM, mount).depth_mm
+    spec = record(tmp_path, [Frame(i, i / 30, depth, ASYM) for i in range(3)])
+    cfg = tmp_path / "robot.toml"
+    cfg.write_text("[mount]\nheight_m = 2.62\ntilt_deg = 34.0\nroll_deg = 3.0\n")
+    proc = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "depthnav_daemon",
+            "run",
+            "--device",
+            spec,
+            "--config",
+            str(cfg),
+            "--sink",
+            "stdout",
+            "--set",
+            "daemon.pose_every_frames=1",
+        ],
+        capture_output=True,
+        text=True,
+        cwd=ROOT,
+        timeout=300,
+    )
+    assert proc.returncode == 0, proc.stderr
+    poses = [json.loads(line)["pose"] for line in proc.stdout.splitlines()]
+    assert all(p["estimate"]["ok"] for p in poses), poses[0]["estimate"]
+    assert poses[-1]["source"] == "floor"
+    assert poses[-1]["height_m"] == pytest.approx(2.6, abs=0.01)
+    assert poses[-1]["tilt_deg"] == pytest.approx(35.0, abs=0.5)

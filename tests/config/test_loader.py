@@ -83,3 +83,25 @@ def test_config_round_trips_through_a_dict() -> None:
 
     cfg = build_config([], ["scan.method=paper", "mount.roll_deg=3"])
     assert config_from_dict(config_to_dict(cfg)) == cfg
+
+
+@pytest.mark.parametrize(
+    ("item", "text"),
+    [
+        ('memory.enabled="maybe"', r"memory.enabled='maybe' is not known \(accepted: auto, true"),
+        ("memory.cell_m=0.0", r"memory.cell_m=0.0 is out of range"),
+        ("memory.size_m=0.05", r"memory.size_m=0.05 is out of range"),
+        ("odometry.stale_s=-1", r"odometry.stale_s=-1.0 is out of range"),
+        ("odometry.max_jump_m=0", r"odometry.max_jump_m=0.0 is out of range"),
+        ("daemon.sensor_max_age_s=0", r"daemon.sensor_max_age_s=0.0 is out of range"),
+    ],
+)
+def test_bad_memory_and_odometry_settings_are_one_line(item: str, text: str) -> None:
+    with pytest.raises(ConfigError, match=text) as info:
+        build_config([], [item])
+    assert "\n" not in str(info.value)
+
+
+@pytest.mark.parametrize(("value", "want"), [("true", True), ("false", False), ('"auto"', "auto")])
+def test_memory_enabled_takes_auto_or_a_boolean(value: str, want: object) -> None:
+    assert build_config([], [f"memory.enabled={value}"]).memory.enabled == want

@@ -170,8 +170,8 @@ def test_a_fakenect_file_deleted_during_the_replay_is_one_line(tmp_path: Path) -
 def test_stdout_writer_serves_its_own_queue_after_a_close_at_once(tmp_path: Path) -> None:
     """A stop signal right after start-up closed the stdout sink before its writer thread ran a
     line: the thread then read the cleared attributes ('Exception in thread sink stdout:
-    Traceback ... AssertionError', seen once in a full suite run). The thread now gets its queue and fd
-    when it is made; here it runs after the sink has let go of both."""
+    Traceback ... AssertionError', seen once in a full suite run). The thread now gets its queue
+    and fd when it is made; here it runs after the sink has let go of both."""
     import queue
 
     from depthnav_daemon.sinks.stdout import StdoutSink

@@ -94,3 +94,20 @@ def with_ranges(result: Result, ranges: np.ndarray) -> Result:
 
 def radians(deg: float) -> float:
     return math.radians(deg)
+
+
+def with_memory(result: Result, pose: tuple[float, float, float] = (1.0, -0.5, 0.3)) -> Result:
+    """``result`` with the obstacle memory after one real update from it (the daemon's path)."""
+    from depthnav_daemon.config.loader import MemorySettings, OdometrySettings
+    from depthnav_daemon.daemon.memory_keeper import MemoryKeeper
+
+    keeper = MemoryKeeper(MemorySettings(), OdometrySettings(), None)
+    frame = Frame(
+        result.seq,
+        result.timestamp_s,
+        np.zeros((1, 1), np.uint16),
+        Intrinsics(1, 1, 1.0, 1.0, 0.0, 0.0),
+        odom=pose,
+    )
+    params = StageParams(scan=SCAN, cliff=CLIFF if result.cliff is not None else None)
+    return replace(result, memory=keeper.step(frame, 0.0, [(result, params)]))

@@ -14,7 +14,7 @@ from hypothesis import strategies as st
 
 from depthnav_daemon.pipeline.pose import PoseEstimate
 from depthnav_daemon.sinks import jsonmsg
-from tests.sinks.conftest import make_pair, with_ranges
+from tests.sinks.conftest import make_pair, with_memory, with_ranges
 
 
 def test_special_ranges_round_trip_distinct(pairs):
@@ -178,6 +178,7 @@ def test_documented_example_has_exactly_the_real_fields(pairs):
     block = doc.split("```json", 1)[1].split("```", 1)[0]
     example = json.loads(block.replace("\n", ""))
     frame, result = pairs[2]  # a frame with cliff and a floor estimate
+    result = with_memory(result)  # and the obstacle memory on
     real = json.loads(jsonmsg.dumps(jsonmsg.frame_message(frame, result, "0.1.0", 1.0)))
 
     def fixed(keys: set[str]) -> set[str]:

@@ -303,10 +303,12 @@ def test_default_blueprint_views(tmp_path, pairs, context):
             origin = rb.column("ViewBlueprint:space_origin").to_pylist()[0][0]
             views[name] = (kind, origin)
     assert views == {
-        "Depth": ("2D", "/world/sensor/depth"),
+        "Top down [m]: scan, drop-offs, robot": ("2D", "/topdown"),
+        "Depth: red obstacle, magenta drop-off, green scan pixel": ("2D", "/world/sensor/depth"),
         "3D": ("3D", "/world"),
-        "Height [m]": ("TimeSeries", "/stats/pose/height_m"),
-        "Tilt, roll [deg]": ("TimeSeries", "/stats/pose"),
-        "Timing [ms]": ("TimeSeries", "/stats/timing"),
+        "Height [m]": ("TimeSeries", "/stats/pose"),
+        "Tilt [deg]": ("TimeSeries", "/stats/pose"),
+        "Roll [deg]": ("TimeSeries", "/stats/pose"),
+        "Timing [ms], after warm-up": ("TimeSeries", "/stats/timing_after_warmup"),
         "Log": ("TextLog", "/log"),
     }

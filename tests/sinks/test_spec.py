@@ -25,6 +25,7 @@ EXAMPLES = {
     "mavlink+udp": "mavlink+udp://127.0.0.1:14550",
     "rosbag": "rosbag:run.mcap?compression=none",
     "foxglove": "foxglove://127.0.0.1:8765?image=0",
+    "ros2": "ros2:?domain=7&tf=0",
 }
 
 

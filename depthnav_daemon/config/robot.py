@@ -1,0 +1,143 @@
+"""The robot's side of the configuration: the obstacle memory ([memory]), the odometry
+([odometry]) and several sensors ([[sensor]] tables). The loader (loader.py) reads them like the
+other sections."""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from typing import Any
+
+from depthnav_daemon.errors import ConfigError
+from depthnav_daemon.pipeline.geometry import Mount, check_range
+from depthnav_daemon.pipeline.memory import MemoryParams
+
+
+@dataclass(frozen=True, slots=True)
+class MemorySettings:
+    """The obstacle memory ([memory]); see pipeline/memory.py.
+
+    Attributes:
+        enabled: "auto" (on whenever odometry is available), true (on; says why not when there is
+            no odometry), false (off).
+        size_m, cell_m, max_age_s, scan_increment_deg: as pipeline.memory.MemoryParams.
+    """
+
+    enabled: str | bool = "auto"
+    size_m: float = 8.0
+    cell_m: float = 0.05
+    max_age_s: float = 0.0
+    scan_increment_deg: float = 1.0
+
+    def __post_init__(self) -> None:
+        e = self.enabled
+        if isinstance(e, str) and e.strip().lower() in ("auto", "true", "false"):
+            e = e.strip().lower()
+            object.__setattr__(self, "enabled", "auto" if e == "auto" else e == "true")
+        if not (self.enabled == "auto" or isinstance(self.enabled, bool)):
+            raise ConfigError(
+                f"memory.enabled={self.enabled!r} is not known (accepted: auto, true, false)"
+            )
+        self.params()  # checks the ranges
+
+    def params(self) -> MemoryParams:
+        """The memory stage's parameters."""
+        return MemoryParams(self.size_m, self.cell_m, self.max_age_s, self.scan_increment_deg)
+
+
+@dataclass(frozen=True, slots=True)
+class OdometrySettings:
+    """Where the robot's motion comes from ([odometry]); the memory needs it.
+
+    Attributes:
+        source: an odometry spec (drivers.odometry: odom+udp://127.0.0.1:PORT for JSON lines,
+            mavlink+udp://HOST:PORT or mavlink:SERIALPORT for an autopilot), or "" for none; a
+            recording whose frames carry odometry gives it without a source.
+        timeout_s: a source that has sent nothing for this long is reported (once) and the memory
+            stays off until it speaks.
+        stale_s: odometry older than this at a frame freezes the memory (reported).
+        max_jump_m, max_jump_deg: odometry that moves more than this between two frames resets
+            the memory (reported): a jump is a relocalisation, not motion.
+    """
+
+    source: str = ""
+    timeout_s: float = 2.0
+    stale_s: float = 0.5
+    max_jump_m: float = 0.5
+    max_jump_deg: float = 45.0
+
+    def __post_init__(self) -> None:
+        check_range("odometry.timeout_s", self.timeout_s, 0.05, 3600.0, " s")
+        check_range("odometry.stale_s", self.stale_s, 0.01, 60.0, " s")
+        check_range("odometry.max_jump_m", self.max_jump_m, 0.001, 100.0, " m")
+        check_range("odometry.max_jump_deg", self.max_jump_deg, 0.1, 180.0, " deg")
+
+
+SENSOR_KEYS = ("name", "device", "mount")
+MAX_SENSORS = 16
+
+
+@dataclass(frozen=True, slots=True)
+class SensorConfig:
+    """One of several sensors in one daemon (a ``[[sensor]]`` table).
+
+    Attributes:
+        name: unique name, for messages and the JSON ``sensors`` list.
+        device: its device spec.
+        mount: its mount and placement on the robot ([sensor.mount], as [mount]).
+    """
+
+    name: str
+    device: str
+    mount: Mount = field(default_factory=Mount)
+
+
+def parse_sensors(
+    value: Any, coerce: Callable[[str, Any, Any], Any], origin: str = "config"
+) -> tuple[SensorConfig, ...]:
+    """``[[sensor]]`` tables -> SensorConfigs, checked: unique names, devices, mounts in range.
+
+    Args:
+        value: the tables.
+        coerce: the loader's value check (key, value, default) -> value.
+        origin: where they come from, for messages.
+    """
+    if not isinstance(value, (list, tuple)) or not all(isinstance(v, Mapping) for v in value):
+        raise ConfigError(f"{origin}: sensor must be a list of [[sensor]] tables, got {value!r}")
+    if len(value) > MAX_SENSORS:
+        raise ConfigError(f"{origin}: {len(value)} sensors (accepted: up to {MAX_SENSORS})")
+    out: list[SensorConfig] = []
+    for i, table in enumerate(value):
+        where = f"sensor {i + 1}"
+        unknown = [k for k in table if k not in SENSOR_KEYS]
+        if unknown:
+            raise ConfigError(
+                f"{where}: unknown key {unknown[0]!r}", hint=f"valid keys: {', '.join(SENSOR_KEYS)}"
+            )
+        name, device = table.get("name"), table.get("device")
+        if not isinstance(name, str) or not name.strip():
+            raise ConfigError(f"{where}: needs a name (a non-empty string)")
+        where = f"sensor {name!r}"
+        if not isinstance(device, str) or not device.strip():
+            raise ConfigError(f"{where}: needs a device spec")
+        if any(s.name == name for s in out):
+            raise ConfigError(
+                f"two sensors are named {name!r}", hint="give every [[sensor]] its own name"
+            )
+        mount_table = table.get("mount", {})
+        if not isinstance(mount_table, Mapping):
+            raise ConfigError(f"{where}: mount must be a table of keys")
+        defaults = {f.name: f.default for f in dataclasses.fields(Mount)}
+        for k in mount_table:
+            if k not in defaults:
+                raise ConfigError(
+                    f"{where}: unknown key 'mount.{k}'", hint=f"valid keys: {', '.join(defaults)}"
+                )
+        checked = {k: coerce(f"{where} mount.{k}", v, defaults[k]) for k, v in mount_table.items()}
+        try:
+            mount = Mount(**checked)
+        except ConfigError as exc:
+            raise ConfigError(f"{where}: {exc}") from None
+        out.append(SensorConfig(name, device, mount))
+    return tuple(out)

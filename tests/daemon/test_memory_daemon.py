@@ -1,0 +1,183 @@
+"""The memory in the daemon: from a recording's odometry, from a live source, and every way the
+odometry can fail (none, silent, stale, jumping); MAVLink from the memory scan."""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import math
+import socket
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from depthnav_daemon.config.loader import MemorySettings, OdometrySettings, build_config
+from depthnav_daemon.daemon.loop import run
+from depthnav_daemon.daemon.memory_keeper import MemoryKeeper
+from depthnav_daemon.pipeline import StageParams, process
+from depthnav_daemon.pipeline.cliff import CliffParams
+from depthnav_daemon.pipeline.scan import LaserScan, ScanParams
+from depthnav_daemon.sim.fixtures import DRIVE_MOUNT
+from depthnav_daemon.sinks.mavlink_sectors import memory_sectors, sectors_for
+from drivers.formats.recording import read_recording
+from drivers.odometry import create_odometry
+from tests.daemon.test_loop import SPEC as CORRIDOR
+from tests.daemon.test_loop import CollectSink
+
+FIXTURES = Path(__file__).resolve().parents[2] / "fixtures"
+DRIVE = f"replay:{FIXTURES / 'drive_step'}?rate=max"
+STEP_M = 3.0
+
+
+def _ahead(scan: LaserScan) -> float:
+    return float(scan.ranges[int(np.argmin(np.abs(scan.angles)))])
+
+
+def _run(spec: str, *sets: str, frames: int | None = None) -> CollectSink:
+    sink = CollectSink()
+    cfg = build_config([], list(sets), {"device": spec})
+    run(cfg, threading.Event(), max_frames=frames, sink_factory=lambda _s: sink)
+    return sink
+
+
+def test_replayed_drive_keeps_the_step_in_memory_through_the_dead_zone() -> None:
+    results = _run(DRIVE).results
+    assert len(results) == 12 and all(r.memory.status == "on" for r in results)
+    mem_err, live_err = [], []
+    for r in results[1:]:  # at 3 m the default 8-row cliff sampling sees the edge a frame later
+        truth = STEP_M - r.memory.pose[0]
+        mem_err.append(_ahead(r.memory.scan) - truth)
+        live_err.append(_ahead(r.cliff.scan) - truth)
+    assert np.abs(mem_err).max() <= 0.05
+    # the last frames: the edge is in the lower dead zone, the live cliff scan reports the first
+    # floor it sees (0.65 m) instead; the memory still has the edge
+    assert min(live_err[-2:]) > 0.1
+    last = results[-1]
+    assert last.memory.cliff_cells > 50 and last.memory.grid.grid.shape == (160, 160)
+    # MAVLink is built from the memory: 72 sectors of 5 deg around the robot, ahead = index 36
+    sec = sectors_for(last, cliff=False)
+    assert sec.angle_offset_deg == -180.0 and sec.increment_f_deg == 5.0
+    assert sec.distances_cm[36] == pytest.approx(100 * (STEP_M - last.memory.pose[0]), abs=5)
+    assert sec.distances_cm[0] == sec.max_cm + 1  # nothing remembered behind
+
+
+def test_memory_sectors_put_left_left_and_behind_first() -> None:
+    inc = 2 * math.pi / 360
+    ranges = np.full(360, np.inf, np.float32)
+    ranges[270] = 1.0  # bearing -pi + 270 deg = +90 deg: on the left
+    ranges[0] = 2.0  # -180 deg: behind
+    scan = LaserScan(-math.pi, -math.pi + 359 * inc, inc, 0.0, 5.657, ranges)
+    sec = memory_sectors(scan)
+    # clockwise bearings: left is -90 deg -> sector (-90 + 180) / 5 = 18; behind -> sector 0
+    assert sec.distances_cm[18] == 100 and sec.distances_cm[0] == 200
+    assert (np.delete(sec.distances_cm, [0, 18]) == sec.max_cm + 1).all()
+
+
+def test_memory_off_without_odometry_says_so_once(caplog) -> None:
+    with caplog.at_level(logging.INFO):
+        results = _run(CORRIDOR, frames=4).results
+    assert len(results) == 4 and all(r.memory is None for r in results)
+    said = [r.getMessage() for r in caplog.records if "no odometry" in r.getMessage()]
+    assert len(said) == 1
+
+
+def test_memory_disabled_is_off_even_with_odometry() -> None:
+    results = _run(DRIVE, "memory.enabled=false", frames=3).results
+    assert all(r.memory is None for r in results)
+
+
+def test_a_source_that_never_speaks_is_one_line_and_the_daemon_runs_on(caplog) -> None:
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    with caplog.at_level(logging.WARNING):
+        sink = CollectSink()
+        cfg = build_config(
+            [],
+            [f'odometry.source="odom+udp://127.0.0.1:{port}"', "odometry.timeout_s=0.05"],
+            {"device": CORRIDOR.replace("rate=max", "rate=realtime")},
+        )
+        run(cfg, threading.Event(), max_frames=6, sink_factory=lambda _s: sink)
+    assert len(sink.results) == 6 and all(r.memory is None for r in sink.results)
+    said = [r.getMessage() for r in caplog.records if "has sent nothing" in r.getMessage()]
+    assert len(said) == 1 and "\n" not in said[0]
+
+
+def test_a_source_that_cannot_start_is_one_line_and_the_daemon_runs_on(caplog) -> None:
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as busy:
+        busy.bind(("127.0.0.1", 0))
+        spec = f"odom+udp://127.0.0.1:{busy.getsockname()[1]}"
+        with caplog.at_level(logging.ERROR):
+            results = _run(CORRIDOR, f'odometry.source="{spec}"', frames=2).results
+    assert len(results) == 2
+    said = [r.getMessage() for r in caplog.records if "cannot start" in r.getMessage()]
+    assert len(said) == 1 and "going on without the memory" in said[0]
+
+
+@pytest.fixture(scope="module")
+def drive():
+    """The drive fixture's frames (odometry taken off) and their results."""
+    rec = read_recording(FIXTURES / "drive_step")
+    params = StageParams(scan=ScanParams(), cliff=CliffParams())
+    frames = rec.frames()
+    results = [process(f, DRIVE_MOUNT, params) for f in frames]
+    return frames, results, params
+
+
+def test_live_odometry_stale_freezes_and_fresh_resumes(drive, caplog) -> None:
+    frames, results, params = drive
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    src = create_odometry(f"odom+udp://127.0.0.1:{port}")
+    src.start()
+    keeper = MemoryKeeper(MemorySettings(), OdometrySettings(stale_s=0.5), src)
+    tx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    try:
+
+        def speak(x: float) -> float:
+            n = src.buffer.count
+            tx.sendto(b'{"x_m": %f, "y_m": 0, "yaw_rad": 0}' % x, ("127.0.0.1", port))
+            end = time.monotonic() + 10
+            while src.buffer.count == n:
+                assert time.monotonic() < end
+                time.sleep(0.01)
+            return src.buffer.latest().t_s
+
+        live = [dataclasses.replace(f, odom=None) for f in frames]
+        t = speak(0.0)
+        on = keeper.step(live[0], t + 0.01, [(results[0], params)])
+        assert on.status == "on" and on.pose == (0.0, 0.0, 0.0)
+        with caplog.at_level(logging.WARNING):
+            a = keeper.step(live[1], t + 0.8, [(results[1], params)])
+            b = keeper.step(live[2], t + 1.6, [(results[2], params)])
+        assert a.status == b.status == "frozen" and a.scan is None and a.pose is None
+        assert a.cliff_cells == on.cliff_cells  # not updated while frozen
+        said = [r.getMessage() for r in caplog.records if "frozen" in r.getMessage()]
+        assert len(said) == 1  # once per stale spell
+        t = speak(0.25)
+        back = keeper.step(live[1], t, [(results[1], params)])
+        assert back.status == "on" and back.pose[0] == pytest.approx(0.25)
+    finally:
+        tx.close()
+        src.stop()
+
+
+def test_odometry_jump_resets_the_memory(drive, caplog) -> None:
+    frames, results, params = drive
+    keeper = MemoryKeeper(MemorySettings(), OdometrySettings(max_jump_m=0.5), None)
+    first = keeper.step(frames[1], 0.0, [(results[1], params)])
+    assert first.status == "on" and first.cliff_cells > 0
+    jumped = dataclasses.replace(frames[2], odom=(5.0, 0.0, 0.0))
+    with caplog.at_level(logging.WARNING):
+        out = keeper.step(jumped, 0.0, [(results[2], params)])
+    # from x = 0.25 (frame 1) to 5.0
+    assert out.status == "reset" and "jumped 4.75 m" in out.note and keeper.resets == 1
+    # only this frame's view is in it: everything it holds is ahead of the new pose
+    assert np.nanmin(out.scan.ranges) > 1.0
+    assert any("jumped" in r.getMessage() for r in caplog.records)
+    turned = dataclasses.replace(frames[3], odom=(5.0, 0.0, math.radians(90)))
+    assert keeper.step(turned, 0.0, [(results[3], params)]).status == "reset"  # 90 > 45 deg
