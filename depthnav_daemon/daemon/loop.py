@@ -143,13 +143,7 @@ def run(
                 break
         report.stopped = stop.is_set()
     finally:
-        notifier.stopping(f"stopping after {report.frames} frames")
-        notifier.close()
-        for sink in sinks:
-            try:
-                sink.close()
-            except Exception as exc:
-                log.error("sink %s did not close cleanly: %s", sink.name, exc)
+        close_outputs(sinks, notifier, report)
         source.close()
         step.close()
         if odometry is not None:
@@ -218,3 +212,14 @@ def _status(fps: float, result: Result) -> str:
         f"{fps:.1f} frames/s, mount {m.height_m:.3f} m, tilt {m.tilt_deg:.1f} deg, "
         f"roll {m.roll_deg:.1f} deg ({result.mount_source})"
     )
+
+
+def close_outputs(sinks: list[Sink], notifier: ServiceNotifier, report: RunReport) -> None:
+    """At the end of a run: tell systemd it stops, then close (flush) every sink."""
+    notifier.stopping(f"stopping after {report.frames} frames")
+    notifier.close()
+    for sink in sinks:
+        try:
+            sink.close()
+        except Exception as exc:
+            log.error("sink %s did not close cleanly: %s", sink.name, exc)

@@ -175,7 +175,7 @@ def run_sensors(
     sink_factory: Callable[[str], Sink],
 ) -> object:
     """The frame loop for several sensors (module docstring); returns the loop's RunReport."""
-    from depthnav_daemon.daemon.loop import RunReport, open_sinks
+    from depthnav_daemon.daemon.loop import RunReport, close_outputs, open_sinks
 
     report = RunReport()
     halt = threading.Event()
@@ -202,14 +202,8 @@ def run_sensors(
         _serve(started, workers, inbox, merger, keeper, sinks, stop, max_frames, report, notifier)
         report.stopped = stop.is_set()
     finally:
-        notifier.stopping(f"stopping after {report.frames} frames")
-        notifier.close()
         halt.set()
-        for sink in sinks:
-            try:
-                sink.close()
-            except Exception as exc:
-                log.error("sink %s did not close cleanly: %s", sink.name, exc)
+        close_outputs(sinks, notifier, report)
         for w in workers:
             w.close()
         if odometry is not None:
