@@ -39,6 +39,11 @@ log = logging.getLogger(__name__)
 GRAMMAR = "stdout"
 STALL_S = 1.0  # longest write() waits for a line to reach the pipe before going on without it
 
+# The process's stdout is one pipe however many sinks write to it: when one sees its reader gone
+# (and points fd 1 at /dev/null), every other one must stop too, or it writes to /dev/null
+# forever (`depthnav run --sink stdout --sink text | head -1` never ended).
+_SHARED = {"reader_gone": False, "users": 0}
+
 
 class StdoutSink:
     """Writes one strict-JSON line per frame to stdout (or to ``stream``, for tests and embedding).
@@ -88,6 +93,15 @@ class StdoutSink:
                 )
         self._stream = stream
         self._version = context.version
+        if stream is sys.stdout:
+            if _SHARED["users"]:
+                log.warning(
+                    "%s and another sink both write to stdout: their lines interleave "
+                    "(a program reading JSON lines should get stdout to itself)",
+                    self.name,
+                )
+            _SHARED["users"] += 1
+            self._counted = True
         try:
             fd = stream.fileno()
         except (AttributeError, OSError, ValueError, io.UnsupportedOperation):
@@ -131,6 +145,13 @@ class StdoutSink:
         """
         if self._stream is None:
             raise SinkError(f"sink {self.name!r} is not open")
+        if self._stream is sys.stdout and _SHARED["reader_gone"]:
+            self._stop_thread()
+            self._stream = None
+            raise SinkError(
+                "stdout was closed by the reader (broken pipe)",
+                hint="keep the consumer of depthnav's stdout running, or drop the stdout sinks",
+            )
         line = self.format(frame, result)
         if line is None:
             return
@@ -189,6 +210,9 @@ class StdoutSink:
 
     def close(self) -> None:
         """Flush what is buffered. Safe to call twice; a broken pipe at this point is ignored."""
+        if getattr(self, "_counted", False):
+            self._counted = False
+            _SHARED["users"] -= 1
         stream, self._stream = self._stream, None
         if stream is None:
             return
@@ -215,6 +239,7 @@ class StdoutSink:
         stream = stream or self._stream
         self._stream = None
         if stream is sys.stdout:
+            _SHARED["reader_gone"] = True  # every sink sharing stdout stops (see _SHARED)
             # the Python docs' recipe (signal module, "Note on SIGPIPE")
             try:
                 devnull = os.open(os.devnull, os.O_WRONLY)

@@ -121,3 +121,36 @@ def test_real_stdout_closed_by_reader_exits_cleanly():
 
 def test_spec():
     assert isinstance(create_sink("stdout"), StdoutSink)
+
+
+def test_two_sinks_on_stdout_both_stop_when_the_reader_goes_away() -> None:
+    """`depthnav run --sink stdout --sink text | head -1` ran forever: the first sink to see the
+    broken pipe pointed fd 1 at /dev/null and the other kept writing there."""
+    fixture = ROOT / "fixtures" / "corridor_step"
+    proc = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "depthnav_daemon",
+            "run",
+            "--sink",
+            "stdout",
+            "--sink",
+            "text",
+            "--device",
+            f"replay:{fixture}?rate=max&loop=1",
+        ],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        cwd=ROOT,
+    )
+    assert proc.stdout is not None
+    assert proc.stdout.readline()  # one line, then the reader goes away, like `head -1`
+    proc.stdout.close()
+    _, err = proc.communicate(timeout=120)  # an endless replay: it must end by itself
+    assert proc.returncode == 1, err
+    assert "both write to stdout: their lines interleave" in err
+    assert "sink stdout failed: stdout was closed by the reader" in err
+    assert "sink text failed: stdout was closed by the reader" in err
+    assert "Traceback" not in err
