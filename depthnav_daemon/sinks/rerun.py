@@ -40,6 +40,7 @@ releases).
 from __future__ import annotations
 
 import contextlib
+import fcntl
 import logging
 import os
 import queue
@@ -202,6 +203,7 @@ class RerunSink:
             self._attach(rec, blueprint(context))
         except Exception as exc:  # rerun raises plain RuntimeError/OSError subclasses
             _discard(rec)
+            self._unlock_file()
             if isinstance(exc, SinkError):
                 raise
             raise SinkError(
@@ -223,13 +225,7 @@ class RerunSink:
             parent = os.path.dirname(os.path.abspath(self.target))
             if not os.path.isdir(parent):
                 raise SinkError(f"rerun sink: folder {parent!r} does not exist")
-            try:  # fail with a plain message before rerun does (it also warns about lost data)
-                with open(self.target, "ab"):
-                    pass
-            except OSError as exc:
-                raise SinkError(
-                    f"rerun sink: cannot write {self.target!r}: {exc.strerror}"
-                ) from exc
+            self._lock_file()
             rec.save(self.target, default_blueprint=layout)
         elif self.mode == "connect":
             rec.connect_grpc(self.target, default_blueprint=layout)
@@ -321,6 +317,32 @@ class RerunSink:
             self.logged += 1
         self._finish(rec)
 
+    def _lock_file(self) -> None:
+        """Open the .rrd and hold an exclusive lock on it while this sink writes it: a second
+        daemon given the same file is refused instead of both claiming frames the file lost.
+
+        Raises:
+            SinkError: the file cannot be written, or another process is writing it.
+        """
+        try:  # fail with a plain message before rerun does (it also warns about lost data)
+            fd = os.open(self.target, os.O_WRONLY | os.O_CREAT | os.O_CLOEXEC, 0o644)
+        except OSError as exc:
+            raise SinkError(f"rerun sink: cannot write {self.target!r}: {exc.strerror}") from exc
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            os.close(fd)
+            raise SinkError(
+                f"rerun sink: another process is writing {self.target!r}",
+                hint="give each depthnav its own .rrd file",
+            ) from None
+        self._lock_fd = fd
+
+    def _unlock_file(self) -> None:
+        fd, self._lock_fd = getattr(self, "_lock_fd", None), None
+        if fd is not None:
+            os.close(fd)  # releases the lock
+
     def close(self) -> None:
         """Flush and disconnect (which writes the .rrd footer). Safe to call twice.
 
@@ -379,4 +401,5 @@ class RerunSink:
                     self.target,
                     size,
                 )
+        self._unlock_file()
         log.info("rerun sink: %d frames logged to %s", self.logged, self.target or "viewer")

@@ -312,3 +312,23 @@ def test_default_blueprint_views(tmp_path, pairs, context):
         "Timing [ms], after warm-up": ("TimeSeries", "/stats/timing_after_warmup"),
         "Log": ("TextLog", "/log"),
     }
+
+
+def test_a_second_writer_of_the_same_rrd_is_refused_and_the_first_file_stays_whole(
+    tmp_path, pairs, context
+):
+    """Two daemons given one .rrd both claimed their frames and the file held none: the first
+    holds an exclusive lock while it writes; the second is refused in one line."""
+    path = tmp_path / "shared.rrd"
+    first = create_sink(f"rerun:{path}")
+    first.open(context)
+    second = create_sink(f"rerun:{path}")
+    with pytest.raises(SinkError, match="another process is writing") as info:
+        second.open(context)
+    assert "own .rrd" in info.value.hint
+    for frame, result in pairs:
+        first.write(frame, result)
+    first.close()
+    ent = temporal(path)
+    assert len(column(ent["/world/scan"], "Points3D:positions")) == len(pairs)
+    record(path, pairs, context)  # the lock is released at close: the file can be written again
