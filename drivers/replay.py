@@ -191,6 +191,19 @@ class ReplayDriver:
 
     def _png_items(self) -> tuple[Iterator[Item], Intrinsics, str]:
         side = png_folder.read_sidecar(self.path)
+        no_intrinsics = "intrinsics" not in side and not all(
+            k in self.overrides for k in ("fx", "fy", "cx", "cy")
+        )
+        if self.scale is None and "depth_scale" not in side and no_intrinsics:
+            if not png_folder.is_tum(self.path):
+                raise RecordingError(
+                    f"{self.path}: the depth scale and the intrinsics (fx, fy, cx, cy) are not "
+                    f"stated (no {png_folder.SIDECAR}, no scale= or fx=)",
+                    hint=f"add a {png_folder.SIDECAR} with depth_scale and an [intrinsics] "
+                    "table, or give them in the spec: "
+                    "replay:PATH?scale=1000&fx=..&fy=..&cx=..&cy=.. "
+                    "(scale 1000 for millimetre PNGs, 5000 for TUM RGB-D)",
+                )
         scale = self.scale or png_folder.sidecar_scale(self.path, side)
         frames = png_folder.list_frames(self.path, self.fps)
         first = png_folder.read_depth_png(frames[0][1], scale)

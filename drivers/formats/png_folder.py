@@ -106,21 +106,72 @@ def list_frames(folder: Path, fps: float) -> list[tuple[float, Path]]:
     return [(t - t0, p) for t, p in items]
 
 
+SIDECAR_KEYS = ("depth_scale", "intrinsics")
+INTRINSICS_KEYS = ("width", "height", "fx", "fy", "cx", "cy")
+TUM_SCALE = 5000.0
+TUM_MARK = b"rgbd_dataset_"  # TUM RGB-D's depth.txt names its bag: "# file: 'rgbd_dataset_..."
+SCALE_HINT = (
+    "say how many depth units make a metre: scale=1000 for millimetre PNGs (most sensors and "
+    "tools), scale=5000 for TUM RGB-D; as replay:PATH?scale=1000 or depth_scale = 1000 in "
+    "camera.toml"
+)
+
+
 def read_sidecar(folder: Path) -> dict[str, Any]:
-    """The sidecar ``camera.toml`` as a dict, {} when absent."""
+    """The sidecar ``camera.toml`` as a dict, {} when absent.
+
+    Raises:
+        RecordingError: unreadable, or a key it does not know (listing the valid ones: a
+            misspelt ``scale`` must not silently fall back to a default).
+    """
     path = folder / SIDECAR
     if not os.path.lexists(path):
         return {}
-    return read_toml(path, what=SIDECAR)
+    side = read_toml(path, what=SIDECAR)
+    for key, value in side.items():
+        if key not in SIDECAR_KEYS:
+            raise RecordingError(
+                f"{path}: unknown key {short_text(str(key))!r} (valid: {', '.join(SIDECAR_KEYS)})",
+                hint="depth_scale = units per metre; [intrinsics] fx, fy, cx, cy in pixels",
+            )
+        if key == "intrinsics" and isinstance(value, dict):
+            for sub in value:
+                if sub not in INTRINSICS_KEYS:
+                    raise RecordingError(
+                        f"{path}: unknown key [intrinsics] {short_text(str(sub))!r} "
+                        f"(valid: {', '.join(INTRINSICS_KEYS)})"
+                    )
+    return side
+
+
+def is_tum(folder: Path) -> bool:
+    """True for a TUM RGB-D folder: its depth.txt header names the dataset's bag."""
+    index = folder / INDEX
+    if not os.path.lexists(index):
+        return False
+    head = read_bytes(index, what="frame index", max_bytes=INDEX_MAX_BYTES)[:512]
+    return TUM_MARK in head
 
 
 def sidecar_scale(folder: Path, side: dict[str, Any]) -> float:
-    """The sidecar's ``depth_scale`` (units per metre), 5000 when absent.
+    """The sidecar's ``depth_scale`` (units per metre); 5000 for a TUM RGB-D folder.
+
+    A wrong scale is silently wrong everywhere downstream (a millimetre folder read at 5000
+    units per metre puts every obstacle at a fifth of its range), so it must be stated.
 
     Raises:
-        RecordingError: not a number in 1..1e6 (0 would divide by zero, text would not parse).
+        RecordingError: no scale and not a TUM folder (with the common values); not a number in
+            1..1e6 (0 would divide by zero, text would not parse).
     """
-    value = side.get("depth_scale", 5000.0)
+    if "depth_scale" not in side:
+        if is_tum(folder):
+            log.info("%s: a TUM RGB-D folder: %g depth units per metre", folder, TUM_SCALE)
+            return TUM_SCALE
+        raise RecordingError(
+            f"{folder}: the depth scale is not stated (no depth_scale in {SIDECAR}, no scale=)",
+            hint=SCALE_HINT,
+        )
+    value = side["depth_scale"]
     try:
         if isinstance(value, str):
             raise NumberError("is text")

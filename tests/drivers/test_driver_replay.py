@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import itertools
+import re
 import time
 
 import numpy as np
@@ -150,3 +151,45 @@ def test_start_skips_frames_and_seq_counts_from_zero(tmp_path):
     np.testing.assert_array_equal(out[0].depth_mm, frames[2].depth_mm)
     with pytest.raises(RecordingError, match="start=9 is beyond the end"):
         read_all(f"replay:{tmp_path / 'rec'}?rate=max&start=9")
+
+
+def test_a_png_folder_must_state_its_depth_scale(tmp_path):
+    """A millimetre folder read at TUM's 5000 put every obstacle at a fifth of its range, and
+    calibrate reported 0.218 m for a 1 m mount, with exit 0: the scale must be stated."""
+    frames = ramp_frames(2, accel=False)
+    write_png_folder(tmp_path / "mm", frames, scale=1000.0)
+    side = tmp_path / "mm" / "camera.toml"
+    side.write_text(side.read_text().replace("depth_scale = 1000.0\n", ""))
+    with pytest.raises(RecordingError, match="the depth scale is not stated") as info:
+        read_all(f"replay:{tmp_path / 'mm'}")
+    assert "scale=1000 for millimetre" in info.value.hint and "5000 for TUM" in info.value.hint
+    out = read_all(f"replay:{tmp_path / 'mm'}?scale=1000")
+    assert np.array_equal(out[1].depth_mm, frames[1].depth_mm)
+
+
+def test_a_tum_folder_is_unambiguous(tmp_path):
+    frames = ramp_frames(2, accel=False)
+    write_png_folder(tmp_path / "tum", frames, scale=5000.0)
+    side = tmp_path / "tum" / "camera.toml"
+    side.write_text(side.read_text().replace("depth_scale = 5000.0\n", ""))
+    index = tmp_path / "tum" / "depth.txt"
+    index.write_text(
+        "# depth maps\n# file: 'rgbd_dataset_freiburg1_desk.bag'\n" + index.read_text()
+    )
+    out = read_all(f"replay:{tmp_path / 'tum'}")
+    assert np.array_equal(out[0].depth_mm, frames[0].depth_mm)
+
+
+@pytest.mark.parametrize(
+    ("text", "says"),
+    [
+        ("scale = 1000\n", "unknown key 'scale' (valid: depth_scale, intrinsics)"),
+        ("[depth]\nscale = 1000\n", "unknown key 'depth' (valid: depth_scale, intrinsics)"),
+        ("depth_scale = 1000\n[intrinsics]\nfocal = 5\n", "unknown key [intrinsics] 'focal'"),
+    ],
+)
+def test_unknown_sidecar_keys_are_errors_listing_the_valid_ones(tmp_path, text, says):
+    write_png_folder(tmp_path / "png", ramp_frames(1, accel=False), scale=1000.0)
+    (tmp_path / "png" / "camera.toml").write_text(text)
+    with pytest.raises(RecordingError, match=re.escape(says)):
+        read_all(f"replay:{tmp_path / 'png'}?fx=61.5&fy=57.25&cx=30.25&cy=22.75")

@@ -144,7 +144,9 @@ def _png_folder(folder: Path, width: int, height: int, header_only: bool = False
         hostile.png_header_only(out / "000.png", width, height, b"\0" * 64)
     else:
         hostile.png_of_zeros(out / "000.png", width, height)
-    (out / "camera.toml").write_text("[intrinsics]\nfx = 500.0\nfy = 500.0\ncx = 10.0\ncy = 10.0\n")
+    (out / "camera.toml").write_text(
+        "depth_scale = 1000\n[intrinsics]\nfx = 500.0\nfy = 500.0\ncx = 10.0\ncy = 10.0\n"
+    )
     return out
 
 
@@ -181,7 +183,9 @@ def _png_with(folder: Path, name: str, text: str | bytes) -> Path:
     out.mkdir()
     hostile.png_of_zeros(out / "000.png", 64, 48)
     hostile.png_of_zeros(out / "001.png", 64, 48)
-    (out / "camera.toml").write_text("[intrinsics]\nfx = 60.0\nfy = 60.0\ncx = 31.5\ncy = 23.5\n")
+    (out / "camera.toml").write_text(
+        "depth_scale = 1000\n[intrinsics]\nfx = 60.0\nfy = 60.0\ncx = 31.5\ncy = 23.5\n"
+    )
     (out / name).write_bytes(text.encode() if isinstance(text, str) else text)
     return out
 

@@ -142,7 +142,7 @@ def test_resolution_change_mid_recording_ends_the_run_once(tmp_path: Path) -> No
         shape = (40, 64) if i == 3 else (48, 64)
         Image.fromarray(np.full(shape, 6000, np.uint16)).save(folder / f"{i:03d}.png")
     (folder / "camera.toml").write_text(
-        "[intrinsics]\nfx = 60.0\nfy = 58.0\ncx = 31.0\ncy = 23.0\n"
+        "depth_scale = 5000\n[intrinsics]\nfx = 60.0\nfy = 58.0\ncx = 31.0\ncy = 23.0\n"
     )
     p = depthnav(
         "run",

@@ -182,7 +182,7 @@ def test_a_png_index_cannot_read_outside_its_folder(tmp_path: Path, name: str) -
     (folder / "link").symlink_to(tmp_path)
     (tmp_path / "x.png").write_bytes((tmp_path / "outside.png").read_bytes())
     (folder / "depth.txt").write_text(f"0.0 {name}\n")
-    driver = create_driver(f"replay:{folder}?rate=max&fx=60&fy=58&cx=31&cy=23")
+    driver = create_driver(f"replay:{folder}?rate=max&fx=60&fy=58&cx=31&cy=23&scale=5000")
     with pytest.raises(RecordingError, match="outside the recording folder"):
         driver.open()
     driver.close()
