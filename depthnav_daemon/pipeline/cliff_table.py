@@ -19,6 +19,7 @@ from depthnav_daemon.pipeline.geometry import (
     Mount,
     cam_to_level,
     frozen_table,
+    normalized_coords,
     paper_floor_depth_m,
     paper_row_angles_rad,
 )
@@ -64,8 +65,7 @@ class CliffTable:
 
 def _floor_hits(intr: Intrinsics, rot: F64, u: F64, v: F64) -> tuple[F64, F64, F64]:
     """Level-frame ray per metre of optical depth through pixel coordinates (u, v): (kx, ky, kz)."""
-    x = (u - intr.cx) / intr.fx
-    y = (v - intr.cy) / intr.fy
+    x, y = normalized_coords(intr, u, v)
     return (
         rot[0, 0] * x + rot[0, 1] * y + rot[0, 2],
         rot[1, 0] * x + rot[1, 1] * y + rot[1, 2],

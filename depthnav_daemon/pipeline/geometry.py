@@ -162,15 +162,30 @@ def cam_to_level(tilt_rad: float, roll_rad: float) -> F64:
     return rot_y(tilt_rad) @ rot_x(roll_rad) @ M_CAM_TO_FLU
 
 
+def normalized_coords(intr: Intrinsics, u: npt.ArrayLike, v: npt.ArrayLike) -> tuple[F64, F64]:
+    """Ideal normalised image coordinates (x = X/Z, y = Y/Z) of the rays through pixel
+    coordinates (u, v) (pixels; broadcastable arrays), each shaped like ``u + v``.
+
+    The one place where pixel coordinates become rays: every table builder (exact scan, cliff,
+    pose) and ``pixel_rays`` go through it, so a lens model applied here reaches every stage
+    (the paper's stages keep the original's pinhole formulas on purpose).
+    """
+    u_arr, v_arr = np.broadcast_arrays(np.asarray(u, dtype=np.float64), np.asarray(v, np.float64))
+    return (u_arr - intr.cx) / intr.fx, (v_arr - intr.cy) / intr.fy
+
+
 @functools.lru_cache(maxsize=8)
 def pixel_rays(intr: Intrinsics) -> F64:
-    """Camera rays per unit depth: ((u - cx)/fx, (v - cy)/fy, 1) for every pixel, (H, W, 3),
-    read-only."""
-    u = (np.arange(intr.width, dtype=np.float64) - intr.cx) / intr.fx
-    v = (np.arange(intr.height, dtype=np.float64) - intr.cy) / intr.fy
+    """Camera rays per unit depth: (x, y, 1) of ``normalized_coords`` for every pixel,
+    (H, W, 3), read-only."""
+    x, y = normalized_coords(
+        intr,
+        np.arange(intr.width, dtype=np.float64)[None, :],
+        np.arange(intr.height, dtype=np.float64)[:, None],
+    )
     rays = np.empty((intr.height, intr.width, 3))
-    rays[..., 0] = u[None, :]
-    rays[..., 1] = v[:, None]
+    rays[..., 0] = x
+    rays[..., 1] = y
     rays[..., 2] = 1.0
     rays.setflags(write=False)
     return rays

@@ -18,6 +18,7 @@ from depthnav_daemon.pipeline.geometry import (
     Mount,
     cam_to_level,
     frozen_table,
+    normalized_coords,
 )
 from depthnav_daemon.pipeline.scan_kernels import (
     MAX_CODE_INDEX,
@@ -91,8 +92,7 @@ def scan_rows(intr: Intrinsics, params: ScanParams) -> slice:
 
 def _bearing(intr: Intrinsics, rot: F64, u: F64, v: F64) -> F64:
     """Level-frame bearing (radians) of the rays through pixel coordinates (u, v), equal shapes."""
-    x = (u - intr.cx) / intr.fx
-    y = (v - intr.cy) / intr.fy
+    x, y = normalized_coords(intr, u, v)
     fwd = rot[0, 0] * x + rot[0, 1] * y + rot[0, 2]
     left = rot[1, 0] * x + rot[1, 1] * y + rot[1, 2]
     return np.arctan2(left, fwd)
@@ -169,11 +169,8 @@ def exact_table(intr: Intrinsics, mount: Mount, params: ScanParams) -> ExactTabl
             f"(accepted: up to {MAX_CODE_INDEX}); raise scan.col_step"
         )
     rot = cam_to_level(mount.tilt_rad, mount.roll_rad)
-    x = (u - intr.cx) / intr.fx
-    y = (v - intr.cy) / intr.fy
-    d = (
-        np.stack(np.broadcast_arrays(x, y, np.ones_like(x)), axis=-1) @ rot.T
-    )  # (Hs, Ws, 3) per metre
+    x, y = normalized_coords(intr, u, v)
+    d = np.stack((x, y, np.ones_like(x)), axis=-1) @ rot.T  # (Hs, Ws, 3) per metre
     kr = np.hypot(d[..., 0], d[..., 1])
     kh = d[..., 2]
     h = mount.height_m
