@@ -1,12 +1,15 @@
 """The fake driver: replays recorded frames as if a sensor were attached.
 
-Spec: ``replay:PATH[?rate=realtime|max&loop=0|1&fps=F&fx=..&fy=..&cx=..&cy=..&scale=S
-&const_shift=C]``
+Spec: ``replay:PATH[?OPTION=VALUE&...]``, the options listed in drivers/spec_options.py (which
+``depthnav --help`` prints).
 
 PATH is one of (detected when opened):
-- a depthnav recording folder (``recording.toml`` + ``frames.npz``) or a bare ``.npz``;
-- a folder of 16-bit PNG depth images (see drivers/formats/png_folder.py; ``scale`` units per metre,
-  default from ``camera.toml`` or 5000; intrinsics from ``camera.toml`` or ``fx, fy, cx, cy``);
+- a depthnav recording folder (``recording.toml`` + ``frames.npz``) or a bare ``.npz`` (uint16
+  ``depth_mm`` or float ``depth_m`` metres; ``fx, fy, cx, cy`` when it has no intrinsics);
+- a folder of 16-bit PNG or PGM depth images (see drivers/formats/png_folder.py; ``scale`` units
+  per metre from ``camera.toml`` or the option, 5000 for TUM RGB-D; intrinsics from
+  ``camera.toml`` or ``fx, fy, cx, cy``; ``glob`` picks the depth images, else colour images
+  beside them are skipped);
 - a fakenect recording (``INDEX.txt``; disparity converted with ``const_shift``, default 200);
 - an ``.oni`` file, played by OpenNI2's libOniFile (see drivers/openni/);
 - a ROS bag: ROS 1 ``.bag``, ROS 2 folder, ``.mcap`` or ``.db3`` (see drivers/formats/rosbag.py;
@@ -16,7 +19,7 @@ Options: ``rate`` realtime (default; sleep to the recorded timestamps) or max (n
 ``loop`` 1 to start again at the end (timestamps keep increasing); ``fps`` frame rate for sources
 without timestamps (default 30); ``fx, fy, cx, cy`` override the intrinsics (pixels); ``start``
 skips that many frames when opening (a seek done by reading, as OpenNI2's own seek hangs; a loop
-restarts at frame 0).
+restarts at frame 0); ``glob`` (image folders) a pattern relative to PATH naming the depth images.
 
 A depthnav recording whose decoded frames fit in ``CACHE_MAX_BYTES`` is decompressed once and kept
 for looping; a larger one is decompressed one frame at a time, again on every loop pass.
@@ -56,15 +59,12 @@ from drivers.spec import (
     int_option,
     intrinsics_options,
 )
+from drivers.spec_options import option_names
 
 log = logging.getLogger(__name__)
 
-GRAMMAR = (
-    "replay:PATH[?rate=realtime|max&loop=0|1&fps=F&fx=..&fy=..&cx=..&cy=..&scale=S&const_shift=C"
-    "&topic=T&info_topic=T]"
-)
-OPTIONS = ("rate", "loop", "fps", "fx", "fy", "cx", "cy", "scale", "const_shift", "start")
-OPTIONS += ("topic", "info_topic")
+OPTIONS = option_names("replay")  # the one table: depthnav --help prints it
+GRAMMAR = "replay:PATH[?" + "&".join(f"{name}=.." for name in OPTIONS) + "]"
 # Decoded depth up to this size stays in memory for looping (decompressing the 12-frame fixture
 # on every pass cost 40 % of the daemon's CPU at 30 frames/s); above it frames are streamed.
 CACHE_MAX_BYTES = 256 << 20
@@ -94,6 +94,7 @@ class ReplayDriver:
         spec_text: str = "",
         topic: str | None = None,
         info_topic: str | None = None,
+        glob: str | None = None,
     ) -> None:
         self.path = Path(path)
         self.realtime = realtime
@@ -105,6 +106,8 @@ class ReplayDriver:
         self.start = start
         self.spec_text = spec_text or f"replay:{path}"
         self.topics = (topic, info_topic)  # ROS bags: depth image and CameraInfo topics
+        self.glob = glob  # image folders: which files are depth
+        self._image_list: list[tuple[float, Path]] | None = None  # listed once, kept to loop
         self._items: Iterator[Item] | None = None
         self._recording: Recording | RecordingStream | None = None  # opened once, kept to loop
         self._inner: Driver | None = None
@@ -136,6 +139,7 @@ class ReplayDriver:
             start=int_option(spec, "start", 0, 0, 10_000_000),
             topic=spec.options.get("topic"),
             info_topic=spec.options.get("info_topic"),
+            glob=spec.options.get("glob"),
         )
 
     # --- sources -------------------------------------------------------------------------
@@ -169,8 +173,15 @@ class ReplayDriver:
         """The recording decoded in memory when it fits CACHE_MAX_BYTES, else a frame stream."""
         if recording_depth_nbytes(self.path) <= CACHE_MAX_BYTES:
             # the cap again: the member decoded is the one whose size was just read
-            return read_recording(self.path, default_fps=self.fps, max_depth_bytes=CACHE_MAX_BYTES)
-        return open_recording_stream(self.path, default_fps=self.fps)
+            return read_recording(
+                self.path,
+                default_fps=self.fps,
+                max_depth_bytes=CACHE_MAX_BYTES,
+                intrinsics_override=self.overrides,
+            )
+        return open_recording_stream(
+            self.path, default_fps=self.fps, intrinsics_override=self.overrides
+        )
 
     def _depthnav_items(self) -> tuple[Iterator[Item], Intrinsics, str]:
         rec = self._recording
@@ -205,13 +216,17 @@ class ReplayDriver:
                     "(scale 1000 for millimetre PNGs, 5000 for TUM RGB-D)",
                 )
         scale = self.scale or png_folder.sidecar_scale(self.path, side)
-        frames = png_folder.list_frames(self.path, self.fps)
-        first = png_folder.read_depth_png(frames[0][1], scale)
+        if self._image_list is None:  # picking the depth images reads every file's header
+            self._image_list = png_folder.list_frames(self.path, self.fps, self.glob)
+        frames = self._image_list
+        first = png_folder.read_depth_image(frames[0][1], scale)
         base = png_folder.sidecar_intrinsics(self.path, side, first.shape)
         intr = self._intrinsics_with(base, first.shape)
 
         def items() -> Iterator[Item]:
-            for stamp, depth in png_folder.iter_png_folder(self.path, intr, scale, self.fps):
+            for stamp, depth in png_folder.iter_png_folder(
+                self.path, intr, scale, self.fps, frames
+            ):
                 yield stamp, depth, None, None, None
 
         return items(), intr, self.path.name
@@ -257,14 +272,20 @@ class ReplayDriver:
                 self._items, intr, name = self._depthnav_items()
             elif (self.path / "INDEX.txt").exists():
                 self._items, intr, name = self._fakenect_items()
-            elif png_folder.is_png_folder(self.path):
+            elif self.glob is not None or png_folder.is_png_folder(self.path):
                 self._items, intr, name = self._png_items()
             else:
                 raise RecordingError(
                     f"{self.path}: not a recording folder "
-                    "(no recording.toml, INDEX.txt, depth.txt or *.png)",
-                    hint="record one with `depthnav record`",
+                    "(no recording.toml, INDEX.txt, depth.txt, *.png or *.pgm)",
+                    hint="record one with `depthnav record`, or name the depth images with "
+                    "replay:PATH?glob=PATTERN",
                 )
+        elif self.glob is not None:
+            raise RecordingError(
+                f"{self.path}: glob= picks images in a folder; this is not a folder",
+                hint="write replay:FOLDER?glob=PATTERN",
+            )
         elif self.path.suffix.lower() == ".npz":
             self._items, intr, name = self._depthnav_items()
         elif not self.path.exists():
