@@ -339,7 +339,8 @@ def write_png_folder(
             raise RecordingError(
                 f"{out}: frame {frame.seq} has depth beyond 16 bits at scale {scale:g}"
             )
-        name = f"depth/{frame.timestamp_s:.6f}.png"
+        # numbered: two frames with one timestamp (a device's clock, a paused replay) keep both
+        name = f"depth/{len(lines) - 2:06d}.png"
         Image.fromarray(units.astype(np.uint16)).save(out / name)
         lines.append(f"{frame.timestamp_s:.6f} {name}")
     if intr is None:
