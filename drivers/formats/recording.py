@@ -5,7 +5,9 @@
 ``odom`` (N, 3) float64 ``[x_m, y_m, yaw_rad]`` (the robot's pose in its odometry frame at each
 frame).
 ``recording.toml`` holds ``format_version``, ``description``, ``device``, an ``[intrinsics]``
-table and an optional ``[truth]`` table. A bare ``.npz`` with the same arrays is also readable.
+table and an optional ``[truth]`` table. A bare ``.npz`` with the same arrays is also readable;
+it may hold ``depth_m`` float32/float64 (N, H, W) metres instead of ``depth_mm`` (converted by
+``metres_to_mm``), and its intrinsics may come from the caller (replay's ``fx, fy, cx, cy``).
 
 Memory: ``read_recording`` decompresses every frame into memory, ``open_recording_stream`` one
 frame at a time; ``drivers.formats.recording_writer.write_recording`` holds one frame at a time.
@@ -27,7 +29,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from drivers.base import MM_PER_M, Frame, Intrinsics
+from drivers.base import MM_PER_M, UINT16_MAX, Frame, Intrinsics
 from drivers.errors import DeviceSpecError, RecordingError
 from drivers.files import read_toml
 from drivers.formats.npz import Archive, Member, is_numeric, open_archive
@@ -189,11 +191,13 @@ MAX_DEPTH_M = 65.535  # the largest depth uint16 millimetres hold
 
 
 def metres_to_mm(depth_m: npt.NDArray[np.floating], where: Path) -> npt.NDArray[np.uint16]:
-    """Float metres (any shape) as uint16 millimetres: NaN, inf, 0 and negative depths become
-    0 (no reading); finite depths beyond 65.535 m become 0 as well, with a warning (a rendered
-    sky at 1e10 m is no reading, not an error)."""
-    finite = np.isfinite(depth_m)
-    far = finite & (depth_m > MAX_DEPTH_M)
+    """Float metres (any shape) as uint16 millimetres, rounded as the pipeline's depth_to_mm:
+    NaN, inf, 0 and negative depths become 0 (no reading); finite depths beyond 65.535 m become
+    0 as well, with a warning (a rendered sky at 1e10 m is no reading, not an error)."""
+    with np.errstate(invalid="ignore", over="ignore"):
+        mm = np.rint(depth_m.astype(np.float64) * MM_PER_M)
+    finite = np.isfinite(mm)
+    far = finite & (mm > UINT16_MAX)
     if far.any():
         log.warning(
             "%s: %d depths beyond %g m (the uint16 millimetre limit) read as no reading",
@@ -201,9 +205,7 @@ def metres_to_mm(depth_m: npt.NDArray[np.floating], where: Path) -> npt.NDArray[
             int(far.sum()),
             MAX_DEPTH_M,
         )
-    keep = finite & (depth_m > 0) & ~far
-    mm = np.rint(np.where(keep, depth_m, 0.0) * MM_PER_M)
-    return mm.astype(np.uint16)
+    return np.where(finite & (mm > 0) & ~far, mm, 0).astype(np.uint16)
 
 
 def _small(archive: Archive, name: str, shape: tuple[int, ...], what: str) -> Any:
