@@ -137,7 +137,10 @@ def _add_run_commands(sub: Any) -> None:
     p = sub.add_parser(
         "replay", help="process a recording (alias of run --device replay:PATH)", **WITH_SPEC_HELP
     )
-    p.add_argument("path", help="recording folder, .npz, PNG folder, fakenect folder or .oni file")
+    p.add_argument(
+        "path",
+        help="recording folder, .npz, .npy, PNG/PGM folder, fakenect folder, .oni file or ROS bag",
+    )
     p.add_argument(
         "--rate", choices=("realtime", "max"), default="max", help="pacing (default max)"
     )

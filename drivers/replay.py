@@ -5,7 +5,8 @@ Spec: ``replay:PATH[?OPTION=VALUE&...]``, the options listed in drivers/spec_opt
 
 PATH is one of (detected when opened):
 - a depthnav recording folder (``recording.toml`` + ``frames.npz``) or a bare ``.npz`` (uint16
-  ``depth_mm`` or float ``depth_m`` metres; ``fx, fy, cx, cy`` when it has no intrinsics);
+  ``depth_mm`` or float ``depth_m`` metres; ``fx, fy, cx, cy`` when it has no intrinsics), or a
+  bare ``.npy`` depth array (drivers/formats/npy.py; intrinsics from ``fx, fy, cx, cy``);
 - a folder of 16-bit PNG or PGM depth images (see drivers/formats/png_folder.py; ``scale`` units
   per metre from ``camera.toml`` or the option, 5000 for TUM RGB-D; intrinsics from
   ``camera.toml`` or ``fx, fy, cx, cy``; ``glob`` picks the depth images, else colour images
@@ -42,6 +43,7 @@ from drivers.base import KINECT_V1, DeviceInfo, Driver, Frame, Intrinsics, TiltS
 from drivers.errors import DeviceSpecError, DriverError, RecordingError
 from drivers.files import check_path_length, check_regular
 from drivers.formats import fakenect, png_folder, rosbag
+from drivers.formats.npy import iter_npy, open_npy
 from drivers.formats.recording import (
     Recording,
     RecordingStream,
@@ -231,6 +233,16 @@ class ReplayDriver:
 
         return items(), intr, self.path.name
 
+    def _npy_items(self) -> tuple[Iterator[Item], Intrinsics, str]:
+        npy = open_npy(self.path)
+        intr = self._intrinsics_with(None, npy.shape[1:])
+
+        def items() -> Iterator[Item]:
+            for i, depth in enumerate(iter_npy(npy)):
+                yield i / self.fps, depth, None, None, None
+
+        return items(), intr, self.path.name
+
     def _fakenect_items(self) -> tuple[Iterator[Item], Intrinsics, str]:
         entries = fakenect.read_index(self.path)  # fail at open, not at the first frame
         self._has_accel = any(e.kind == "a" for e in entries)
@@ -288,13 +300,15 @@ class ReplayDriver:
             )
         elif self.path.suffix.lower() == ".npz":
             self._items, intr, name = self._depthnav_items()
+        elif self.path.suffix.lower() == ".npy":
+            self._items, intr, name = self._npy_items()
         elif not self.path.exists():
             raise RecordingError(f"{self.path}: no such file or folder", hint="check the path")
         else:
             raise RecordingError(
                 f"{self.path}: unknown recording type {self.path.suffix or '(no suffix)'!r}",
-                hint="replay takes a recording folder, .npz, PNG folder, fakenect folder, .oni "
-                "or a ROS bag (.bag, .mcap, .db3, ROS 2 bag folder)",
+                hint="replay takes a recording folder, .npz, .npy, image folder, fakenect folder, "
+                ".oni or a ROS bag (.bag, .mcap, .db3, ROS 2 bag folder)",
             )
         if self._intrinsics is not None and intr != self._intrinsics:
             raise RecordingError(f"{self.path}: intrinsics changed while looping")

@@ -29,7 +29,7 @@ def _intrinsics() -> tuple[tuple[str, str], ...]:
 # scheme -> (spec forms, ((option, what it does), ...))
 DEVICE_OPTIONS: dict[str, tuple[str, tuple[tuple[str, str], ...]]] = {
     "replay": (
-        "replay:PATH[?OPTION=VALUE&...]  (PATH: recording folder, .npz, folder of 16-bit\n"
+        "replay:PATH[?OPTION=VALUE&...]  (PATH: recording folder, .npz, .npy, folder of 16-bit\n"
         "    PNG/PGM depth images, fakenect folder, .oni, ROS bag)",
         (
             ("rate", "realtime (default: sleep to the recorded timestamps) or max"),

@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import io
 import logging
+import os
 
 import numpy as np
 import pytest
@@ -123,3 +125,56 @@ def test_a_recording_folder_does_not_take_depth_m(tmp_path):
     np.savez(tmp_path / "rec" / "frames.npz", depth_m=np.ones((1, 48, 64), np.float32))
     with pytest.raises(RecordingError, match="no 'depth_mm'"):
         read_all(f"replay:{tmp_path / 'rec'}?rate=max")
+
+
+# --- a bare .npy ---------------------------------------------------------------------------------
+@pytest.mark.parametrize("kind", ["mm", "metres", "one frame"])
+def test_npy_depth_replays_with_spec_intrinsics(tmp_path, kind):
+    mm = stack()
+    array = {"mm": mm, "metres": (mm / 1000.0).astype(np.float32), "one frame": mm[0]}[kind]
+    np.save(tmp_path / "d.npy", array)
+    got = read_all(f"replay:{tmp_path / 'd.npy'}?rate=max&fps=10&{INTR}")
+    want = mm[:1] if kind == "one frame" else mm
+    np.testing.assert_array_equal(np.stack([f.depth_mm for f in got]), want)
+    assert all(f.intrinsics == SMALL for f in got)
+    assert [f.timestamp_s for f in got] == pytest.approx([i / 10 for i in range(len(want))])
+
+
+def _npy_header(shape: tuple[int, ...], descr: str = "<u2") -> bytes:
+    out = io.BytesIO()
+    np.lib.format.write_array_header_1_0(
+        out, {"descr": descr, "fortran_order": False, "shape": shape}
+    )
+    return out.getvalue()
+
+
+@pytest.mark.parametrize(
+    ("content", "says"),
+    [
+        (_npy_header((3, 48, 64)) + bytes(100), "truncated"),
+        (_npy_header((3, 40000, 40000)) + bytes(100), "40000"),
+        (_npy_header((48, 64), "<i4") + bytes(48 * 64 * 4), "expected"),
+        (_npy_header((48, 64), "|O") + bytes(64), "expected"),
+        (b"\x93NUMPY\x01\x00\xff\xff" + b"{" * 50, "not a readable .npy"),
+        (b"not numpy", "not a readable .npy"),
+    ],
+)
+def test_bad_npy_files_are_one_line_before_anything_is_read(tmp_path, content, says):
+    path = tmp_path / "d.npy"
+    path.write_bytes(content)
+    with pytest.raises(RecordingError, match=says) as info:
+        read_all(f"replay:{path}?rate=max&{INTR}")
+    assert "\n" not in str(info.value)
+
+
+def test_npy_without_intrinsics_says_how_to_give_them(tmp_path):
+    np.save(tmp_path / "d.npy", stack())
+    with pytest.raises(RecordingError, match="no intrinsics") as info:
+        read_all(f"replay:{tmp_path / 'd.npy'}?rate=max")
+    assert "fx=" in info.value.hint
+
+
+def test_a_fifo_named_npy_is_refused_not_waited_on(tmp_path):
+    os.mkfifo(tmp_path / "d.npy")
+    with pytest.raises(RecordingError, match="not a regular file"):
+        read_all(f"replay:{tmp_path / 'd.npy'}?rate=max&{INTR}")
