@@ -133,12 +133,28 @@ def _globbed(folder: Path, pattern: str) -> list[Path]:
     return sorted(paths, key=_natural_key)
 
 
+def _kinds(paths: list[Path]) -> list[tuple[Path, str]]:
+    """Each image with its kind (depth_images.kind_of), read from the first file of each name
+    shape (the name with its digits as one mark: ``#_depth.png``, ``#_rgb.png``, ``#.png``):
+    a 100 000-frame folder is not opened 100 000 times. A file of another kind inside a group
+    is refused when read, with the glob hint."""
+    seen: dict[str, str] = {}
+    out = []
+    for path in paths:
+        shape = _DIGITS.sub("#", path.name)
+        if shape not in seen:
+            seen[shape] = kind_of(path)
+        kind = seen[shape]
+        out.append((path, kind))
+    return out
+
+
 def _depth_images(folder: Path) -> list[Path]:
     """The depth images of a folder without ``depth.txt``: its own PNG/PGM files, else those in
     ``depth/``; colour and 8-bit images beside them are skipped (said in one INFO line)."""
     skipped: list[tuple[Path, str]] = []
     for where in (folder, folder / "depth"):
-        kinds = [(p, kind_of(p)) for p in _images(where)]
+        kinds = _kinds(_images(where))
         depth = [p for p, kind in kinds if kind in ("depth", "unknown")]
         skipped += [(p, kind) for p, kind in kinds if kind not in ("depth", "unknown")]
         if depth:
@@ -156,13 +172,12 @@ def _depth_images(folder: Path) -> list[Path]:
         raise RecordingError(f"{folder}: no depth images (*.png, *.pgm or {INDEX})")
     if skipped:
         log.info(
-            "%s: reading %d depth images from %s; skipped %s images (e.g. %s); "
-            "choose with ?glob=PATTERN",
+            "%s: reading %d depth images%s; skipped %s images (e.g. %s); choose with ?glob=PATTERN",
             folder,
             len(depth),
-            depth[0].parent.name,
+            "" if depth[0].parent == folder else " from depth/",
             said,
-            skipped[0][0].name,
+            skipped[0][0].relative_to(folder),
         )
     return depth
 
