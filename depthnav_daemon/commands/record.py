@@ -60,7 +60,8 @@ def _check_out(args: argparse.Namespace) -> None:
             raise ConfigError(f"{out}: an .oni recording is a file named *.oni", hint="e.g. x.oni")
         if out.exists() or out.is_symlink():
             raise ConfigError(f"{out}: exists; refusing to overwrite", hint="choose a new name")
-    elif out.exists() and (not out.is_dir() or any(out.iterdir())):
+    elif fmt != "depthnav" and out.exists() and (not out.is_dir() or any(out.iterdir())):
+        # (write_recording checks its own target, before the first frame)
         raise ConfigError(
             f"{out}: exists and is not an empty folder; refusing to overwrite",
             hint="choose a new folder",
