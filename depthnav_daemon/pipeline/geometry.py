@@ -22,6 +22,7 @@ import numpy as np
 import numpy.typing as npt
 
 from depthnav_daemon.errors import ConfigError, FrameError
+from depthnav_daemon.pipeline import lens
 from drivers.base import UINT16_MAX, Intrinsics
 
 F32 = npt.NDArray[np.float32]
@@ -167,11 +168,17 @@ def normalized_coords(intr: Intrinsics, u: npt.ArrayLike, v: npt.ArrayLike) -> t
     coordinates (u, v) (pixels; broadcastable arrays), each shaped like ``u + v``.
 
     The one place where pixel coordinates become rays: every table builder (exact scan, cliff,
-    pose) and ``pixel_rays`` go through it, so a lens model applied here reaches every stage
-    (the paper's stages keep the original's pinhole formulas on purpose).
+    pose) and ``pixel_rays`` go through it, so the lens model applied here (the plumb-bob
+    coefficients of ``intr``, undone by ``lens.undistort``) reaches every stage. Its callers build
+    tables once per camera, so undistorting costs nothing per frame. Without distortion this is
+    the plain pinhole arithmetic, bit for bit. The paper's stages (scan_paper.py, ``paper_*``
+    below) keep the original C++'s pinhole formulas on purpose: they reproduce it exactly.
     """
     u_arr, v_arr = np.broadcast_arrays(np.asarray(u, dtype=np.float64), np.asarray(v, np.float64))
-    return (u_arr - intr.cx) / intr.fx, (v_arr - intr.cy) / intr.fy
+    x, y = (u_arr - intr.cx) / intr.fx, (v_arr - intr.cy) / intr.fy
+    if not intr.has_distortion:
+        return x, y
+    return lens.undistort(x, y, intr)
 
 
 @functools.lru_cache(maxsize=8)
@@ -235,7 +242,8 @@ def depth_to_mm(depth: np.ndarray, intr: Intrinsics) -> npt.NDArray[np.uint16]:
 
 def paper_vertical_fov_rad(intr: Intrinsics) -> float:
     """Vertical field of view as depth_nav_tools computes it: angle(top, centre) + angle(centre,
-    bottom)."""
+    bottom). Pinhole on purpose, like every ``paper_*`` formula: lens distortion is ignored, as
+    the original does."""
     return math.atan(intr.cy / intr.fy) + math.atan((intr.height - 1 - intr.cy) / intr.fy)
 
 
