@@ -174,11 +174,34 @@ def normalized_coords(intr: Intrinsics, u: npt.ArrayLike, v: npt.ArrayLike) -> t
     the plain pinhole arithmetic, bit for bit. The paper's stages (scan_paper.py, ``paper_*``
     below) keep the original C++'s pinhole formulas on purpose: they reproduce it exactly.
     """
-    u_arr, v_arr = np.broadcast_arrays(np.asarray(u, dtype=np.float64), np.asarray(v, np.float64))
-    x, y = (u_arr - intr.cx) / intr.fx, (v_arr - intr.cy) / intr.fy
+    u0, v0 = np.asarray(u, dtype=np.float64), np.asarray(v, np.float64)
     if not intr.has_distortion:
-        return x, y
-    return lens.undistort(x, y, intr)
+        u_arr, v_arr = np.broadcast_arrays(u0, v0)
+        return (u_arr - intr.cx) / intr.fx, (v_arr - intr.cy) / intr.fy
+    if u0.size + v0.size > _CACHED_COORDS:  # full grids: undistort them as they come
+        return _undistorted(intr, u0, v0)
+    # the builders pass a row of columns and a column of rows: remembered per camera, so a
+    # table rebuilt for a new mount does not undistort again
+    x, y = _undistorted_cached(intr, u0.shape, u0.tobytes(), v0.shape, v0.tobytes())
+    return x.copy(), y.copy()
+
+
+_CACHED_COORDS = 4 * 8192  # u.size + v.size up to which normalized_coords remembers its result
+
+
+def _undistorted(intr: Intrinsics, u: F64, v: F64) -> tuple[F64, F64]:
+    u_arr, v_arr = np.broadcast_arrays(u, v)
+    return lens.undistort((u_arr - intr.cx) / intr.fx, (v_arr - intr.cy) / intr.fy, intr)
+
+
+@functools.lru_cache(maxsize=32)
+def _undistorted_cached(
+    intr: Intrinsics, u_shape: tuple[int, ...], u: bytes, v_shape: tuple[int, ...], v: bytes
+) -> tuple[F64, F64]:
+    x, y = _undistorted(intr, np.frombuffer(u).reshape(u_shape), np.frombuffer(v).reshape(v_shape))
+    x.setflags(write=False)
+    y.setflags(write=False)
+    return x, y
 
 
 @functools.lru_cache(maxsize=8)
