@@ -117,6 +117,19 @@ def test_bad_coefficients_are_one_line_errors(kw: dict[str, float], text: str) -
         assert "order is k1, k2, p1, p2, k3" in str(info.value)
 
 
+def test_warm_up_compiles_the_lens_kernel() -> None:
+    from depthnav_daemon.tools import warmup
+
+    warmup.warm_up()
+    before = len(lens._undistort_kernel.signatures)
+    assert before >= 1
+    normalized_coords(LENS_640, *grid(LENS_640))
+    frozen = np.zeros(3)
+    frozen.setflags(write=False)  # read-only input: undistort still hands the kernel fresh arrays
+    lens.undistort(frozen, frozen[::-1], LENS_640)
+    assert len(lens._undistort_kernel.signatures) == before
+
+
 # --- frames rendered through a distorting lens ---------------------------------------------------
 
 
