@@ -48,6 +48,9 @@ def tilt_roll_to_accel(
 DISTORTION_KEYS = ("k1", "k2", "p1", "p2", "k3")  # OpenCV / ROS plumb_bob order
 MAX_RADIAL_COEFF = 100.0  # |k1|, |k2|, |k3|: far beyond any real lens (Kinect-like: |k| < 1)
 MAX_TANGENTIAL_COEFF = 1.0  # |p1|, |p2| (real lenses: |p| < 0.01)
+# the lens model must stay invertible this far beyond the image's edges (pixels, share of the side)
+LENS_MARGIN_PX = 16.0
+LENS_MARGIN_SHARE = 0.05
 _FOLD_LIMIT_R = 20.0  # ideal normalised radius (87 deg off axis) the invertibility walk stops at
 
 
@@ -87,9 +90,9 @@ def _distortion_problem(
     """Why this lens model cannot be inverted over the image, or None when it can.
 
     Walks outwards from the principal point along 94 directions in ideal normalised coordinates
-    until the distorted point leaves the image (1 pixel beyond its edges): on the way the map must
-    keep a positive Jacobian and move outwards, so every pixel has exactly one ray. A model that
-    folds back (a polynomial's turning point inside the image) fails.
+    until the distorted point leaves the image (a margin beyond its edges): on the way the
+    map must keep a positive Jacobian and move outwards, so every pixel has exactly one ray. A
+    model that folds back (a polynomial's turning point inside the image) fails.
     """
     # 90 directions and the corners' (radial distortion keeps a point's direction)
     edges_u, edges_v = (-PIXEL_HALF, width - PIXEL_HALF), (-PIXEL_HALF, height - PIXEL_HALF)
@@ -102,9 +105,11 @@ def _distortion_problem(
     x, y = r * np.cos(theta), r * np.sin(theta)
     xd, yd, dxx, dxy, dyx, dyy = plumb_bob(x, y, coeffs)
     u, v = fx * xd + cx, fy * yd + cy
-    margin = 1.0 + PIXEL_HALF  # a pixel beyond the image's edges
-    inside = (np.abs(u - (width - 1) / 2) <= (width - 1) / 2 + margin) & (
-        np.abs(v - (height - 1) / 2) <= (height - 1) / 2 + margin
+    # the table builders also look half a sample step past the edge pixels
+    margin_u = min(LENS_MARGIN_PX, LENS_MARGIN_SHARE * width) + PIXEL_HALF
+    margin_v = min(LENS_MARGIN_PX, LENS_MARGIN_SHARE * height) + PIXEL_HALF
+    inside = (np.abs(u - (width - 1) / 2) <= (width - 1) / 2 + margin_u) & (
+        np.abs(v - (height - 1) / 2) <= (height - 1) / 2 + margin_v
     )
     outward = np.diff(xd * np.cos(theta) + yd * np.sin(theta), axis=1, prepend=0.0) > 0
     good = (dxx * dyy - dxy * dyx > 0) & outward
