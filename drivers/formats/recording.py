@@ -5,7 +5,9 @@
 ``odom`` (N, 3) float64 ``[x_m, y_m, yaw_rad]`` (the robot's pose in its odometry frame at each
 frame).
 ``recording.toml`` holds ``format_version``, ``description``, ``device``, an ``[intrinsics]``
-table and an optional ``[truth]`` table. A bare ``.npz`` with the same arrays is also readable.
+table (width, height, fx, fy, cx, cy and, for a distorting lens, plumb_bob k1, k2, p1, p2, k3; 0
+when absent) and an optional ``[truth]`` table. A bare ``.npz`` with the same arrays is also
+readable (as a pinhole: its ``intrinsics`` array has no lens coefficients).
 
 Memory: ``read_recording`` decompresses every frame into memory, ``open_recording_stream`` one
 frame at a time; ``drivers.formats.recording_writer.write_recording`` holds one frame at a time.
@@ -27,7 +29,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from drivers.base import Frame, Intrinsics
+from drivers.base import DISTORTION_KEYS, Frame, Intrinsics
 from drivers.errors import RecordingError
 from drivers.files import read_toml
 from drivers.formats.npz import Archive, Member, is_numeric, open_archive
@@ -90,8 +92,10 @@ def _intrinsics_from_meta(table: Any, shape: tuple[int, int], where: Path) -> In
             f"{where}: [intrinsics] table is missing", hint="add width, height, fx, fy, cx, cy"
         )
     values: dict[str, int | float] = {}
-    for key in ("width", "height", "fx", "fy", "cx", "cy"):
+    for key in ("width", "height", "fx", "fy", "cx", "cy", *DISTORTION_KEYS):
         if key not in table:
+            if key in DISTORTION_KEYS:
+                continue  # recordings of a pinhole (and those older than the lens model)
             raise RecordingError(f"{where}: [intrinsics] lacks {key!r}")
         try:
             values[key] = to_number(table[key], integer=key in ("width", "height"))
