@@ -53,6 +53,7 @@ from drivers.formats.recording import (
 )
 from drivers.kinect.axes import accel_counts_to_camera, tilt_status_name
 from drivers.spec import (
+    INTRINSICS_OPTIONS,
     Spec,
     bool_option,
     check_options,
@@ -159,11 +160,11 @@ class ReplayDriver:
                 )
             values = dict(self.overrides)
         else:
-            values = {"fx": base.fx, "fy": base.fy, "cx": base.cx, "cy": base.cy, **self.overrides}
+            values = {key: getattr(base, key) for key in INTRINSICS_OPTIONS} | self.overrides
         try:
-            return Intrinsics(width, height, values["fx"], values["fy"], values["cx"], values["cy"])
+            return Intrinsics(width, height, **values)
         except ValueError as exc:
-            if any(key in self.overrides for key in ("fx", "fy", "cx", "cy")):
+            if any(key in self.overrides for key in INTRINSICS_OPTIONS):
                 # the user's ?fx=..&cx=.. options do not fit this recording: a usage error (exit 2)
                 raise DeviceSpecError(
                     f"{self.spec_text}: intrinsics options do not fit the {width}x{height} "

@@ -16,6 +16,11 @@ _INTRINSICS_HELP = {
     "fy": "focal length along y, pixels",
     "cx": "principal point x, pixels (0 = centre of the left pixel)",
     "cy": "principal point y, pixels (0 = centre of the top pixel)",
+    "k1": "lens distortion, plumb_bob (OpenCV/ROS order k1 k2 p1 p2 k3): radial k1",
+    "k2": "radial k2",
+    "p1": "tangential p1",
+    "p2": "tangential p2",
+    "k3": "radial k3 (each 0 unless given)",
 }
 
 

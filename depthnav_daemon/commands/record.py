@@ -46,7 +46,7 @@ FORMATS = {
     "depthnav": "depth, timestamps, intrinsics, accelerometer, odometry and description",
     "png": "depth (mm), timestamps and intrinsics (camera.toml); no accelerometer or odometry",
     "oni": "depth (mm), timestamps and fx, fy (as a field of view; the principal point comes "
-    "back at the image centre); no accelerometer or odometry",
+    "back at the image centre); no lens distortion, accelerometer or odometry",
     "fakenect": "640x480 depth as 11-bit Kinect disparity (quantised) with the accelerometer; "
     "replay assumes Kinect v1 intrinsics",
 }

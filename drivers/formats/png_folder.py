@@ -20,8 +20,10 @@ a sidecar ``camera.toml``::
     fy = 525.0
     cx = 319.5
     cy = 239.5
+    k1 = -0.28                  # optional lens distortion (plumb_bob: k1 k2 p1 p2 k3), 0 if absent
 
-or from the replay spec options ``fx``, ``fy``, ``cx``, ``cy``, ``scale`` (which win).
+or from the replay spec options ``fx``, ``fy``, ``cx``, ``cy``, ``k1``.. ``k3``, ``scale`` (which
+win).
 """
 
 from __future__ import annotations
@@ -38,7 +40,7 @@ import numpy as np
 import numpy.typing as npt
 from PIL import Image
 
-from drivers.base import UINT16_MAX, Frame, Intrinsics
+from drivers.base import DISTORTION_KEYS, UINT16_MAX, Frame, Intrinsics
 from drivers.errors import RecordingError
 from drivers.files import INDEX_MAX_BYTES, check_regular, read_bytes, read_toml
 from drivers.formats.depth_images import MAX_IMAGE_BYTES, SUFFIXES, kind_of, read_depth_image
@@ -209,7 +211,7 @@ def list_frames(folder: Path, fps: float, pattern: str | None = None) -> list[tu
 
 
 SIDECAR_KEYS = ("depth_scale", "intrinsics")
-INTRINSICS_KEYS = ("width", "height", "fx", "fy", "cx", "cy")
+INTRINSICS_KEYS = ("width", "height", "fx", "fy", "cx", "cy", *DISTORTION_KEYS)
 TUM_SCALE = 5000.0
 TUM_MARK = b"rgbd_dataset_"  # TUM RGB-D's depth.txt names its bag: "# file: 'rgbd_dataset_..."
 SCALE_HINT = (
@@ -234,7 +236,8 @@ def read_sidecar(folder: Path) -> dict[str, Any]:
         if key not in SIDECAR_KEYS:
             raise RecordingError(
                 f"{path}: unknown key {short_text(str(key))!r} (valid: {', '.join(SIDECAR_KEYS)})",
-                hint="depth_scale = units per metre; [intrinsics] fx, fy, cx, cy in pixels",
+                hint="depth_scale = units per metre; [intrinsics] fx, fy, cx, cy in pixels, "
+                "optional lens k1, k2, p1, p2, k3",
             )
         if key == "intrinsics" and isinstance(value, dict):
             for sub in value:
@@ -294,8 +297,10 @@ def sidecar_intrinsics(
         return None
     where = folder / SIDECAR
     values = {}
-    for key in ("fx", "fy", "cx", "cy"):
+    for key in ("fx", "fy", "cx", "cy", *DISTORTION_KEYS):
         if key not in table:
+            if key in DISTORTION_KEYS:
+                continue  # no lens coefficient: an ideal pinhole
             raise RecordingError(f"{where}: bad [intrinsics]: {key!r} is missing")
         if isinstance(table[key], str):
             raise RecordingError(f"{where}: bad [intrinsics]: {key} is text, not a number")
@@ -363,7 +368,12 @@ def write_png_folder(
     (out / INDEX).write_text("\n".join(lines) + "\n", encoding="utf-8")
     (out / SIDECAR).write_text(
         f"depth_scale = {scale!r}\n\n[intrinsics]\nwidth = {intr.width}\nheight = {intr.height}\n"
-        f"fx = {intr.fx!r}\nfy = {intr.fy!r}\ncx = {intr.cx!r}\ncy = {intr.cy!r}\n",
+        f"fx = {intr.fx!r}\nfy = {intr.fy!r}\ncx = {intr.cx!r}\ncy = {intr.cy!r}\n"
+        + "".join(
+            f"{key} = {float(value)!r}\n"
+            for key, value in zip(DISTORTION_KEYS, intr.distortion, strict=True)
+            if intr.has_distortion
+        ),
         encoding="utf-8",
     )
     return len(lines) - 2

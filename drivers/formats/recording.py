@@ -5,8 +5,10 @@
 ``odom`` (N, 3) float64 ``[x_m, y_m, yaw_rad]`` (the robot's pose in its odometry frame at each
 frame).
 ``recording.toml`` holds ``format_version``, ``description``, ``device``, an ``[intrinsics]``
-table and an optional ``[truth]`` table. A bare ``.npz`` with the same arrays is also readable;
-it may hold ``depth_m`` float32/float64 (N, H, W) metres instead of ``depth_mm`` (converted by
+table (width, height, fx, fy, cx, cy and, for a distorting lens, plumb_bob k1, k2, p1, p2, k3; 0
+when absent) and an optional ``[truth]`` table. A bare ``.npz`` with the same arrays is also
+readable (as a pinhole: its ``intrinsics`` array has no lens coefficients); it may hold
+``depth_m`` float32/float64 (N, H, W) metres instead of ``depth_mm`` (converted by
 ``metres_to_mm``), and its intrinsics may come from the caller (replay's ``fx, fy, cx, cy``).
 
 Memory: ``read_recording`` decompresses every frame into memory, ``open_recording_stream`` one
@@ -29,7 +31,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from drivers.base import MM_PER_M, UINT16_MAX, Frame, Intrinsics
+from drivers.base import DISTORTION_KEYS, MM_PER_M, UINT16_MAX, Frame, Intrinsics
 from drivers.errors import DeviceSpecError, RecordingError
 from drivers.files import read_toml
 from drivers.formats.npz import Archive, Member, is_numeric, open_archive
@@ -92,8 +94,10 @@ def _intrinsics_from_meta(table: Any, shape: tuple[int, int], where: Path) -> In
             f"{where}: [intrinsics] table is missing", hint="add width, height, fx, fy, cx, cy"
         )
     values: dict[str, int | float] = {}
-    for key in ("width", "height", "fx", "fy", "cx", "cy"):
+    for key in ("width", "height", "fx", "fy", "cx", "cy", *DISTORTION_KEYS):
         if key not in table:
+            if key in DISTORTION_KEYS:
+                continue  # recordings of a pinhole (and those older than the lens model)
             raise RecordingError(f"{where}: [intrinsics] lacks {key!r}")
         try:
             values[key] = to_number(table[key], integer=key in ("width", "height"))
@@ -300,7 +304,8 @@ def _described(
     elif "intrinsics" in arrays:
         intr = intrinsics_from_array(arrays["intrinsics"], image, npz_path)
     elif intrinsics_override and all(k in intrinsics_override for k in ("fx", "fy", "cx", "cy")):
-        values = {k: float(intrinsics_override[k]) for k in ("fx", "fy", "cx", "cy")}
+        keys = ("fx", "fy", "cx", "cy", *DISTORTION_KEYS)
+        values = {k: float(v) for k, v in intrinsics_override.items() if k in keys}
         try:
             intr = Intrinsics(image[1], image[0], **values)
         except ValueError as exc:
