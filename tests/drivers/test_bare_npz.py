@@ -178,3 +178,11 @@ def test_a_fifo_named_npy_is_refused_not_waited_on(tmp_path):
     os.mkfifo(tmp_path / "d.npy")
     with pytest.raises(RecordingError, match="not a regular file"):
         read_all(f"replay:{tmp_path / 'd.npy'}?rate=max&{INTR}")
+
+
+def test_spec_lens_options_reach_an_npz_without_intrinsics(tmp_path):
+    path = tmp_path / "x.npz"
+    np.savez(path, depth_mm=stack(1))
+    got = read_all(f"replay:{path}?rate=max&{INTR}&k1=-0.25&p2=0.001")
+    assert (got[0].intrinsics.k1, got[0].intrinsics.p2) == (-0.25, 0.001)
+    assert got[0].intrinsics.fx == SMALL.fx
