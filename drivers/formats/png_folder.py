@@ -76,12 +76,7 @@ _DIGITS = re.compile(r"([0-9]{1,18})")
 
 def is_png_folder(folder: Path) -> bool:
     """True if the folder looks like a folder of depth images (PNG or PGM)."""
-    return os.path.lexists(folder / INDEX) or any(
-        p.suffix.lower() in SUFFIXES
-        for where in (folder, folder / "depth")
-        if where.is_dir()
-        for p in where.iterdir()
-    )
+    return os.path.lexists(folder / INDEX) or any(_images(w) for w in (folder, folder / "depth"))
 
 
 def _index_line(index: Path, number: int, text: str, folder: Path) -> tuple[float, Path]:
