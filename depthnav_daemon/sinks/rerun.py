@@ -117,6 +117,25 @@ def abandoned_viewers() -> list[str]:
     return list(_abandoned)
 
 
+def _import_rerun() -> Any:
+    """The rerun SDK, its Rust log lines off unless -v or the user's RUST_LOG asks for them.
+
+    rerun's Rust side prints coloured lines of its own (failed flushes, lost connections) on
+    stderr; this sink reports those in one line of its own. RUST_LOG is read once, when the
+    bindings load, and is set only for that moment: processes depthnav starts (a viewer) keep
+    theirs.
+    """
+    quiet = "RUST_LOG" not in os.environ and not log.isEnabledFor(logging.DEBUG)
+    if quiet:
+        os.environ["RUST_LOG"] = "off"
+    try:
+        import rerun as rr  # absolute: this module is depthnav_daemon.sinks.rerun, not rerun
+    finally:
+        if quiet:
+            os.environ.pop("RUST_LOG", None)
+    return rr
+
+
 def _one_line(exc: BaseException) -> str:
     text = str(exc)
     return text.splitlines()[0] if text else type(exc).__name__
@@ -239,13 +258,8 @@ class RerunSink:
         Raises:
             SinkError: rerun-sdk missing, no display to spawn on, or the file cannot be written.
         """
-        if not log.isEnabledFor(logging.DEBUG):
-            # rerun's Rust side prints its own coloured log lines (failed flushes, lost
-            # connections) on stderr; this sink reports those in one line of its own. Read when
-            # the bindings load; a user's RUST_LOG wins, -v leaves rerun's lines on.
-            os.environ.setdefault("RUST_LOG", "off")
         try:
-            import rerun as rr  # absolute: this module is depthnav_daemon.sinks.rerun, not rerun
+            rr = _import_rerun()
         except ModuleNotFoundError as exc:
             raise SinkError(
                 "the rerun sink needs the 'rerun-sdk' package",
