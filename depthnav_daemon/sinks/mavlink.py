@@ -46,6 +46,7 @@ floor(cm) clipped to [min_distance, max_distance]; -inf (closer than range_min) 
 from __future__ import annotations
 
 import logging
+import os
 import socket
 import threading
 import time
@@ -111,8 +112,11 @@ class _SerialLink:
                 port, baudrate=baud, timeout=0, write_timeout=WRITE_TIMEOUT_S
             )
         except (serial.SerialException, OSError, ValueError) as exc:
+            # pyserial repeats the path twice in its message: the errno's words say it all
+            errno = getattr(exc, "errno", None)
+            reason = os.strerror(errno) if isinstance(errno, int) and errno > 0 else str(exc)
             raise SinkError(
-                f"mavlink sink: cannot open serial port {port!r}: {exc}",
+                f"mavlink sink: cannot open serial port {port!r}: {reason}",
                 hint="check the port name and that your user is in the dialout group",
             ) from exc
         self._timeouts = RateLimitedLog(log)
