@@ -85,7 +85,8 @@ class MountTracker:
         self._pending: list[Mount] = []
         self.rejected = 0
         # nobody configured a mount: the built-in 0.5 m / 0 deg is a guess, not a measurement
-        self._default = _level(configured) == _level(_DEFAULT_MOUNT)
+        # (pinned, it is what the user asked for)
+        self._default = not pinned and _level(configured) == _level(_DEFAULT_MOUNT)
         self._pinned = pinned
         self._floor = "unknown"
         self._floor_mount: Mount | None = None  # the floor's estimate while it contradicts

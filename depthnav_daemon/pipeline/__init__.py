@@ -59,10 +59,10 @@ class MountTrust:
     """How far the mount a frame was processed with can be trusted (the daemon decides it).
 
     Attributes:
-        source: where the mount's values came from: "default" (the built-in 0.5 m, tilt 0 deg:
-            nothing was configured), "config" (a config file, ``--set``, the mount flags or a
-            ``depthnav calibrate`` file), "accel" / "serial" (a tilt sensor's tilt and roll, the
-            configured height), or "floor" (the floor estimate).
+        source: where the mount's values came from: "default" (the built-in 0.5 m, tilt 0 deg,
+            not pinned: nothing was configured), "config" (a config file, ``--set``, the mount
+            flags or a ``depthnav calibrate`` file), "accel" / "serial" (a tilt sensor's tilt and
+            roll, the configured height), or "floor" (the floor estimate).
         pinned: the mount is pinned (``daemon.tilt_source = "config"``, as the mount flags set):
             floor estimates check it but never replace it.
         floor: "confirmed" (the latest confident floor estimate agrees with the mount within

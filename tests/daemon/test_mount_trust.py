@@ -15,7 +15,7 @@ from depthnav_daemon.config.loader import build_config
 from depthnav_daemon.daemon.loop import _status, run
 from depthnav_daemon.pipeline import Result
 from depthnav_daemon.pipeline.geometry import Mount
-from depthnav_daemon.sim.synthetic import Box, Scene, render
+from depthnav_daemon.sim.synthetic import Box, Scene, render, wall
 from depthnav_daemon.sinks import jsonmsg
 from depthnav_daemon.sinks.base import SinkContext
 from depthnav_daemon.sinks.text import TextSink
@@ -32,6 +32,7 @@ class SceneDriver:
     """Renders SCENE from the camera's true mount: what a real camera on the robot would give."""
 
     mounts: list[Mount]  # the true mount of each frame
+    scene: Scene = SCENE
     seq: int = 0
 
     def open(self) -> DeviceInfo:
@@ -40,7 +41,7 @@ class SceneDriver:
     def read_frame(self, timeout_s: float = 1.0) -> Frame | None:
         if self.seq >= len(self.mounts):
             return None
-        view = render(SCENE, ASYM_640, self.mounts[self.seq])
+        view = render(self.scene, ASYM_640, self.mounts[self.seq])
         frame = Frame(self.seq, self.seq / 30.0, view.depth_mm, ASYM_640)
         self.seq += 1
         return frame
@@ -64,10 +65,12 @@ class Collect:
         pass
 
 
-def run_scene(*sets: str, frames: int = 3, mounts: list[Mount] | None = None) -> Collect:
+def run_scene(
+    *sets: str, frames: int = 3, mounts: list[Mount] | None = None, scene: Scene = SCENE
+) -> Collect:
     sink = Collect()
     cfg = build_config([], list(sets), {"device": "synthetic"})
-    driver = SceneDriver(mounts or [TRUE_MOUNT] * frames)
+    driver = SceneDriver(mounts or [TRUE_MOUNT] * frames, scene)
     report = run(
         cfg, threading.Event(), driver_factory=lambda _s: driver, sink_factory=lambda _s: sink
     )
@@ -127,13 +130,32 @@ def test_a_right_mount_is_confirmed_and_not_flagged(tilt_source: str) -> None:
 
 
 def test_the_unconfirmed_default_mount_is_not_trusted() -> None:
-    # no [mount] and no floor estimate (as when the floor is never found): the built-in guess
+    # UC3M's living room in miniature: a camera 1.0 m high, level, a wall 2.8 m ahead leaves too
+    # little floor for an estimate on every frame, no tilt sensor, no [mount]: the built-in 0.5 m
+    # makes the floor beyond 2.5 m a drop-off
+    sink = run_scene(
+        "daemon.pose_every_frames=1",
+        mounts=[Mount(1.0, 0.0, 0.0)] * 3,
+        scene=Scene(boxes=(wall(2.8),)),
+    )
+    for frame, result in sink.results:
+        assert result.pose is not None and not result.pose.ok
+        assert "too little floor" in result.pose.reason
+        trust = result.mount_trust
+        assert (trust.source, trust.floor, trust.dropoffs_trusted) == ("default", "unknown", False)
+        assert result.mount.height_m == 0.5 and len(result.cliff.points_m) > 100
+        assert "not configured" in result.warning
+        msg = message(frame, result)
+        assert msg["cliff"]["trusted"] is False and msg["mount"]["source"] == "default"
+        assert "(default, floor unknown)" in TextSink().format(frame, result)
+    # the same with no floor estimate at all
     sink = run_scene("daemon.pose_every_frames=0")
-    frame, result = sink.results[-1]
-    trust = result.mount_trust
+    trust = sink.results[-1][1].mount_trust
     assert (trust.source, trust.floor, trust.dropoffs_trusted) == ("default", "unknown", False)
-    assert "not configured" in result.warning
-    assert message(frame, result)["cliff"]["trusted"] is False
+    # the built-in values pinned on purpose (tilt_source = "config") count as configured
+    sink = run_scene("daemon.pose_every_frames=0", "daemon.tilt_source='config'")
+    trust = sink.results[-1][1].mount_trust
+    assert (trust.source, trust.pinned, trust.dropoffs_trusted) == ("config", True, True)
     # a configured mount the floor has not checked yet is trusted
     sink = run_scene("daemon.pose_every_frames=0", "mount.height_m=0.5", "mount.tilt_deg=12.0")
     trust = sink.results[-1][1].mount_trust
