@@ -231,16 +231,17 @@ def frames_of(
 def _status(fps: float, result: Result) -> str:
     """The one-line STATUS systemd shows: frame rate, the mount in use and how far it is
     trusted."""
-    m = result.mount
+    m, trust = result.mount, result.mount_trust
+    origin = (
+        result.mount_source
+        if trust is None
+        else f"{trust.source}{', pinned' if trust.pinned else ''}, floor {trust.floor}"
+    )
     line = (
         f"{fps:.1f} frames/s, mount {m.height_m:.3f} m, tilt {m.tilt_deg:.1f} deg, "
-        f"roll {m.roll_deg:.1f} deg ({result.mount_source}"
+        f"roll {m.roll_deg:.1f} deg ({origin})"
     )
-    trust = result.mount_trust
-    if trust is None:
-        return line + ")"
-    line += f", {trust.source if trust.source == 'default' else 'floor ' + trust.floor})"
-    if not trust.dropoffs_trusted:
+    if trust is not None and not trust.dropoffs_trusted:
         line += "; drop-offs NOT trusted"
     return line
 

@@ -104,7 +104,10 @@ def test_a_wrong_pinned_mount_is_contradicted_and_its_dropoffs_flagged(caplog) -
     assert msg["warning"] == trust.note
     line = TextSink().format(frame, result)
     assert "(config, pinned, floor contradicted)" in line and "drop-off UNTRUSTED" in line
-    assert "drop-offs NOT trusted" in _status(30.0, result)
+    assert _status(30.0, result) == (
+        "30.0 frames/s, mount 0.300 m, tilt 12.0 deg, roll 0.0 deg "
+        "(config, pinned, floor contradicted); drop-offs NOT trusted"
+    )
     # said once on the terminal, not once per frame
     notes = [r for r in caplog.records if "drop-offs are not trusted" in r.getMessage()]
     assert len(notes) == 1
@@ -124,6 +127,7 @@ def test_a_right_mount_is_confirmed_and_not_flagged(tilt_source: str) -> None:
         assert msg["warning"] is None
         assert len(result.cliff.points_m) == 0  # the test scene has no drop-off
         assert "UNTRUSTED" not in TextSink().format(frame, result)
+        assert _status(30.0, result).endswith("floor confirmed)")
     assert sink.results[-1][1].mount_trust.source == (
         "floor" if tilt_source == "auto" else "config"
     )
