@@ -408,3 +408,17 @@ def test_a_viewer_that_goes_away_is_not_claimed_delivered(tmp_path, pairs, conte
         sink.close()
     text = caplog.text
     assert "not confirmed delivered" in text and "frames logged" not in text
+
+
+def test_check_viewer_refuses_a_silent_listener_and_a_closed_port():
+    from depthnav_daemon.sinks.rerun import check_viewer
+
+    with socket.socket() as listener:  # accepts connections (backlog) but never answers
+        listener.bind(("127.0.0.1", 0))
+        listener.listen(1)
+        port = listener.getsockname()[1]
+        with pytest.raises(SinkError, match="does not answer") as info:
+            check_viewer(f"rerun+http://127.0.0.1:{port}/proxy", timeout_s=0.5)
+        assert f"rerun --port {port}" in info.value.hint
+    with pytest.raises(SinkError, match=f"no rerun viewer at 127.0.0.1:{port}"):
+        check_viewer(f"rerun+http://127.0.0.1:{port}/proxy", timeout_s=0.5)
