@@ -187,3 +187,25 @@ def test_a_moved_sensor_is_contradicted_until_the_jump_is_accepted(caplog) -> No
     ]
     assert sink.results[-1][1].mount.height_m == pytest.approx(0.7, abs=0.02)
     assert any("trusted again" in r.getMessage() for r in caplog.records)
+
+
+def test_a_merge_is_as_trusted_as_its_least_trusted_sensor() -> None:
+    from dataclasses import replace
+
+    from depthnav_daemon.daemon.multi import Merger
+    from depthnav_daemon.pipeline.merge import SensorState
+
+    sink = run_scene("mount.height_m=0.5", "mount.tilt_deg=12.0", frames=1)
+    frame, good = sink.results[0]
+    doubtful = replace(
+        good.mount_trust, floor="contradicted", dropoffs_trusted=False, note="the floor says..."
+    )
+    bad = replace(good, mount_trust=doubtful)
+    merger = Merger(["left", "right"], 1.0)
+    states = [SensorState("left", "ok", 0.0, good), SensorState("right", "ok", 0.0, bad)]
+    merged = merger.merged(good, states)
+    assert merged.mount_trust == doubtful
+    assert message(frame, merged)["cliff"]["trusted"] is False
+    # with the doubtful sensor out of the merge (stale), the merge is trusted again
+    states[1] = SensorState("right", "stale", 5.0, bad)
+    assert merger.merged(good, states).mount_trust == good.mount_trust
