@@ -21,17 +21,17 @@ def _free_port() -> int:
 
 
 class Robot(threading.Thread):
-    """Sends odometry lines, x growing 1 mm a line, until stopped."""
+    """Sends odometry lines, x growing ``step_m`` a line (1 mm by default), until stopped."""
 
-    def __init__(self, port: int) -> None:
+    def __init__(self, port: int, step_m: float = 0.001) -> None:
         super().__init__(daemon=True)
-        self.port, self.stop = port, threading.Event()
+        self.port, self.stop, self.step_m = port, threading.Event(), step_m
 
     def run(self) -> None:
         with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as tx:
             i = 0
             while not self.stop.wait(0.002):
-                line = {"x_m": 0.001 * i, "y_m": 0.5, "yaw_rad": 0.25}
+                line = {"x_m": self.step_m * i, "y_m": 0.5, "yaw_rad": 0.25}
                 tx.sendto(json.dumps(line).encode(), ("127.0.0.1", self.port))
                 i += 1
 
@@ -78,8 +78,11 @@ def test_record_with_a_silent_odometry_source_records_without_it(tmp_path: Path)
 
 
 def test_run_with_odometry_outputs_the_memory() -> None:
+    # a robot standing still, and odometry counted fresh for 30 s: on a loaded machine a stalled
+    # process would otherwise see a "jump" (a moving robot's poses seconds apart) or stale
+    # odometry, and the memory would rightly reset or freeze instead of being "on"
     port = _free_port()
-    robot = Robot(port)
+    robot = Robot(port, step_m=0.0)
     robot.start()
     try:
         p = depthnav(
@@ -90,6 +93,8 @@ def test_run_with_odometry_outputs_the_memory() -> None:
             "4",
             "--odometry",
             f"odom+udp://127.0.0.1:{port}",
+            "--set",
+            "odometry.stale_s=30",
         )
     finally:
         robot.stop.set()
