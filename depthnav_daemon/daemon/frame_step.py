@@ -81,7 +81,8 @@ class FrameStep:
             )
             timings["pose"] = time.perf_counter() - t0
             _apply_pose(self._tracker, pose, self._daemon.tilt_source)
-        # a new floor estimate already serves the frame it was made on
+        # a new floor estimate serves the frame it was made on once its tables exist (built on
+        # a worker by StageTables; a camera's first frame builds them itself)
         result = process(
             frame,
             self._tables.mount_for(frame.intrinsics, self._tracker.mount),
