@@ -145,13 +145,14 @@ def exact_scan_kernel(depth, rows, near_lo, near_hi, obst_hi, kr, fl_start, fl_c
             v = -inf if close else v
             acc[j] = min(acc[j], v)
         for e in range(fl_start[i], fl_start[i + 1]):
-            x = fl_code[e]
-            c = x & CODE_MASK
-            b = x >> (CODE_BITS + 1)
+            # unsigned: the indices below need no wrap-around check for negative values
+            x = np.uint32(fl_code[e])
+            c = x & np.uint32(CODE_MASK)
+            b = x >> np.uint32(CODE_BITS + 1)
             a = acc[c]
             o = out[b]
             out[b] = a if a < o else o
-            if x & (1 << CODE_BITS):  # the run ends here
+            if x & np.uint32(1 << CODE_BITS):  # the run ends here
                 acc[c] = inf
     nan = np.float32(np.nan)
     for b in range(out.shape[0]):
