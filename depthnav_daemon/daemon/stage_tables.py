@@ -12,7 +12,9 @@ the frame itself.
 
 from __future__ import annotations
 
+import contextlib
 import logging
+import os
 import threading
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -25,6 +27,8 @@ log = logging.getLogger(__name__)
 # the stages keep the tables of their 16 latest mounts (functools.lru_cache); remembering fewer
 # keeps "ready" true, and the memory of a long run with a drifting mount bounded
 KEEP_READY = 8
+BUILD_NICE = 10  # niceness added to the building thread
+MAX_NICE = 19
 
 Key = tuple[Intrinsics, Mount]
 
@@ -112,6 +116,12 @@ class StageTables:
 
     def _start(self, key: Key) -> None:
         def build() -> None:
+            # a lower priority for this thread only (Linux: nice is per thread): on a loaded
+            # 2-core machine the frame loop keeps its core while the tables are built
+            with contextlib.suppress(AttributeError, OSError):
+                tid = threading.get_native_id()
+                nice = os.getpriority(os.PRIO_PROCESS, tid)
+                os.setpriority(os.PRIO_PROCESS, tid, min(MAX_NICE, nice + BUILD_NICE))
             try:
                 self._prepare(*key)
             except Exception as exc:

@@ -4,12 +4,13 @@ nearest mount whose tables exist; only a camera's first frame builds them on the
 from __future__ import annotations
 
 import logging
+import os
 import threading
 
 import numpy as np
 import pytest
 
-from depthnav_daemon.daemon.stage_tables import KEEP_READY, StageTables
+from depthnav_daemon.daemon.stage_tables import KEEP_READY, MAX_NICE, StageTables
 from depthnav_daemon.pipeline import StageParams, prepare, scan_table
 from depthnav_daemon.pipeline.cliff import CliffParams, detect_cliffs
 from depthnav_daemon.pipeline.geometry import Mount
@@ -28,11 +29,16 @@ class Gate:
 
     def __init__(self) -> None:
         self.calls: list[tuple[Intrinsics, Mount]] = []
+        self.threads: list[int] = []
+        self.nice: list[int] = []
         self.release = threading.Event()
         self.fail = False
 
     def __call__(self, intr: Intrinsics, mount: Mount) -> None:
         self.calls.append((intr, mount))
+        self.threads.append(threading.get_ident())
+        if hasattr(os, "getpriority"):
+            self.nice.append(os.getpriority(os.PRIO_PROCESS, threading.get_native_id()))
         assert self.release.wait(10.0)
         if self.fail:
             raise ValueError("no table for this mount")
@@ -62,6 +68,10 @@ def test_a_large_change_goes_on_with_the_old_mount_until_its_tables_exist(
         tables.close()
         assert tables.mount_for(INTR, far) == far
     assert gate.calls == [(INTR, LARGE), (INTR, far)]
+    assert threading.get_ident() not in gate.threads  # built off the frame loop's thread
+    if hasattr(os, "getpriority"):  # and below its priority (unless already at the lowest)
+        mine = os.getpriority(os.PRIO_PROCESS, threading.get_native_id())
+        assert all(n > mine for n in gate.nice) or mine == MAX_NICE
     said = [r for r in caplog.records if "built on a worker" in r.getMessage()]
     assert len(said) == 1  # said once, not at every change
 
