@@ -433,6 +433,7 @@ def test_warm_up_compiles_every_kernel_the_daemon_path_calls() -> None:
         pose_kernels.hypotheses_kernel,
         pose_kernels.ransac_count_kernel,
         pose_kernels.plane_moments_kernel,
+        scan_kernels.flush_codes_kernel,
         table_kernels.exact_table_kernel,
         table_kernels.pose_envelope_kernel,
     ]

@@ -17,7 +17,7 @@ from depthnav_daemon.pipeline import pose_fit, scan_table
 from depthnav_daemon.pipeline.geometry import Mount, cam_to_level, normalized_coords, pixel_rays
 from depthnav_daemon.pipeline.pose import PoseParams
 from depthnav_daemon.pipeline.scan import ScanParams
-from depthnav_daemon.pipeline.scan_kernels import run_flush_codes
+from depthnav_daemon.pipeline.scan_kernels import CODE_BITS, run_flush_codes
 from drivers.base import KINECT_V1, Intrinsics
 
 HD = Intrinsics(1280, 720, 640.0, 640.0, 639.5, 359.5)
@@ -88,7 +88,7 @@ def reference_exact_table(intr: Intrinsics, mount: Mount, params: ScanParams) ->
     angle_min = edge_min + inc / 2.0
     centre = scan_table._bearing(intr, rot, u + 0.0 * v, v + 0.0 * u)
     _, _, cb_lo, cb_hi = scan_table._bin_map(centre, lo_b, hi_b, sane, angle_min, inc, n)
-    fl_start, fl_code = run_flush_codes(cb_lo, cb_hi, n)
+    fl_start, fl_code = reference_run_flush_codes(cb_lo, cb_hi, n)
     return {
         "zlo_mm": zlo_mm,
         "zhi_mm": zhi_mm,
@@ -150,6 +150,97 @@ def test_exact_table_equals_the_numpy_definition_over_a_dense_grid_of_mounts() -
         for tilt in np.arange(-30.0, 89.0, 7.3):
             for roll in (-44.5, -3.1, 0.0, 2.7, 19.9):
                 assert_exact_table_equal(SMALL, Mount(h, float(tilt), roll), ScanParams())
+
+
+def reference_run_ends(
+    cb_lo: np.ndarray, cb_hi: np.ndarray, row_block: int = 0
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Where the runs of a run-minimum kernel end, from the bins every pixel (or sample) feeds.
+
+    A run of column c is a stretch of rows over which c feeds the same bins; it ends after row i
+    when row i + 1 feeds other bins, or i is the last row.
+
+    Args:
+        cb_lo, cb_hi: (Hs, Ws) first and last bin each pixel feeds (cb_lo > cb_hi: none);
+            rows in the order the kernel walks them.
+        row_block: if > 0, every run also ends after each row_block-th row (a kernel that may
+            skip whole blocks of rows needs no run to cross into them).
+
+    Returns:
+        ev_start, ev_col, ev_lo, ev_hi: the runs ending after row i are ev_start[i]:ev_start[i + 1]
+        ((Hs + 1,) int32); each names its column and the bins it feeds ((E,) int32 each).
+    """
+    hs, ws = cb_lo.shape
+    ends = np.ones((hs, ws), dtype=bool)
+    ends[:-1] = (cb_lo[1:] != cb_lo[:-1]) | (cb_hi[1:] != cb_hi[:-1])
+    if row_block > 0:
+        ends[row_block - 1 :: row_block] = True
+    ii, jj = np.nonzero(ends)  # row-major: grouped by row
+    ev_start = np.zeros(hs + 1, dtype=np.int32)
+    np.cumsum(np.bincount(ii, minlength=hs), out=ev_start[1:])
+    return (
+        ev_start,
+        jj.astype(np.int32),
+        cb_lo[ii, jj].astype(np.int32),
+        cb_hi[ii, jj].astype(np.int32),
+    )
+
+
+def reference_run_flush_codes(
+    cb_lo: np.ndarray, cb_hi: np.ndarray, n_bins: int, row_block: int = 0
+) -> tuple[np.ndarray, np.ndarray]:
+    """``run_ends`` as one packed code per (run, bin): what the exact scan kernel reads.
+
+    One int32 per flush instead of separate column, bin and reset lists: the kernel's flush loop
+    is bound by its loads and stores (~1 ns a flush against ~2-3 ns with three lists).
+
+    Args:
+        cb_lo, cb_hi: (Hs, Ws) first and last bin each pixel feeds (cb_lo > cb_hi: none);
+            Ws and the bins below 32768.
+        n_bins: bins of the scan; a run feeding none is flushed into bin n_bins (a scratch slot
+            the kernel's output has beyond the scan), so that its column starts again too.
+        row_block: as in ``run_ends``.
+
+    Returns:
+        fl_start: (Hs + 1,) the flushes after row i are fl_start[i]:fl_start[i + 1];
+        fl_code: (F,) ``col | last << 15 | bin << 16``: column col's run minimum goes into bin; a
+        run's bins are consecutive, and its last carries ``last`` (the column starts a new run).
+    """
+    hs = cb_lo.shape[0]
+    rs_start, rs_col, lo, hi = reference_run_ends(cb_lo, cb_hi, row_block)
+    row = np.repeat(np.arange(hs), np.diff(rs_start))
+    lo = lo.astype(np.int64)
+    none = hi < lo
+    lo[none] = n_bins
+    span = np.where(none, 1, hi.astype(np.int64) - lo + 1)
+    k = np.repeat(np.arange(rs_col.size), span)
+    within = np.arange(k.size) - np.repeat(np.cumsum(span) - span, span)
+    fl_start = np.zeros(hs + 1, dtype=np.int32)
+    np.cumsum(np.bincount(row[k], minlength=hs), out=fl_start[1:])
+    last = within == span[k] - 1
+    code = (
+        rs_col[k].astype(np.int64)
+        | (last.astype(np.int64) << CODE_BITS)
+        | ((lo[k] + within) << (CODE_BITS + 1))
+    )
+    return fl_start, code.astype(np.int32)
+
+
+@pytest.mark.parametrize("row_block", [0, 1, 4, 7])
+@pytest.mark.parametrize("dtype", [np.int16, np.int32])
+def test_run_flush_codes_equal_the_numpy_definition(row_block: int, dtype: type) -> None:
+    rng = np.random.default_rng(row_block)
+    for shape in [(1, 1), (5, 9), (40, 64), (33, 200)]:
+        n = 50
+        # slowly changing bins down each column (as a tilted camera's), some feeding none
+        lo = np.cumsum(rng.random(shape) < 0.3, axis=0) + rng.integers(0, 10, shape[1])
+        hi = lo + rng.integers(-1, 3, shape)  # -1: feeds no bin
+        lo, hi = np.minimum(lo, n - 1).astype(dtype), np.minimum(hi, n - 1).astype(dtype)
+        got = run_flush_codes(lo, hi, n, row_block)
+        want = reference_run_flush_codes(lo, hi, n, row_block)
+        for g, w in zip(got, want, strict=True):
+            assert g.dtype == w.dtype == np.int32
+            np.testing.assert_array_equal(g, w)
 
 
 def reference_pose_table(intr: Intrinsics, params: PoseParams) -> tuple[np.ndarray, ...]:
