@@ -31,6 +31,13 @@ from depthnav_daemon.commands.common import (
 )
 from depthnav_daemon.errors import DepthnavError
 from drivers.errors import DeviceSpecError, DriverError
+from drivers.spec_options import help_text
+
+DEVICE_HELP = (
+    "device spec: kinect, openni://, replay:PATH, ... (options below; see depthnav devices)"
+)
+# the device spec options, from the table the drivers check them against, below a command's help
+WITH_SPEC_HELP = {"epilog": help_text(), "formatter_class": argparse.RawDescriptionHelpFormatter}
 
 TRACEBACK_VERBOSITY = 2  # -vv shows tracebacks
 log = logging.getLogger("depthnav_daemon.cli")
@@ -71,10 +78,7 @@ def _add_config_args(p: argparse.ArgumentParser) -> None:
 
 def _add_run_args(p: argparse.ArgumentParser, device_required: bool) -> None:
     if device_required:
-        p.add_argument(
-            "--device",
-            help="device spec: kinect, openni://, replay:PATH, ... (see: depthnav devices)",
-        )
+        p.add_argument("--device", help=DEVICE_HELP)
     p.add_argument(
         "--sink",
         action="append",
@@ -126,12 +130,17 @@ def build_parser() -> argparse.ArgumentParser:
 
 def _add_run_commands(sub: Any) -> None:
     """``run`` and ``replay``."""
-    p = sub.add_parser("run", help="process a device and stream the results")
+    p = sub.add_parser("run", help="process a device and stream the results", **WITH_SPEC_HELP)
     _add_run_args(p, device_required=True)
     p.set_defaults(handler="run:cmd_run")
 
-    p = sub.add_parser("replay", help="process a recording (alias of run --device replay:PATH)")
-    p.add_argument("path", help="recording folder, .npz, PNG folder, fakenect folder or .oni file")
+    p = sub.add_parser(
+        "replay", help="process a recording (alias of run --device replay:PATH)", **WITH_SPEC_HELP
+    )
+    p.add_argument(
+        "path",
+        help="recording folder, .npz, .npy, PNG/PGM folder, fakenect folder, .oni file or ROS bag",
+    )
     p.add_argument(
         "--rate", choices=("realtime", "max"), default="max", help="pacing (default max)"
     )
@@ -142,8 +151,12 @@ def _add_run_commands(sub: Any) -> None:
 
 def _add_setup_commands(sub: Any) -> None:
     """``calibrate``, ``record`` and ``mount``: setting a sensor up."""
-    p = sub.add_parser("calibrate", help="estimate the sensor height, tilt and roll from the floor")
-    p.add_argument("--device", required=True, help="device spec")
+    p = sub.add_parser(
+        "calibrate",
+        help="estimate the sensor height, tilt and roll from the floor",
+        **WITH_SPEC_HELP,
+    )
+    p.add_argument("--device", required=True, help=DEVICE_HELP)
     p.add_argument("--frames", type=int, default=30, metavar="N", help="frames to use (default 30)")
     p.add_argument("--json", action="store_true", help="print one JSON object instead of text")
     p.add_argument(
@@ -153,9 +166,11 @@ def _add_setup_commands(sub: Any) -> None:
     p.set_defaults(handler="calibrate:cmd_calibrate")
 
     p = sub.add_parser(
-        "record", help="record a device's frames as a depthnav recording (a fixture)"
+        "record",
+        help="record a device's frames as a depthnav recording (a fixture), or export them",
+        **WITH_SPEC_HELP,
     )
-    p.add_argument("--device", required=True, help="device spec")
+    p.add_argument("--device", required=True, help=DEVICE_HELP)
     p.add_argument(
         "--frames", type=int, default=30, metavar="N", help="frames to record (default 30)"
     )
@@ -166,7 +181,15 @@ def _add_setup_commands(sub: Any) -> None:
         help="also store the robot's odometry with every frame (odom+udp://127.0.0.1:PORT, "
         "mavlink+udp://HOST:PORT, mavlink:SERIALPORT)",
     )
-    p.add_argument("out", type=Path, help="new folder to write")
+    p.add_argument(
+        "--format",
+        choices=("depthnav", "png", "oni", "fakenect"),
+        default="depthnav",
+        help="depthnav (default: everything, compressed), png (folder of 16-bit millimetre PNGs "
+        "with depth.txt and camera.toml, TUM style), oni (OpenNI2 file, OUT ends in .oni), "
+        "fakenect (libfreenect's folder, 640x480 only)",
+    )
+    p.add_argument("out", type=Path, help="new folder to write (a new file for --format oni)")
     p.set_defaults(handler="record:cmd_record")
 
     p = sub.add_parser(
@@ -205,9 +228,11 @@ def _add_tool_commands(sub: Any) -> None:
     p.set_defaults(handler="info:cmd_info")
 
     p = sub.add_parser(
-        "snapshot", help="draw one frame: depth with obstacles and drop-offs, and a top-down view"
+        "snapshot",
+        help="draw one frame: depth with obstacles and drop-offs, and a top-down view",
+        **WITH_SPEC_HELP,
     )
-    p.add_argument("--device", required=True, help="device spec or recording (replay:PATH)")
+    p.add_argument("--device", required=True, help=DEVICE_HELP)
     p.add_argument(
         "--frame", type=int, default=0, metavar="N", help="the frame to draw, from 0 (default 0)"
     )

@@ -1,12 +1,16 @@
 """The fake driver: replays recorded frames as if a sensor were attached.
 
-Spec: ``replay:PATH[?rate=realtime|max&loop=0|1&fps=F&fx=..&fy=..&cx=..&cy=..&scale=S
-&const_shift=C]``
+Spec: ``replay:PATH[?OPTION=VALUE&...]``, the options listed in drivers/spec_options.py (which
+``depthnav --help`` prints).
 
 PATH is one of (detected when opened):
-- a depthnav recording folder (``recording.toml`` + ``frames.npz``) or a bare ``.npz``;
-- a folder of 16-bit PNG depth images (see drivers/formats/png_folder.py; ``scale`` units per metre,
-  default from ``camera.toml`` or 5000; intrinsics from ``camera.toml`` or ``fx, fy, cx, cy``);
+- a depthnav recording folder (``recording.toml`` + ``frames.npz``) or a bare ``.npz`` (uint16
+  ``depth_mm`` or float ``depth_m`` metres; ``fx, fy, cx, cy`` when it has no intrinsics), or a
+  bare ``.npy`` depth array (drivers/formats/npy.py; intrinsics from ``fx, fy, cx, cy``);
+- a folder of 16-bit PNG or PGM depth images (see drivers/formats/png_folder.py; ``scale`` units
+  per metre from ``camera.toml`` or the option, 5000 for TUM RGB-D; intrinsics from
+  ``camera.toml`` or ``fx, fy, cx, cy``; ``glob`` picks the depth images, else colour images
+  beside them are skipped);
 - a fakenect recording (``INDEX.txt``; disparity converted with ``const_shift``, default 200);
 - an ``.oni`` file, played by OpenNI2's libOniFile (see drivers/openni/);
 - a ROS bag: ROS 1 ``.bag``, ROS 2 folder, ``.mcap`` or ``.db3`` (see drivers/formats/rosbag.py;
@@ -16,7 +20,7 @@ Options: ``rate`` realtime (default; sleep to the recorded timestamps) or max (n
 ``loop`` 1 to start again at the end (timestamps keep increasing); ``fps`` frame rate for sources
 without timestamps (default 30); ``fx, fy, cx, cy`` override the intrinsics (pixels); ``start``
 skips that many frames when opening (a seek done by reading, as OpenNI2's own seek hangs; a loop
-restarts at frame 0).
+restarts at frame 0); ``glob`` (image folders) a pattern relative to PATH naming the depth images.
 
 A depthnav recording whose decoded frames fit in ``CACHE_MAX_BYTES`` is decompressed once and kept
 for looping; a larger one is decompressed one frame at a time, again on every loop pass.
@@ -39,6 +43,7 @@ from drivers.base import KINECT_V1, DeviceInfo, Driver, Frame, Intrinsics, TiltS
 from drivers.errors import DeviceSpecError, DriverError, RecordingError
 from drivers.files import check_path_length, check_regular
 from drivers.formats import fakenect, png_folder, rosbag
+from drivers.formats.npy import iter_npy, open_npy
 from drivers.formats.recording import (
     Recording,
     RecordingStream,
@@ -48,6 +53,7 @@ from drivers.formats.recording import (
 )
 from drivers.kinect.axes import accel_counts_to_camera, tilt_status_name
 from drivers.spec import (
+    INTRINSICS_OPTIONS,
     Spec,
     bool_option,
     check_options,
@@ -56,15 +62,12 @@ from drivers.spec import (
     int_option,
     intrinsics_options,
 )
+from drivers.spec_options import option_names
 
 log = logging.getLogger(__name__)
 
-GRAMMAR = (
-    "replay:PATH[?rate=realtime|max&loop=0|1&fps=F&fx=..&fy=..&cx=..&cy=..&scale=S&const_shift=C"
-    "&topic=T&info_topic=T]"
-)
-OPTIONS = ("rate", "loop", "fps", "fx", "fy", "cx", "cy", "scale", "const_shift", "start")
-OPTIONS += ("topic", "info_topic")
+OPTIONS = option_names("replay")  # the one table: depthnav --help prints it
+GRAMMAR = "replay:PATH[?" + "&".join(f"{name}=.." for name in OPTIONS) + "]"
 # Decoded depth up to this size stays in memory for looping (decompressing the 12-frame fixture
 # on every pass cost 40 % of the daemon's CPU at 30 frames/s); above it frames are streamed.
 CACHE_MAX_BYTES = 256 << 20
@@ -94,6 +97,7 @@ class ReplayDriver:
         spec_text: str = "",
         topic: str | None = None,
         info_topic: str | None = None,
+        glob: str | None = None,
     ) -> None:
         self.path = Path(path)
         self.realtime = realtime
@@ -105,6 +109,8 @@ class ReplayDriver:
         self.start = start
         self.spec_text = spec_text or f"replay:{path}"
         self.topics = (topic, info_topic)  # ROS bags: depth image and CameraInfo topics
+        self.glob = glob  # image folders: which files are depth
+        self._image_list: list[tuple[float, Path]] | None = None  # listed once, kept to loop
         self._items: Iterator[Item] | None = None
         self._recording: Recording | RecordingStream | None = None  # opened once, kept to loop
         self._inner: Driver | None = None
@@ -136,6 +142,7 @@ class ReplayDriver:
             start=int_option(spec, "start", 0, 0, 10_000_000),
             topic=spec.options.get("topic"),
             info_topic=spec.options.get("info_topic"),
+            glob=spec.options.get("glob"),
         )
 
     # --- sources -------------------------------------------------------------------------
@@ -153,11 +160,11 @@ class ReplayDriver:
                 )
             values = dict(self.overrides)
         else:
-            values = {"fx": base.fx, "fy": base.fy, "cx": base.cx, "cy": base.cy, **self.overrides}
+            values = {key: getattr(base, key) for key in INTRINSICS_OPTIONS} | self.overrides
         try:
-            return Intrinsics(width, height, values["fx"], values["fy"], values["cx"], values["cy"])
+            return Intrinsics(width, height, **values)
         except ValueError as exc:
-            if any(key in self.overrides for key in ("fx", "fy", "cx", "cy")):
+            if any(key in self.overrides for key in INTRINSICS_OPTIONS):
                 # the user's ?fx=..&cx=.. options do not fit this recording: a usage error (exit 2)
                 raise DeviceSpecError(
                     f"{self.spec_text}: intrinsics options do not fit the {width}x{height} "
@@ -169,8 +176,15 @@ class ReplayDriver:
         """The recording decoded in memory when it fits CACHE_MAX_BYTES, else a frame stream."""
         if recording_depth_nbytes(self.path) <= CACHE_MAX_BYTES:
             # the cap again: the member decoded is the one whose size was just read
-            return read_recording(self.path, default_fps=self.fps, max_depth_bytes=CACHE_MAX_BYTES)
-        return open_recording_stream(self.path, default_fps=self.fps)
+            return read_recording(
+                self.path,
+                default_fps=self.fps,
+                max_depth_bytes=CACHE_MAX_BYTES,
+                intrinsics_override=self.overrides,
+            )
+        return open_recording_stream(
+            self.path, default_fps=self.fps, intrinsics_override=self.overrides
+        )
 
     def _depthnav_items(self) -> tuple[Iterator[Item], Intrinsics, str]:
         rec = self._recording
@@ -205,14 +219,28 @@ class ReplayDriver:
                     "(scale 1000 for millimetre PNGs, 5000 for TUM RGB-D)",
                 )
         scale = self.scale or png_folder.sidecar_scale(self.path, side)
-        frames = png_folder.list_frames(self.path, self.fps)
-        first = png_folder.read_depth_png(frames[0][1], scale)
+        if self._image_list is None:  # picking the depth images reads every file's header
+            self._image_list = png_folder.list_frames(self.path, self.fps, self.glob)
+        frames = self._image_list
+        first = png_folder.read_depth_image(frames[0][1], scale)
         base = png_folder.sidecar_intrinsics(self.path, side, first.shape)
         intr = self._intrinsics_with(base, first.shape)
 
         def items() -> Iterator[Item]:
-            for stamp, depth in png_folder.iter_png_folder(self.path, intr, scale, self.fps):
+            for stamp, depth in png_folder.iter_png_folder(
+                self.path, intr, scale, self.fps, frames
+            ):
                 yield stamp, depth, None, None, None
+
+        return items(), intr, self.path.name
+
+    def _npy_items(self) -> tuple[Iterator[Item], Intrinsics, str]:
+        npy = open_npy(self.path)
+        intr = self._intrinsics_with(None, npy.shape[1:])
+
+        def items() -> Iterator[Item]:
+            for i, depth in enumerate(iter_npy(npy)):
+                yield i / self.fps, depth, None, None, None
 
         return items(), intr, self.path.name
 
@@ -257,23 +285,31 @@ class ReplayDriver:
                 self._items, intr, name = self._depthnav_items()
             elif (self.path / "INDEX.txt").exists():
                 self._items, intr, name = self._fakenect_items()
-            elif png_folder.is_png_folder(self.path):
+            elif self.glob is not None or png_folder.is_png_folder(self.path):
                 self._items, intr, name = self._png_items()
             else:
                 raise RecordingError(
                     f"{self.path}: not a recording folder "
-                    "(no recording.toml, INDEX.txt, depth.txt or *.png)",
-                    hint="record one with `depthnav record`",
+                    "(no recording.toml, INDEX.txt, depth.txt, *.png or *.pgm)",
+                    hint="record one with `depthnav record`, or name the depth images with "
+                    "replay:PATH?glob=PATTERN",
                 )
+        elif self.glob is not None:
+            raise RecordingError(
+                f"{self.path}: glob= picks images in a folder; this is not a folder",
+                hint="write replay:FOLDER?glob=PATTERN",
+            )
         elif self.path.suffix.lower() == ".npz":
             self._items, intr, name = self._depthnav_items()
+        elif self.path.suffix.lower() == ".npy":
+            self._items, intr, name = self._npy_items()
         elif not self.path.exists():
             raise RecordingError(f"{self.path}: no such file or folder", hint="check the path")
         else:
             raise RecordingError(
                 f"{self.path}: unknown recording type {self.path.suffix or '(no suffix)'!r}",
-                hint="replay takes a recording folder, .npz, PNG folder, fakenect folder, .oni "
-                "or a ROS bag (.bag, .mcap, .db3, ROS 2 bag folder)",
+                hint="replay takes a recording folder, .npz, .npy, image folder, fakenect folder, "
+                ".oni or a ROS bag (.bag, .mcap, .db3, ROS 2 bag folder)",
             )
         if self._intrinsics is not None and intr != self._intrinsics:
             raise RecordingError(f"{self.path}: intrinsics changed while looping")

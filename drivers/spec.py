@@ -11,7 +11,13 @@ from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from urllib.parse import unquote
 
-from drivers.base import Intrinsics
+from drivers.base import (
+    DISTORTION_KEYS,
+    MAX_FOCAL_PX,
+    MAX_RADIAL_COEFF,
+    MAX_TANGENTIAL_COEFF,
+    Intrinsics,
+)
 from drivers.errors import DeviceSpecError
 from drivers.values import NumberError, short_repr, to_number
 
@@ -171,28 +177,34 @@ def int_option(spec: Spec, key: str, default: int, low: int = 0, high: int = 2**
     return int(number_option(spec, key, 0, low, high, integer=True))
 
 
-INTRINSICS_OPTIONS = ("fx", "fy", "cx", "cy")
+PINHOLE_OPTIONS = ("fx", "fy", "cx", "cy")
+INTRINSICS_OPTIONS = (*PINHOLE_OPTIONS, *DISTORTION_KEYS)
 
 
 def intrinsics_options(spec: Spec) -> dict[str, float]:
-    """The ``fx, fy, cx, cy`` options (pixels) that override a device's own intrinsics."""
+    """The ``fx, fy, cx, cy`` (pixels) and lens ``k1, k2, p1, p2, k3`` (plumb_bob) options that
+    override a device's own intrinsics."""
     out = {}
     for key in INTRINSICS_OPTIONS:
-        value = float_option(spec, key, None, -0.5, 1e5)
+        if key in PINHOLE_OPTIONS:
+            value = float_option(spec, key, None, -0.5, MAX_FOCAL_PX)
+        else:
+            limit = MAX_TANGENTIAL_COEFF if key.startswith("p") else MAX_RADIAL_COEFF
+            value = float_option(spec, key, None, -limit, limit)
         if value is not None:
             out[key] = value
     return out
 
 
 def with_overrides(base: Intrinsics, overrides: Mapping[str, float], what: str) -> Intrinsics:
-    """``base`` with some of fx, fy, cx, cy replaced.
+    """``base`` with some of fx, fy, cx, cy, k1, k2, p1, p2, k3 replaced.
 
     Raises:
         DeviceSpecError: the result is not valid for the image size.
     """
     if not overrides:
         return base
-    values = {"fx": base.fx, "fy": base.fy, "cx": base.cx, "cy": base.cy, **overrides}
+    values = {key: getattr(base, key) for key in INTRINSICS_OPTIONS} | dict(overrides)
     try:
         return Intrinsics(base.width, base.height, **values)
     except ValueError as exc:

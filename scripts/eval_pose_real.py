@@ -1,11 +1,13 @@
 """Floor pose on the real CMU Panoptic Kinect v2 frames against their reference (read in place).
 
     python3 scripts/eval_pose_real.py [--data ../shared/data/real/cmu_panoptic_kinoptic_10view]
-                                      [--seeds 5] [--height-max-m 3.0]
+                                      [--seeds 5] [--height-max-m 3.0] [--lens]
 
 Prints per view the estimate minus the leave-one-out reference (height mm, tilt and roll degrees;
 the reference's roll is atan2(n_x, -n_y), the opposite sign of depthnav's), and the median time
-per estimate. The data are non-commercial research only: never copy them into the repository.
+per estimate. ``--lens`` gives each view its lens distortion (the first five ``distCoeffs_depth``
+of the calibration, OpenCV order k1 k2 p1 p2 k3). The data are non-commercial research only:
+never copy them into the repository.
 """
 
 from __future__ import annotations
@@ -37,7 +39,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--data", type=Path, default=DEFAULT)
     ap.add_argument("--seeds", type=int, default=5)
     ap.add_argument("--height-max-m", type=float, default=3.0)
+    ap.add_argument("--lens", action="store_true", help="apply the lens distortion coefficients")
     args = ap.parse_args(argv)
+    calib = json.loads((args.data / "kcalibration_171026_cello3.json").read_text())["sensors"]
     data = np.load(args.data / "views.npz")
     depth, intrinsics = data["depth_mm"], data["intrinsics_per_view"]
     ref = json.loads((args.data / "floor_reference.json").read_text())["cameras"]
@@ -50,7 +54,8 @@ def main(argv: list[str] | None = None) -> int:
     )
     for i in range(depth.shape[0]):
         fx, fy, cx, cy = (float(v) for v in intrinsics[i])
-        intr = Intrinsics(depth.shape[2], depth.shape[1], fx, fy, cx, cy)
+        lens = [float(c) for c in calib[i]["distCoeffs_depth"][:5]] if args.lens else []
+        intr = Intrinsics(depth.shape[2], depth.shape[1], fx, fy, cx, cy, *lens)
         frame = np.ascontiguousarray(depth[i])
         r = ref[i]["reference_leave_one_out"]
         for seed in range(args.seeds):

@@ -1,4 +1,5 @@
-"""``depthnav record``: a device's frames into a depthnav recording (a fixture)."""
+"""``depthnav record``: a device's frames into a depthnav recording (a fixture), or exported as a
+folder of 16-bit PNGs, an ``.oni`` file or a fakenect folder for other tools (``--format``)."""
 
 from __future__ import annotations
 
@@ -7,6 +8,8 @@ import logging
 import signal
 import sys
 import threading
+from collections.abc import Callable, Iterator
+from typing import Any
 
 from depthnav_daemon.commands.common import (
     EXIT_OK,
@@ -38,10 +41,73 @@ def _device_text(args: argparse.Namespace) -> str:
     return str(args.device.encode("utf-8", "surrogateescape").decode("utf-8", "replace"))
 
 
-def cmd_record(args: argparse.Namespace) -> int:
+# what each format keeps of a frame; said once when recording starts
+FORMATS = {
+    "depthnav": "depth, timestamps, intrinsics, accelerometer, odometry and description",
+    "png": "depth (mm), timestamps and intrinsics (camera.toml); no accelerometer or odometry",
+    "oni": "depth (mm), timestamps and fx, fy (as a field of view; the principal point comes "
+    "back at the image centre); no lens distortion, accelerometer or odometry",
+    "fakenect": "640x480 depth as 11-bit Kinect disparity (quantised) with the accelerometer; "
+    "replay assumes Kinect v1 intrinsics",
+}
+
+
+def _check_out(args: argparse.Namespace) -> None:
+    """Refuse a target that cannot be written, before the device is opened."""
+    out, fmt = args.out, getattr(args, "format", "depthnav")
+    if fmt == "oni":
+        if out.suffix.lower() != ".oni":
+            raise ConfigError(f"{out}: an .oni recording is a file named *.oni", hint="e.g. x.oni")
+        if out.exists() or out.is_symlink():
+            raise ConfigError(f"{out}: exists; refusing to overwrite", hint="choose a new name")
+    elif fmt != "depthnav" and out.exists() and (not out.is_dir() or any(out.iterdir())):
+        # (write_recording checks its own target, before the first frame)
+        raise ConfigError(
+            f"{out}: exists and is not an empty folder; refusing to overwrite",
+            hint="choose a new folder",
+        )
+    if fmt != "depthnav" and args.odometry:
+        raise ConfigError(
+            f"--odometry is stored by --format depthnav only, not {fmt}",
+            hint="record with --format depthnav",
+        )
+
+
+def _export(args: argparse.Namespace, frames: Iterator[Any], took: Callable[[int], None]) -> int:
+    """Write ``frames`` in ``args.format`` (not depthnav's own), reporting each frame taken."""
+    from drivers.errors import RecordingError
+    from drivers.formats.fakenect import write_fakenect
+    from drivers.formats.oni import write_oni
+    from drivers.formats.png_folder import write_png_folder
+
+    def counted() -> Iterator[Any]:
+        for k, frame in enumerate(frames, 1):
+            yield frame
+            took(k)
+
+    if args.format == "png":
+        return write_png_folder(args.out, counted(), scale=1000.0)  # millimetres: lossless
+    if args.format == "oni":
+        return write_oni(args.out, counted())
+    n = write_fakenect(args.out, counted())
+    if n == 0:
+        raise RecordingError(f"{args.out}: no frames to write")
+    return n
+
+
+def _checked(args: argparse.Namespace) -> tuple[str, str]:
+    """(format, device text), after checking the arguments before the device is opened."""
     if args.frames < 1:
         raise ConfigError(f"--frames={args.frames} is out of range (accepted: 1 or more)")
+    fmt = getattr(args, "format", "depthnav")
+    _check_out(args)
     device_text = _device_text(args)
+    log.info("recording %s as %s: %s", args.out, fmt, FORMATS[fmt])
+    return fmt, device_text
+
+
+def cmd_record(args: argparse.Namespace) -> int:
+    fmt, device_text = _checked(args)
     stop = threading.Event()
     got = install_stop_handlers(stop)  # before the heavy imports: see install_stop_handlers
     from drivers import create_driver, iter_frames, opened
@@ -86,14 +152,17 @@ def cmd_record(args: argparse.Namespace) -> int:
 
     try:
         with opened(driver):
-            n = write_recording(
-                args.out,
-                frames(),
-                description=args.description,
-                device=device_text,
-                progress=took,
-                progress_compress=compressed,
-            )
+            if fmt == "depthnav":
+                n = write_recording(
+                    args.out,
+                    frames(),
+                    description=args.description,
+                    device=device_text,
+                    progress=took,
+                    progress_compress=compressed,
+                )
+            else:
+                n = _export(args, frames(), took)
     except RecordingError:
         if "signal" not in got or taken[0]:
             raise
@@ -103,6 +172,11 @@ def cmd_record(args: argparse.Namespace) -> int:
     finally:
         if odometry is not None:
             odometry.stop()
+    return _reported(args, n, got)
+
+
+def _reported(args: argparse.Namespace, n: int, got: dict[str, Any]) -> int:
+    """Say how many frames were recorded; the exit code."""
     if n < args.frames and "signal" not in got:
         log.warning(
             "%s ended after %d of the %d frames asked for; recorded %d into %s",

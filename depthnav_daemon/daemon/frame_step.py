@@ -16,7 +16,7 @@ import numpy as np
 from depthnav_daemon.config.loader import Config
 from depthnav_daemon.daemon.mount_tracker import MountTracker, TrackerParams
 from depthnav_daemon.daemon.stage_tables import StageTables
-from depthnav_daemon.pipeline import Result, StageParams, prepare, process
+from depthnav_daemon.pipeline import MountTrust, Result, StageParams, prepare, process
 from depthnav_daemon.pipeline.geometry import MAX_MOUNT_HEIGHT_M, MAX_ROLL_DEG, MAX_TILT_DEG
 from depthnav_daemon.pipeline.pose import (
     PoseEstimate,
@@ -50,7 +50,10 @@ class FrameStep:
         self._daemon = d
         self._pose_params = cfg.pose
         self._tilt_source = tilt_source
-        self._tracker = MountTracker(cfg.mount, TrackerParams.from_daemon(d))
+        self._tracker = MountTracker(
+            cfg.mount, TrackerParams.from_daemon(d), pinned=d.tilt_source == "config"
+        )
+        self._trusted: bool | None = None  # drop-offs trusted on the last frame (None: no frame)
         self._tables = StageTables(lambda intr, mount: prepare(intr, mount, self.params))
         self._rng = np.random.default_rng(d.seed)
         self._since_pose = d.pose_every_frames  # estimate on the first frame
@@ -81,6 +84,9 @@ class FrameStep:
             )
             timings["pose"] = time.perf_counter() - t0
             _apply_pose(self._tracker, pose, self._daemon.tilt_source)
+        trust = self._tracker.trust()
+        if trust.dropoffs_trusted != self._trusted:
+            self._say_trust(trust)
         # a new floor estimate serves the frame it was made on once its tables exist (built on
         # a worker by StageTables; a camera's first frame builds them itself)
         result = process(
@@ -91,11 +97,20 @@ class FrameStep:
             pose=pose,
             clock=time.perf_counter,
             timings_s=timings,
+            mount_trust=trust,
         )
         if want_pose:
             self._since_pose, self._last_pose_t = 0, frame.timestamp_s
         self._since_pose += 1
         return result
+
+    def _say_trust(self, trust: MountTrust) -> None:
+        """Log when drop-offs stop (warning) or start again (info) being trusted."""
+        first, self._trusted = self._trusted is None, trust.dropoffs_trusted
+        if not trust.dropoffs_trusted:
+            log.warning("%s", trust.note)
+        elif not first:
+            log.info("mount %s by the floor: drop-offs are trusted again", trust.floor)
 
     def close(self) -> None:
         """Stop the table builder."""
@@ -178,8 +193,8 @@ def _apply_pose(tracker: MountTracker, est: PoseEstimate, tilt_source: str) -> N
     if not est.ok:
         log.debug("floor pose not confident: %s", est.reason)
         return
-    if tilt_source == "config":
-        return  # the user pinned the mount
-    note = tracker.from_floor(est.height_m, est.tilt_deg, est.roll_deg)
-    if note:
-        (log.warning if "not applied" in note else log.info)("%s", note)
+    if tilt_source != "config":  # else the user pinned the mount: the floor only checks it
+        note = tracker.from_floor(est.height_m, est.tilt_deg, est.roll_deg)
+        if note:
+            (log.warning if "not applied" in note else log.info)("%s", note)
+    tracker.check_floor(est.height_m, est.tilt_deg, est.roll_deg)

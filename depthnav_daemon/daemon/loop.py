@@ -52,20 +52,43 @@ class RunReport:
 def open_sinks(
     specs: tuple[str, ...], context: SinkContext, factory: Callable[[str], Sink]
 ) -> list[Sink]:
+    """Open every sink; one that cannot start is reported and left out while others started.
+
+    Raises:
+        DepthnavError: no sink could start (each failure is named in the message, once).
+    """
     sinks: list[Sink] = []
+    failures: list[tuple[str, str | None]] = []  # (what failed, its hint)
     for spec in specs:
         sink = factory(spec)
         try:
             sink.open(context)
         except (SinkError, OSError) as exc:
-            log.error("sink %s could not start: %s; going on without it", spec, exc)
+            failures.append(
+                (f"sink {spec} could not start: {_one_line(exc)}", getattr(exc, "hint", None))
+            )
             continue
         sinks.append(sink)
     if not sinks:
+        if len(failures) == 1:
+            what, hint = failures[0]
+            raise DepthnavError(
+                f"{what}; no output sink could start", hint=hint or "check the --sink spec"
+            )
+        for what, hint in failures:
+            log.error("%s%s", what, f" ({hint})" if hint else "")
         raise DepthnavError(
-            "no output sink could start", hint="check the --sink specs (depthnav run --help)"
+            f"no output sink could start ({len(failures)} tried, see above)",
+            hint="check the --sink specs (depthnav run --help)",
         )
+    for what, hint in failures:  # only now is "going on without it" true
+        log.error("%s; going on without it%s", what, f" ({hint})" if hint else "")
     return sinks
+
+
+def _one_line(exc: BaseException) -> str:
+    text = str(exc)
+    return text.splitlines()[0] if text else type(exc).__name__
 
 
 def fan_out(sinks: list[Sink], frame: Frame, result: Result, report: RunReport) -> None:
@@ -206,12 +229,21 @@ def frames_of(
 
 
 def _status(fps: float, result: Result) -> str:
-    """The one-line STATUS systemd shows: frame rate and the mount in use."""
-    m = result.mount
-    return (
-        f"{fps:.1f} frames/s, mount {m.height_m:.3f} m, tilt {m.tilt_deg:.1f} deg, "
-        f"roll {m.roll_deg:.1f} deg ({result.mount_source})"
+    """The one-line STATUS systemd shows: frame rate, the mount in use and how far it is
+    trusted."""
+    m, trust = result.mount, result.mount_trust
+    origin = (
+        result.mount_source
+        if trust is None
+        else f"{trust.source}{', pinned' if trust.pinned else ''}, floor {trust.floor}"
     )
+    line = (
+        f"{fps:.1f} frames/s, mount {m.height_m:.3f} m, tilt {m.tilt_deg:.1f} deg, "
+        f"roll {m.roll_deg:.1f} deg ({origin})"
+    )
+    if trust is not None and not trust.dropoffs_trusted:
+        line += "; drop-offs NOT trusted"
+    return line
 
 
 def close_outputs(sinks: list[Sink], notifier: ServiceNotifier, report: RunReport) -> None:

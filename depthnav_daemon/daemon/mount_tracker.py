@@ -4,6 +4,11 @@ The original's three tools were never wired together; here the floor pose estima
 and cliff stages. A configured mount is used until a tilt sensor or the floor says better; floor
 estimates are smoothed; an estimate that jumps beyond a bound is logged and held back until several
 consecutive estimates agree with each other (the sensor really was moved).
+
+Every confident floor estimate also checks the mount in use (:meth:`MountTracker.check_floor`):
+the tracker's :meth:`~MountTracker.trust` says where the mount came from, whether the floor
+confirms it, and whether drop-offs computed with it can be trusted (a wrong mount turns the floor
+itself into a "drop-off").
 """
 
 from __future__ import annotations
@@ -13,12 +18,14 @@ import math
 from dataclasses import dataclass
 
 from depthnav_daemon.config.loader import DaemonParams
+from depthnav_daemon.pipeline import MountTrust
 from depthnav_daemon.pipeline.geometry import MAX_ROLL_DEG, MAX_TILT_DEG, Mount
 
 log = logging.getLogger(__name__)
 
 
 _DAEMON = DaemonParams()  # the defaults of the fields below live there, once
+_DEFAULT_MOUNT = Mount()
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -52,6 +59,10 @@ def _distance(a: Mount, b: Mount) -> tuple[float, float]:
     )
 
 
+def _level(m: Mount) -> tuple[float, float, float]:
+    return (m.height_m, m.tilt_deg, m.roll_deg)
+
+
 def _clamped(like: Mount, height_m: float, tilt_deg: float, roll_deg: float) -> Mount:
     """``like``'s placement on the robot with this height, tilt and roll (clamped to range)."""
     return like.with_level(
@@ -65,7 +76,7 @@ class MountTracker:
     """Holds the mount the stages use and where it came from ("config", "accel", "serial",
     "floor")."""
 
-    def __init__(self, configured: Mount, params: TrackerParams) -> None:
+    def __init__(self, configured: Mount, params: TrackerParams, *, pinned: bool = False) -> None:
         self.mount = configured
         self._smoothed = configured
         self.source = "config"
@@ -73,6 +84,63 @@ class MountTracker:
         self._floor_seen = False
         self._pending: list[Mount] = []
         self.rejected = 0
+        # nobody configured a mount: the built-in 0.5 m / 0 deg is a guess, not a measurement
+        # (pinned, it is what the user asked for)
+        self._default = not pinned and _level(configured) == _level(_DEFAULT_MOUNT)
+        self._pinned = pinned
+        self._floor = "unknown"
+        self._floor_mount: Mount | None = None  # the floor's estimate while it contradicts
+
+    def check_floor(self, height_m: float, tilt_deg: float, roll_deg: float) -> None:
+        """Compare a confident floor estimate with the mount in use (after :meth:`from_floor` has
+        taken it, if it does): within ``max_jump_m`` / ``max_jump_deg`` it confirms the mount,
+        beyond them it contradicts it (a pinned mount, or a jump not yet accepted)."""
+        est = _clamped(self.mount, height_m, tilt_deg, roll_deg)
+        dh, da = _distance(est, self.mount)
+        agrees = dh <= self._params.max_jump_m and da <= self._params.max_jump_deg
+        self._floor = "confirmed" if agrees else "contradicted"
+        self._floor_mount = None if agrees else est
+
+    def trust(self) -> MountTrust:
+        """The current verdict on the mount in use."""
+        source = "default" if self.source == "config" and self._default else self.source
+        floor, est, m = self._floor, self._floor_mount, self.mount
+        if floor == "confirmed":
+            return MountTrust(source=source, pinned=self._pinned, floor=floor)
+        if est is not None:
+            return MountTrust(
+                source=source,
+                pinned=self._pinned,
+                floor=floor,
+                floor_height_m=est.height_m,
+                floor_tilt_deg=est.tilt_deg,
+                floor_roll_deg=est.roll_deg,
+                dropoffs_trusted=False,
+                note=(
+                    f"the floor says height {est.height_m:.2f} m, tilt {est.tilt_deg:.1f} deg, "
+                    f"roll {est.roll_deg:.1f} deg but the mount in use is {m.height_m:.2f} m, "
+                    f"{m.tilt_deg:.1f} deg, {m.roll_deg:.1f} deg ({source}"
+                    f"{', pinned' if self._pinned else ''}): drop-offs are not trusted"
+                ),
+            )
+        if self._default and self.source != "floor":
+            return MountTrust(
+                source=source,
+                pinned=self._pinned,
+                floor=floor,
+                dropoffs_trusted=False,
+                note=(
+                    f"the mount is not configured (the built-in height {m.height_m:.2f} m, "
+                    + (
+                        f"tilt from the {source}"
+                        if source in ("accel", "serial")
+                        else f"tilt {m.tilt_deg:.1f} deg"
+                    )
+                    + ") and no floor estimate has confirmed it: drop-offs are not trusted "
+                    "(set [mount] or run depthnav calibrate)"
+                ),
+            )
+        return MountTrust(source=source, pinned=self._pinned, floor=floor)
 
     def from_tilt_sensor(self, tilt_deg: float, roll_deg: float, source: str) -> None:
         """Use a tilt sensor's reading (accelerometer or serial IMU) until the floor gives a pose.

@@ -157,8 +157,15 @@ class Merger:
                 merge_scans([c.scan for c in cliffs]),
             )
         self.seq += 1
+        # the merged drop-offs are as trustworthy as the least trusted sensor's
+        doubtful = [
+            r.mount_trust
+            for r in live
+            if r.mount_trust is not None and not r.mount_trust.dropoffs_trusted
+        ]
         return dataclasses.replace(
             arriving,
+            mount_trust=doubtful[0] if doubtful else arriving.mount_trust,
             seq=self.seq - 1,
             scan=scan,
             cliff=cliff,

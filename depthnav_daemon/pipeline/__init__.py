@@ -50,6 +50,42 @@ class StageParams:
     obstacle_mask: bool = False
 
 
+MOUNT_SOURCES = ("default", "config", "accel", "serial", "floor")
+FLOOR_VERDICTS = ("confirmed", "contradicted", "unknown")
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class MountTrust:
+    """How far the mount a frame was processed with can be trusted (the daemon decides it).
+
+    Attributes:
+        source: where the mount's values came from: "default" (the built-in 0.5 m, tilt 0 deg,
+            not pinned: nothing was configured), "config" (a config file, ``--set``, the mount
+            flags or a ``depthnav calibrate`` file), "accel" / "serial" (a tilt sensor's tilt and
+            roll, the configured height), or "floor" (the floor estimate).
+        pinned: the mount is pinned (``daemon.tilt_source = "config"``, as the mount flags set):
+            floor estimates check it but never replace it.
+        floor: "confirmed" (the latest confident floor estimate agrees with the mount within
+            ``daemon.max_jump_m`` / ``max_jump_deg``), "contradicted" (it does not), or
+            "unknown" (no confident floor estimate yet).
+        floor_height_m, floor_tilt_deg, floor_roll_deg: the floor's estimate while it
+            contradicts the mount; else None.
+        dropoffs_trusted: drop-offs (the cliff stage) rest on a trustworthy mount: the floor
+            confirms it, or no floor estimate yet and the mount was configured. False while the
+            floor contradicts the mount or while the built-in default is unconfirmed.
+        note: one line for people while drop-offs are not trusted, else None.
+    """
+
+    source: str = "config"
+    pinned: bool = False
+    floor: str = "unknown"
+    floor_height_m: float | None = None
+    floor_tilt_deg: float | None = None
+    floor_roll_deg: float | None = None
+    dropoffs_trusted: bool = True
+    note: str | None = None
+
+
 @dataclass(frozen=True, slots=True, kw_only=True)
 class Result:
     """Everything depthnav computed for one frame.
@@ -78,7 +114,10 @@ class Result:
         obstacle_mask: (H, W) bool, the pixels the exact scan counts as obstacles, when asked for
             (StageParams.obstacle_mask) and the method is exact; else None.
         timings_s: seconds spent per stage on this frame ("pose", "scan", "cliff").
-        warning: a one-line note about this frame (e.g. "no valid depth"), or None.
+        warning: a one-line note about this frame (e.g. "no valid depth", or why its
+            drop-offs are not trusted), or None.
+        mount_trust: how far the mount can be trusted (the daemon sets it); None when nobody
+            assessed it (``process`` called outside the daemon).
     """
 
     seq: int
@@ -97,6 +136,7 @@ class Result:
     sensor_cliff: CliffResult | None = None
     memory: MemoryResult | None = None
     sensors: tuple[SensorState, ...] = ()
+    mount_trust: MountTrust | None = None
 
     @property
     def level_scan(self) -> LaserScan:
@@ -118,6 +158,7 @@ def process(
     pose: PoseEstimate | None = None,
     clock: Callable[[], float] | None = None,
     timings_s: dict[str, float] | None = None,
+    mount_trust: MountTrust | None = None,
 ) -> Result:
     """Run the scan and cliff stages on one frame with a given mount.
 
@@ -130,6 +171,8 @@ def process(
         clock: a monotonic clock (seconds) to time the stages with, or None for no timings.
         timings_s: timings the caller already took on this frame (e.g. "pose"), kept in the
             result's ``timings_s``.
+        mount_trust: the daemon's verdict on ``mount``, copied into the result; while drop-offs
+            are not trusted its note is the frame's warning (unless the frame has a worse one).
 
     Returns:
         The frame's Result; a frame without any valid reading gives all-NaN scans and a warning.
@@ -154,6 +197,8 @@ def process(
     rows = scan_rows(intr, params.scan)
     # the scan already visited every used pixel: all-NaN means none of them had a reading
     warning = "no valid depth in this frame (all pixels 0)" if np.isnan(scan.ranges).all() else None
+    if warning is None and mount_trust is not None and not mount_trust.dropoffs_trusted:
+        warning = mount_trust.note
     base_scan, base_cliff = scan, cliff
     if mount.placed:
         t0 = tick()
@@ -174,6 +219,7 @@ def process(
         warning=warning,
         sensor_scan=scan if mount.placed else None,
         sensor_cliff=cliff if mount.placed else None,
+        mount_trust=mount_trust,
     )
 
 

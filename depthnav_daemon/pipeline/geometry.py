@@ -22,6 +22,7 @@ import numpy as np
 import numpy.typing as npt
 
 from depthnav_daemon.errors import ConfigError, FrameError
+from depthnav_daemon.pipeline import lens
 from drivers.base import UINT16_MAX, Intrinsics
 
 F32 = npt.NDArray[np.float32]
@@ -167,11 +168,40 @@ def normalized_coords(intr: Intrinsics, u: npt.ArrayLike, v: npt.ArrayLike) -> t
     coordinates (u, v) (pixels; broadcastable arrays), each shaped like ``u + v``.
 
     The one place where pixel coordinates become rays: every table builder (exact scan, cliff,
-    pose) and ``pixel_rays`` go through it, so a lens model applied here reaches every stage
-    (the paper's stages keep the original's pinhole formulas on purpose).
+    pose) and ``pixel_rays`` go through it, so the lens model applied here (the plumb-bob
+    coefficients of ``intr``, undone by ``lens.undistort``) reaches every stage. Its callers build
+    tables once per camera, so undistorting costs nothing per frame. Without distortion this is
+    the plain pinhole arithmetic, bit for bit. The paper's stages (scan_paper.py, ``paper_*``
+    below) keep the original C++'s pinhole formulas on purpose: they reproduce it exactly.
     """
-    u_arr, v_arr = np.broadcast_arrays(np.asarray(u, dtype=np.float64), np.asarray(v, np.float64))
-    return (u_arr - intr.cx) / intr.fx, (v_arr - intr.cy) / intr.fy
+    u0, v0 = np.asarray(u, dtype=np.float64), np.asarray(v, np.float64)
+    if not intr.has_distortion:
+        u_arr, v_arr = np.broadcast_arrays(u0, v0)
+        return (u_arr - intr.cx) / intr.fx, (v_arr - intr.cy) / intr.fy
+    if u0.size + v0.size > _CACHED_COORDS:  # full grids: undistort them as they come
+        return _undistorted(intr, u0, v0)
+    # the builders pass a row of columns and a column of rows: remembered per camera, so a
+    # table rebuilt for a new mount does not undistort again
+    x, y = _undistorted_cached(intr, u0.shape, u0.tobytes(), v0.shape, v0.tobytes())
+    return x.copy(), y.copy()
+
+
+_CACHED_COORDS = 4 * 8192  # u.size + v.size up to which normalized_coords remembers its result
+
+
+def _undistorted(intr: Intrinsics, u: F64, v: F64) -> tuple[F64, F64]:
+    u_arr, v_arr = np.broadcast_arrays(u, v)
+    return lens.undistort((u_arr - intr.cx) / intr.fx, (v_arr - intr.cy) / intr.fy, intr)
+
+
+@functools.lru_cache(maxsize=32)
+def _undistorted_cached(
+    intr: Intrinsics, u_shape: tuple[int, ...], u: bytes, v_shape: tuple[int, ...], v: bytes
+) -> tuple[F64, F64]:
+    x, y = _undistorted(intr, np.frombuffer(u).reshape(u_shape), np.frombuffer(v).reshape(v_shape))
+    x.setflags(write=False)
+    y.setflags(write=False)
+    return x, y
 
 
 @functools.lru_cache(maxsize=8)
@@ -235,7 +265,8 @@ def depth_to_mm(depth: np.ndarray, intr: Intrinsics) -> npt.NDArray[np.uint16]:
 
 def paper_vertical_fov_rad(intr: Intrinsics) -> float:
     """Vertical field of view as depth_nav_tools computes it: angle(top, centre) + angle(centre,
-    bottom)."""
+    bottom). Pinhole on purpose, like every ``paper_*`` formula: lens distortion is ignored, as
+    the original does."""
     return math.atan(intr.cy / intr.fy) + math.atan((intr.height - 1 - intr.cy) / intr.fy)
 
 

@@ -3,6 +3,8 @@
 Per-column minimum over a band of rows, ground removal with margin e_g (eq. 5), the tilt
 compensation factor (eq. 4) with eq. 3's linear row angle, and the original's column-to-bin map
 (which leaves empty bins near the centre: kept for comparison with the ``exact`` method).
+Pinhole on purpose: it ignores the intrinsics' lens coefficients, as the original C++ does, so
+it reproduces the original exactly (the ``exact`` method undistorts its rays).
 """
 
 from __future__ import annotations

@@ -17,7 +17,8 @@ Channels (Foxglove's own protobuf schemas unless said):
     /cliff/points                 PointCloud x y z float32, floor points in the scan frame
     /tf                           FrameTransforms: base -> scan frame, base -> optical frame
     /depth_sensor_pose            PoseInFrame: the mount in the base frame (see ros_messages)
-    /depthnav/timings             JSON: stage timings (ms), mount and its source, warning
+    /depthnav/timings             JSON: stage timings (ms), mount, its source and trust (the
+                                  JSON sinks' "mount" object), warning
 
 Served by the foxglove-sdk (its Rust server runs on its own threads): logging a message never
 waits for a client; each client has a bounded backlog (oldest data dropped when it fills, a
@@ -38,6 +39,7 @@ import numpy as np
 
 from depthnav_daemon.errors import ConfigError, SinkError
 from depthnav_daemon.sinks.base import SinkContext, SinkSpec, check_options, parse_host_port
+from depthnav_daemon.sinks.jsonmsg import mount_trust_to_json
 from depthnav_daemon.sinks.ros_messages import OPTIONS, RosNames, quaternion, sensor_placement
 from depthnav_daemon.sinks.ros_messages import stamp_ns as to_ns
 
@@ -247,7 +249,8 @@ class FoxgloveSink:
         i = frame.intrinsics
         return m.CameraCalibration(
             timestamp=stamp, frame_id=self.names["optical_frame"], width=i.width,
-            height=i.height, distortion_model="", D=[],
+            height=i.height, distortion_model="plumb_bob" if i.has_distortion else "",
+            D=list(i.distortion) if i.has_distortion else [],
             K=[i.fx, 0.0, i.cx, 0.0, i.fy, i.cy, 0.0, 0.0, 1.0],
             R=[1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0],
             P=[i.fx, 0.0, i.cx, 0.0, 0.0, i.fy, i.cy, 0.0, 0.0, 0.0, 1.0, 0.0],
@@ -293,6 +296,7 @@ class FoxgloveSink:
                 "roll_deg": mount.roll_deg,
             },
             "mount_source": result.mount_source,
+            "mount_trust": mount_trust_to_json(result),
             "warning": result.warning,
         }
 

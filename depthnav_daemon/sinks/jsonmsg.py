@@ -87,8 +87,9 @@ def scan_to_json(scan: LaserScan) -> dict[str, Any]:
     }
 
 
-def _cliff_to_json(cliff: Any, max_points: int | None) -> dict[str, Any]:
-    """The cliff object; keeps the ``max_points`` floor points nearest the sensor when capped."""
+def _cliff_to_json(cliff: Any, max_points: int | None, trusted: bool = True) -> dict[str, Any]:
+    """The cliff object; keeps the ``max_points`` floor points nearest the sensor when capped.
+    ``trusted`` False flags its drop-offs (the mount they rest on is not trusted)."""
     pts = np.asarray(cliff.points_m, dtype=np.float64).reshape(-1, 2)
     total = int(pts.shape[0])
     if max_points is not None and total > max_points:
@@ -101,6 +102,7 @@ def _cliff_to_json(cliff: Any, max_points: int | None) -> dict[str, Any]:
         "points_total": total,
         "points_dropped": total - int(pts.shape[0]),
         "scan": scan_to_json(cliff.scan),
+        "trusted": trusted,
     }
 
 
@@ -139,11 +141,36 @@ def sensors_to_json(sensors: Sequence[Any], max_cliff_points: int | None) -> lis
                 "scan": None if r is None else scan_to_json(r.scan),
                 "cliff": None
                 if r is None or r.cliff is None
-                else _cliff_to_json(r.cliff, max_cliff_points),
+                else _cliff_to_json(r.cliff, max_cliff_points, dropoffs_trusted(r)),
                 "pose": None if r is None else _pose_to_json(r),
+                "mount": None if r is None else mount_trust_to_json(r),
             }
         )
     return out
+
+
+def dropoffs_trusted(result: Result) -> bool:
+    """Whether a result's drop-offs rest on a trusted mount (True when nobody assessed it)."""
+    trust = result.mount_trust
+    return trust is None or trust.dropoffs_trusted
+
+
+def mount_trust_to_json(result: Result) -> dict[str, Any] | None:
+    """The mount object: where the mount came from, whether the floor confirms it, and whether
+    drop-offs are trusted (docs/json_schema.md); None when nobody assessed it."""
+    t = result.mount_trust
+    if t is None:
+        return None
+    return {
+        "source": t.source,
+        "pinned": t.pinned,
+        "floor": t.floor,
+        "floor_height_m": _num(t.floor_height_m, MM),
+        "floor_tilt_deg": _num(t.floor_tilt_deg, DEG),
+        "floor_roll_deg": _num(t.floor_roll_deg, DEG),
+        "dropoffs_trusted": t.dropoffs_trusted,
+        "note": t.note,
+    }
 
 
 def _pose_to_json(result: Result) -> dict[str, Any]:
@@ -204,8 +231,11 @@ def frame_message(
         "t_s": _num(result.timestamp_s, SEC),
         "wall_s": _num(wall_time_s, SEC),
         "scan": scan_to_json(result.scan),
-        "cliff": None if result.cliff is None else _cliff_to_json(result.cliff, max_cliff_points),
+        "cliff": None
+        if result.cliff is None
+        else _cliff_to_json(result.cliff, max_cliff_points, dropoffs_trusted(result)),
         "pose": _pose_to_json(result),
+        "mount": mount_trust_to_json(result),
         "memory": memory_to_json(result.memory),
         "sensors": sensors_to_json(result.sensors, max_cliff_points),
         "timings_s": {k: _num(v, SEC) for k, v in sorted(result.timings_s.items())},

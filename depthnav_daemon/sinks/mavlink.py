@@ -15,12 +15,22 @@ Options (all optional):
     sensor: laser | ultrasound | infrared | radar | unknown (default infrared: structured light,
         ToF).
     cliff: 1 = also report drop-offs (the cliff scan) as obstacles, sector-wise minimum (default 0).
+    untrusted_dropoffs: send | drop (default send). While the daemon does not trust the mount
+        (the floor contradicts it, or the built-in default mount is unconfirmed), drop-offs may
+        be the floor itself seen through a wrong mount. ``send`` still reports them (a real
+        drop-off is never hidden: the vehicle stops rather than falls); ``drop`` leaves them out
+        of OBSTACLE_DISTANCE until the mount is trusted again (obstacles are still sent).
+
+Mount trust: a STATUSTEXT (MAV_SEVERITY_WARNING) is sent once when the mount becomes untrusted,
+saying why and what happens to drop-offs, e.g. "depthnav: floor contradicts mount, cliffs sent",
+and one (MAV_SEVERITY_INFO) "depthnav: mount trusted again" when it is trusted again.
 
 Memory: when the obstacle memory is on (odometry available, result.memory with a scan), the
 message is built from the 360 deg memory scan instead: 72 sectors of 5 deg all around the robot,
 so the autopilot also sees what is in the sensors' dead zones, beside and behind; the memory holds
 obstacles and drop-offs alike (``cliff`` is then moot). Otherwise (no odometry, or the memory is
-frozen) it is built from the live scan as above.
+frozen) it is built from the live scan as above. The memory keeps drop-offs whatever the mount
+trust: ``untrusted_dropoffs=drop`` only applies to the live cliff scan.
 
 Sectors (pinned by tests/sinks/test_mavlink.py): the 72 sectors split the scan's field of view
 evenly. Our scan is counter-clockwise from forward (left positive, index 0 = right-most); MAVLink's
@@ -36,6 +46,7 @@ floor(cm) clipped to [min_distance, max_distance]; -inf (closer than range_min) 
 from __future__ import annotations
 
 import logging
+import os
 import socket
 import threading
 import time
@@ -51,7 +62,7 @@ from depthnav_daemon.sinks.base import (
     number_option,
     parse_host_port,
 )
-from depthnav_daemon.sinks.mavlink_sectors import Schedule, sectors_for
+from depthnav_daemon.sinks.mavlink_sectors import Schedule, sectors_for, trust_statustext
 
 if TYPE_CHECKING:
     from depthnav_daemon.pipeline import Result
@@ -61,10 +72,13 @@ if TYPE_CHECKING:
 log = logging.getLogger(__name__)
 
 GRAMMAR = (
-    "mavlink:SERIALPORT[?baud=N&rate=HZ&stale=S&sysid=N&compid=N&sensor=KIND&cliff=0|1] or "
-    "mavlink+udp://HOST:PORT[?rate=HZ&stale=S&sysid=N&compid=N&sensor=KIND&cliff=0|1]"
+    "mavlink:SERIALPORT[?baud=N&rate=HZ&stale=S&sysid=N&compid=N&sensor=KIND&cliff=0|1"
+    "&untrusted_dropoffs=send|drop] or "
+    "mavlink+udp://HOST:PORT[?rate=HZ&stale=S&sysid=N&compid=N&sensor=KIND&cliff=0|1"
+    "&untrusted_dropoffs=send|drop]"
 )
-COMMON_OPTIONS = ("rate", "stale", "sysid", "compid", "sensor", "cliff")
+COMMON_OPTIONS = ("rate", "stale", "sysid", "compid", "sensor", "cliff", "untrusted_dropoffs")
+UNTRUSTED_DROPOFFS = ("send", "drop")
 SENSOR_TYPES = {  # option value -> MAV_DISTANCE_SENSOR
     "laser": 0,
     "ultrasound": 1,
@@ -98,8 +112,11 @@ class _SerialLink:
                 port, baudrate=baud, timeout=0, write_timeout=WRITE_TIMEOUT_S
             )
         except (serial.SerialException, OSError, ValueError) as exc:
+            # pyserial repeats the path twice in its message: the errno's words say it all
+            errno = getattr(exc, "errno", None)
+            reason = os.strerror(errno) if isinstance(errno, int) and errno > 0 else str(exc)
             raise SinkError(
-                f"mavlink sink: cannot open serial port {port!r}: {exc}",
+                f"mavlink sink: cannot open serial port {port!r}: {reason}",
                 hint="check the port name and that your user is in the dialout group",
             ) from exc
         self._timeouts = RateLimitedLog(log)
@@ -163,11 +180,16 @@ class MavlinkSink:
         compid: int = MAV_COMP_ID_OBSTACLE_AVOIDANCE,
         sensor_type: int = SENSOR_TYPES["infrared"],
         cliff: bool = False,
+        untrusted_dropoffs: str = "send",
     ) -> None:
         self.name = name
         self.serial_port, self.baud, self.udp = serial_port, baud, udp
         self.rate_hz, self.stale_s = rate_hz, stale_s
         self.sysid, self.compid, self.sensor_type, self.cliff = sysid, compid, sensor_type, cliff
+        self.untrusted_dropoffs = untrusted_dropoffs
+        self._trusted: bool | None = None  # the last frame's drop-off trust (None: no frame yet)
+        self._texts: list[tuple[int, str]] = []  # STATUSTEXT (severity, text) for the thread
+        self.sent_text = 0
         self._link: _SerialLink | _UdpLink | None = None
         self._mav: Any = None
         self._lock = threading.Lock()
@@ -203,6 +225,14 @@ class MavlinkSink:
             raise ConfigError(
                 f"option sensor={sensor!r} in {spec.text!r} is not one of {', '.join(SENSOR_TYPES)}"
             )
+        untrusted = spec.options.get("untrusted_dropoffs", "send").strip().lower()
+        if untrusted not in UNTRUSTED_DROPOFFS:
+            raise ConfigError(
+                f"option untrusted_dropoffs={untrusted!r} in {spec.text!r} is not one of "
+                f"{', '.join(UNTRUSTED_DROPOFFS)}",
+                hint="send: report drop-offs even while the mount is not trusted (the default); "
+                "drop: leave them out then",
+            )
         return cls(
             spec.text,
             **kw,
@@ -214,6 +244,7 @@ class MavlinkSink:
             ),
             sensor_type=SENSOR_TYPES[sensor],
             cliff=bool_option(spec, "cliff", False),
+            untrusted_dropoffs=untrusted,
         )
 
     def open(self, context: SinkContext) -> None:
@@ -268,10 +299,19 @@ class MavlinkSink:
             )
         if self._thread is None:
             raise SinkError(f"sink {self.name!r} is not open")
-        sectors = sectors_for(result, self.cliff)
+        trust = result.mount_trust
+        trusted = trust is None or trust.dropoffs_trusted
+        text = None
+        if trusted != self._trusted and not (self._trusted is None and trusted):
+            text = trust_statustext(trust, self.cliff, self.untrusted_dropoffs)
+        self._trusted = trusted
+        cliff = self.cliff and (trusted or self.untrusted_dropoffs == "send")
+        sectors = sectors_for(result, cliff)
         now = time.monotonic()
         with self._lock:
             self._latest = (sectors, int(now * 1e6), now)
+            if text is not None:
+                self._texts.append(text)
 
     def latest_for(self, now: float) -> tuple[Sectors, int] | None:
         """Sectors to send at monotonic time ``now``: the newest unless older than ``stale_s``."""
@@ -285,6 +325,13 @@ class MavlinkSink:
         # MAV_TYPE_ONBOARD_CONTROLLER, MAV_AUTOPILOT_INVALID, base/custom mode 0, MAV_STATE_ACTIVE
         self._mav.heartbeat_send(18, 8, 0, 0, 4)
         self.sent_heartbeat += 1
+
+    def _send_texts(self) -> None:
+        with self._lock:
+            texts, self._texts = self._texts, []
+        for severity, text in texts:
+            self._mav.statustext_send(severity, text.encode())
+            self.sent_text += 1
 
     def _send_obstacles(self, sectors: Sectors, time_usec: int) -> None:
         inc_f = sectors.increment_f_deg
@@ -309,6 +356,8 @@ class MavlinkSink:
                 heartbeat, obstacles = clock.due(now)
                 if heartbeat:
                     self._send_heartbeat()
+                if self._texts:
+                    self._send_texts()
                 if obstacles:
                     pending = self.latest_for(now)
                     if pending is not None:

@@ -11,12 +11,15 @@ import numpy as np
 import numpy.typing as npt
 
 if TYPE_CHECKING:
-    from depthnav_daemon.pipeline import Result
+    from depthnav_daemon.pipeline import MountTrust, Result
     from depthnav_daemon.pipeline.scan import LaserScan
 
 SECTORS = 72
 UNKNOWN = 65535  # UINT16_MAX: no data in this sector
 HEARTBEAT_PERIOD_S = 1.0
+MAV_SEVERITY_WARNING = 4
+MAV_SEVERITY_INFO = 6
+STATUSTEXT_CHARS = 50  # one STATUSTEXT's text field
 
 
 @dataclass(frozen=True, slots=True)
@@ -147,6 +150,21 @@ def sectors_for(result: Result, cliff: bool) -> Sectors:
     if cliff and result.cliff is not None:
         sectors = merge_cliff(sectors, result.cliff.scan)
     return sectors
+
+
+def trust_statustext(trust: MountTrust | None, cliff: bool, untrusted: str) -> tuple[int, str]:
+    """The STATUSTEXT (severity, text of at most 50 characters) for a change of mount trust.
+
+    Args:
+        trust: the new verdict (None or drop-offs trusted: "trusted again").
+        cliff: the sink reports drop-offs at all.
+        untrusted: the sink's untrusted_dropoffs option, "send" or "drop".
+    """
+    if trust is None or trust.dropoffs_trusted:
+        return MAV_SEVERITY_INFO, "depthnav: mount trusted again"
+    why = "floor contradicts mount" if trust.floor == "contradicted" else "mount not configured"
+    what = "" if not cliff else ", cliffs sent" if untrusted == "send" else ", cliffs dropped"
+    return MAV_SEVERITY_WARNING, f"depthnav: {why}{what}"[:STATUSTEXT_CHARS]
 
 
 def memory_sectors(scan: LaserScan, n: int = SECTORS) -> Sectors:

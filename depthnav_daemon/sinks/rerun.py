@@ -45,10 +45,12 @@ import logging
 import os
 import queue
 import shutil
+import socket
 import threading
 import time
 import uuid
 from typing import TYPE_CHECKING, Any
+from urllib.parse import urlsplit
 
 from depthnav_daemon.errors import ConfigError, SinkError
 from depthnav_daemon.sinks.base import (
@@ -96,6 +98,11 @@ LOW_SPACE_BYTES = 1 << 20
 # gives up on unsent data within 5 s at exit).
 VIEWER_QUEUE_FRAMES = 30  # 1 s at 30 frames/s: bursts pass, a dead viewer costs <= 30 frames
 VIEWER_JOIN_S = 1.5
+PROBE_TIMEOUT_S = 2.0  # connecting to and hearing from a viewer at start
+# the HTTP/2 client connection preface and an empty SETTINGS frame (RFC 9113 3.4, 6.5)
+H2_PREFACE = b"PRI * HTTP/2.0\r\n\r\nSM\r\n\r\n" + b"\x00\x00\x00\x04\x00\x00\x00\x00\x00"
+H2_FRAME_HEADER = 9  # bytes: length (3), type, flags, stream id (4)
+H2_SETTINGS = 0x04  # frame type, the 4th byte of a frame header
 
 
 _abandoned: list[str] = []  # viewer sinks whose thread was left blocked inside rerun
@@ -110,12 +117,76 @@ def abandoned_viewers() -> list[str]:
     return list(_abandoned)
 
 
+def _import_rerun() -> Any:
+    """The rerun SDK, its Rust log lines off unless -v or the user's RUST_LOG asks for them.
+
+    rerun's Rust side prints coloured lines of its own (failed flushes, lost connections) on
+    stderr; this sink reports those in one line of its own. RUST_LOG is read once, when the
+    bindings load, and is set only for that moment: processes depthnav starts (a viewer) keep
+    theirs.
+    """
+    quiet = "RUST_LOG" not in os.environ and not log.isEnabledFor(logging.DEBUG)
+    if quiet:
+        os.environ["RUST_LOG"] = "off"
+    try:
+        import rerun as rr  # absolute: this module is depthnav_daemon.sinks.rerun, not rerun
+    finally:
+        if quiet:
+            os.environ.pop("RUST_LOG", None)
+    return rr
+
+
+def _one_line(exc: BaseException) -> str:
+    text = str(exc)
+    return text.splitlines()[0] if text else type(exc).__name__
+
+
 def _discard(rec: Any) -> None:
     """Disconnect a recording whose sink could not be set up."""
     try:
         rec.disconnect()
     except Exception:  # best effort on an already failing path
         log.debug("discarding the rerun recording failed", exc_info=True)
+
+
+def check_viewer(url: str, timeout_s: float = PROBE_TIMEOUT_S) -> None:
+    """Check that a rerun viewer (a gRPC server: HTTP/2) listens at ``url`` before connecting.
+
+    rerun's own connect never fails: with nothing listening it retries in the background, the
+    frames go nowhere, and the run ends claiming them logged. An HTTP/2 server answers the
+    client preface with a SETTINGS frame; anything else (refused, silent, HTTP/1) is not a viewer.
+
+    Raises:
+        SinkError: nothing listens, it does not answer, or it is not a gRPC server.
+    """
+    parts = urlsplit(url)
+    host, port = parts.hostname or DEFAULT_GRPC[0], parts.port or DEFAULT_GRPC[1]
+    where = f"{host}:{port}"
+    hint = (
+        f"start a viewer there (rerun --port {port}), or save to a file with --sink rerun:FILE.rrd"
+    )
+    try:
+        with socket.create_connection((host, port), timeout=timeout_s) as sock:
+            sock.sendall(H2_PREFACE)
+            answer = b""
+            while len(answer) < H2_FRAME_HEADER:
+                chunk = sock.recv(H2_FRAME_HEADER - len(answer))
+                if not chunk:
+                    break
+                answer += chunk
+    except TimeoutError:
+        raise SinkError(
+            f"rerun sink: the server at {where} does not answer (no rerun viewer)", hint=hint
+        ) from None
+    except OSError as exc:
+        raise SinkError(
+            f"rerun sink: no rerun viewer at {where} ({exc.strerror or exc})", hint=hint
+        ) from None
+    if len(answer) < H2_FRAME_HEADER or answer[3] != H2_SETTINGS:
+        raise SinkError(
+            f"rerun sink: the server at {where} is not a rerun viewer (it does not speak gRPC)",
+            hint=hint,
+        )
 
 
 class RerunSink:
@@ -188,7 +259,7 @@ class RerunSink:
             SinkError: rerun-sdk missing, no display to spawn on, or the file cannot be written.
         """
         try:
-            import rerun as rr  # absolute: this module is depthnav_daemon.sinks.rerun, not rerun
+            rr = _import_rerun()
         except ModuleNotFoundError as exc:
             raise SinkError(
                 "the rerun sink needs the 'rerun-sdk' package",
@@ -228,6 +299,7 @@ class RerunSink:
             self._lock_file()
             rec.save(self.target, default_blueprint=layout)
         elif self.mode == "connect":
+            check_viewer(self.target)
             rec.connect_grpc(self.target, default_blueprint=layout)
         else:
             # without a display the viewer dies and spawn() blocks ~11 s, then drops data
@@ -369,7 +441,7 @@ class RerunSink:
             _abandoned.append(self.name)
             log.warning(
                 "rerun sink: the viewer at %s does not answer; not waiting for it "
-                "(%d frames logged)",
+                "(%d frames sent, not confirmed delivered)",
                 self.target or "(spawned)",
                 self.logged,
             )
@@ -381,12 +453,22 @@ class RerunSink:
             rec.flush(timeout_sec=30.0 if self.mode == "save" else 1.0)
         except Exception as exc:  # one line; the traceback only with -v
             self._file_failed = self.mode == "save"
-            log.warning(
-                "rerun sink: flushing %s failed: %s",
-                self.target or "viewer",
-                self._file_problem(exc) if self.mode == "save" else exc,
-            )
+            delivered = False
+            if self.mode == "save":
+                log.warning(
+                    "rerun sink: flushing %s failed: %s", self.target, self._file_problem(exc)
+                )
+            else:
+                log.warning(
+                    "rerun sink: the viewer at %s did not take the frames (%s): %d frames sent, "
+                    "not confirmed delivered",
+                    self.target or "(spawned)",
+                    _one_line(exc),
+                    self.logged,
+                )
             log.debug("flush failure", exc_info=True)
+        else:
+            delivered = True
         try:
             rec.disconnect()
         except Exception as exc:
@@ -402,4 +484,5 @@ class RerunSink:
                     size,
                 )
         self._unlock_file()
-        log.info("rerun sink: %d frames logged to %s", self.logged, self.target or "viewer")
+        if delivered:
+            log.info("rerun sink: %d frames logged to %s", self.logged, self.target or "viewer")

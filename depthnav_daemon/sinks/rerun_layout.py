@@ -20,7 +20,7 @@ from depthnav_daemon.sinks import rerun_topdown as topdown
 from depthnav_daemon.sinks.rerun_depth import CLASS_CLIFF, CLASS_OBSTACLE, CLIFF_RGBA, log_depth
 
 if TYPE_CHECKING:
-    from depthnav_daemon.pipeline import Result
+    from depthnav_daemon.pipeline import MountTrust, Result
     from depthnav_daemon.pipeline.geometry import Mount
     from depthnav_daemon.pipeline.scan import LaserScan
     from depthnav_daemon.sinks.base import SinkContext
@@ -58,6 +58,7 @@ class LayoutState:
         configured: the configured mount, plotted beside the mount in use; None if unknown.
         frames: frames logged so far (the first one is the warm-up).
         intrinsics, scan_layout: what the pinhole and the field of view were last logged for.
+        trust: the mount trust last logged to /log (logged again when it changes).
     """
 
     footprint_m: tuple[float, float] = topdown.DEFAULT_FOOTPRINT_M
@@ -67,6 +68,7 @@ class LayoutState:
     frames: int = 0
     intrinsics: Intrinsics | None = None
     scan_layout: tuple[float, float, int] | None = None
+    trust: MountTrust | None = None
 
 
 def _xy_to_points3d(x: np.ndarray, y: np.ndarray, z: float) -> np.ndarray:
@@ -268,7 +270,21 @@ def log_frame(
         state.scan_layout = layout
     topdown.log_frame(rr, rec, result)
     _log_stats(rr, rec, result, state.configured, warmup=state.frames == 0)
+    if result.mount_trust != state.trust and result.mount_trust is not None:
+        rec.log("/log", trust_text(rr, result))
+        state.trust = result.mount_trust
     state.frames += 1
+
+
+def trust_text(rr: Any, result: Result) -> Any:
+    """A TextLog saying where the mount came from and whether drop-offs are trusted (WARN while
+    they are not; amber drop-offs then)."""
+    t = result.mount_trust
+    assert t is not None
+    head = f"frame {result.seq}: mount from {t.source}{' (pinned)' if t.pinned else ''}, "
+    if t.dropoffs_trusted:
+        return rr.TextLog(head + f"floor {t.floor}: drop-offs trusted", level="INFO")
+    return rr.TextLog(head + f"{t.note} (drawn amber)", level="WARN")
 
 
 def _log_world(rr: Any, rec: Any, result: Result) -> None:
@@ -281,9 +297,10 @@ def _log_world(rr: Any, rec: Any, result: Result) -> None:
     if cliff is None:
         return
     pts = np.asarray(cliff.points_m, dtype=np.float32).reshape(-1, 2)
+    rgb = topdown.cliff_rgb(result)
     rec.log(
         "/world/cliff/points",
-        rr.Points3D(_xy_to_points3d(pts[:, 0], pts[:, 1], 0.0), radii=0.01, colors=[CLIFF_RGB]),
+        rr.Points3D(_xy_to_points3d(pts[:, 0], pts[:, 1], 0.0), radii=0.01, colors=[rgb]),
     )
     sides = cliff_cell_sizes_m(result)
     rec.log(
@@ -291,7 +308,7 @@ def _log_world(rr: Any, rec: Any, result: Result) -> None:
         rr.Boxes3D(
             centers=_xy_to_points3d(pts[:, 0], pts[:, 1], 0.003),
             half_sizes=np.stack([sides / 2, sides / 2, np.full_like(sides, 0.003)], axis=1),
-            colors=[CLIFF_RGB],
+            colors=[rgb],
             fill_mode=rr.components.FillMode.Solid,
         ),
     )

@@ -31,6 +31,8 @@ __all__ = ["DEFAULT_FOOTPRINT_M", "log_fov", "log_frame", "log_static", "view"]
 TOPDOWN = "/topdown"
 SCAN_RGB = (0, 200, 80)
 CLIFF_RGB = (230, 0, 230)
+# drop-offs while the mount is not trusted (maybe the floor seen through a wrong mount): amber
+UNTRUSTED_CLIFF_RGB = (255, 170, 0)
 MEMORY_OBSTACLE_RGB = (150, 150, 40)  # remembered: muted, under what is seen now
 MEMORY_CLIFF_RGB = (120, 40, 120)
 RING_RGB = (90, 90, 90)
@@ -106,6 +108,12 @@ def log_fov(rr: Any, rec: Any, scan: LaserScan, reach_m: float) -> None:
     )
 
 
+def cliff_rgb(result: Result) -> tuple[int, int, int]:
+    """The drop-offs' colour: CLIFF_RGB, or UNTRUSTED_CLIFF_RGB while the mount is not trusted."""
+    trust = result.mount_trust
+    return CLIFF_RGB if trust is None or trust.dropoffs_trusted else UNTRUSTED_CLIFF_RGB
+
+
 def log_frame(rr: Any, rec: Any, result: Result) -> None:
     """The scan (lines and points) and the cliff cells of one frame, over the memory's cells."""
     log_memory(rr, rec, result)
@@ -128,7 +136,7 @@ def log_frame(rr: Any, rec: Any, result: Result) -> None:
             centers=uv(cliff.points_m),
             half_sizes=quarter,
             radii=sides / 4 * 1.15,  # thicker: no hole in the middle
-            colors=[CLIFF_RGB],
+            colors=[cliff_rgb(result)],
             draw_order=5,
         ),
     )

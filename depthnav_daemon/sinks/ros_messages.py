@@ -233,7 +233,11 @@ class MessageBuilder:
         k = np.array([i.fx, 0.0, i.cx, 0.0, i.fy, i.cy, 0.0, 0.0, 1.0])
         p = np.array([i.fx, 0.0, i.cx, 0.0, 0.0, i.fy, i.cy, 0.0, 0.0, 0.0, 1.0, 0.0])
         arrays = dict(
-            zip(("d", "k", "r", "p"), (np.zeros(5), k, np.eye(3).reshape(-1), p), strict=True)
+            zip(
+                ("d", "k", "r", "p"),
+                (np.array(i.distortion, np.float64), k, np.eye(3).reshape(-1), p),
+                strict=True,
+            )
         )
         if self._header_has_seq:  # ROS 1 spells them in capitals
             arrays = {key.upper(): value for key, value in arrays.items()}

@@ -3,10 +3,13 @@
 Spec: ``text[?every=N]`` (print every Nth frame, default 1). For programs use ``stdout`` (JSON).
 A line reads, for example (one line, cut here at "|")::
 
-    #3  mount 0.550 m, tilt 15.0 deg, roll 0.0 deg (floor)
+    #3  mount 0.550 m, tilt 15.0 deg, roll 0.0 deg (floor, floor confirmed)
         |  right 1.17 m @ -21 deg  ahead 1.98 m  left 1.45 m @ 21 deg
         |  drop-off 1.95 m @ 0 deg (12 blocks)
 
+The brackets say where the mount came from (default, config, accel, serial, floor; "pinned"
+when floor estimates may not replace it) and whether the floor confirms it. While it does not
+trust the mount, the daemon writes "drop-off UNTRUSTED ..." and the reason at the end of the line.
 "right/ahead/left" are the nearest obstacles in the scan's right third, middle third and left
 third of bearings; "clear" means valid readings and nothing within range, "no data" no reading.
 """
@@ -71,19 +74,30 @@ class TextSink(StdoutSink):
         scan = result.scan
         third = (scan.angle_max - scan.angle_min) / 3.0
         a0, a1 = scan.angle_min + third, scan.angle_min + 2 * third
+        trust = result.mount_trust
         parts = [
             f"#{frame.seq}  mount {m.height_m:.3f} m, tilt {m.tilt_deg:.1f} deg, "
             f"roll {m.roll_deg:.1f} deg "
-            f"({result.mount_source})",
+            f"({_mount_origin(result)})",
             f"right {nearest(scan, -math.inf, a0)}  ahead {nearest(scan, a0, a1)}  "
             f"left {nearest(scan, a1, math.inf)}",
         ]
         if result.cliff is not None:
             blocks = len(result.cliff.points_m)
             drop = nearest(result.cliff.scan, -math.inf, math.inf) if blocks else "none"
-            parts.append(f"drop-off {drop}" + (f" ({blocks} blocks)" if blocks else ""))
+            doubtful = trust is not None and not trust.dropoffs_trusted
+            flag = " UNTRUSTED" if blocks and doubtful else ""
+            parts.append(f"drop-off{flag} {drop}" + (f" ({blocks} blocks)" if blocks else ""))
         if result.pose is not None and not result.pose.ok:
             parts.append(f"floor estimate failed: {result.pose.reason}")
         if result.warning:
             parts.append(result.warning)
         return "  |  ".join(parts)
+
+
+def _mount_origin(result: Result) -> str:
+    """Where the mount came from and what the floor says of it: "config, floor confirmed"."""
+    trust = result.mount_trust
+    if trust is None:
+        return result.mount_source
+    return f"{trust.source}{', pinned' if trust.pinned else ''}, floor {trust.floor}"

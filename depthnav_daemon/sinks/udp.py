@@ -9,7 +9,7 @@ Options (a full message at 640x480 is ~12.5 KB: fragmented on Wi-Fi; these slim 
         nearest cliff points and says so in its ``message`` field; one that still does not fit is
         skipped.
     content: ``all`` (default, the stdout object) or ``scan``: seq, times, the scan, the mount
-        and the warning only.
+        (pose and trust) and the warning only.
     cliff_scan: 0 leaves out the cliff's polar scan (its floor points stay).
     ranges: ``mm`` sends every range as integer millimetres (``scan.ranges_unit`` says so;
         null / "Infinity" / "-Infinity" as in metres); default ``m``.
@@ -240,7 +240,18 @@ class Content:
         return msg
 
 
-SCAN_ONLY_KEYS = ("v", "version", "seq", "t_s", "wall_s", "scan", "pose", "warning", "message")
+SCAN_ONLY_KEYS = (
+    "v",
+    "version",
+    "seq",
+    "t_s",
+    "wall_s",
+    "scan",
+    "pose",
+    "mount",
+    "warning",
+    "message",
+)
 
 
 def _mm(r: float | str | None) -> int | str | None:

@@ -16,6 +16,7 @@ import numpy as np
 from depthnav_daemon.pipeline import StageParams, process
 from depthnav_daemon.pipeline.cliff import CliffParams, detect_cliffs
 from depthnav_daemon.pipeline.geometry import Mount
+from depthnav_daemon.pipeline.lens import undistort
 from depthnav_daemon.pipeline.pose import PoseParams, estimate_pose
 from depthnav_daemon.pipeline.scan import ScanParams, depth_to_scan, scan_layout
 from depthnav_daemon.sim.synthetic import Box, Scene, render, step_down
@@ -56,6 +57,8 @@ def warm_up() -> float:
         for cliff in CLIFF_VARIANTS:
             detect_cliffs(depth, intr, mount, cliff, *layout)
         estimate_pose(depth, intr, pose, rng)
+    # the lens model's inverse (tables of a camera with distortion coefficients)
+    undistort(np.zeros(4), np.zeros(4), Intrinsics(160, 120, 145.0, 145.0, 79.5, 59.5, -0.1))
     # and the whole per-frame path once, as the daemon calls it
     estimate_pose(frame.depth_mm, intr, pose, rng)
     process(frame, mount, StageParams(scan=ScanParams(), cliff=CliffParams(used_depth_height=100)))

@@ -220,7 +220,6 @@ def write_fakenect(
     out = Path(folder)
     if out.exists() and any(out.iterdir()):
         raise RecordingError(f"{out}: folder is not empty; refusing to overwrite")
-    out.mkdir(parents=True, exist_ok=True)
     names = []
     count = 0
     for frame in frames:
@@ -229,6 +228,7 @@ def write_fakenect(
                 f"{out}: fakenect holds 640x480 depth only, frame {frame.seq} is "
                 f"{frame.depth_mm.shape[1]}x{frame.depth_mm.shape[0]}"
             )
+        out.mkdir(parents=True, exist_ok=True)  # once a frame fits: a refused one leaves nothing
         t = start_time_s + frame.timestamp_s
         ts = round(frame.timestamp_s * 1e6) & 0xFFFFFFFF
         name = f"d-{t:.6f}-{ts}.pgm"
@@ -241,5 +241,6 @@ def write_fakenect(
             (out / aname).write_bytes(ACCEL_DUMP.pack(x, y, z, 0, 0))
             names.append(aname)
         count += 1
+    out.mkdir(parents=True, exist_ok=True)
     (out / "INDEX.txt").write_text("".join(n + "\n" for n in names), encoding="ascii")
     return count

@@ -10,16 +10,19 @@ file fails with a message instead of reaching the native player.
 
 from __future__ import annotations
 
+import itertools
 import math
 import os
 import struct
-from collections.abc import Iterable
+from array import array
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
+from typing import BinaryIO
 
 import numpy as np
 
-from drivers.base import Frame
+from drivers.base import Frame, Intrinsics
 from drivers.errors import RecordingError
 from drivers.files import open_input
 from drivers.limits import image_size_problem
@@ -86,60 +89,96 @@ def _node_added(n_frames: int, max_ts: int, seek_pos: int) -> bytes:
     )
 
 
+def _write_props(w: _Writer, intr: Intrinsics, fps: int) -> None:
+    """The depth node's properties, as libOniFile wants them."""
+    hfov = 2.0 * math.atan(intr.width / (2.0 * intr.fx))
+    vfov = 2.0 * math.atan(intr.height / (2.0 * intr.fy))
+    w.prop(INT_PROPERTY, "oniRequiredFrameSize", struct.pack("<Q", intr.width * intr.height * 2))
+    w.prop(INT_PROPERTY, "xnIsGenerating", struct.pack("<Q", 1))
+    w.prop(INT_PROPERTY, "xnDeviceMaxDepth", struct.pack("<Q", 65535))
+    w.prop(GENERAL_PROPERTY, "xnMapOutputMode", struct.pack("<III", intr.width, intr.height, fps))
+    w.prop(INT_PROPERTY, "xnPixelFormat", struct.pack("<Q", XN_PIXEL_FORMAT_GRAYSCALE_16))
+    w.prop(INT_PROPERTY, "oniPixelFormat", struct.pack("<Q", PIXEL_FORMAT_DEPTH_1_MM))
+    w.prop(GENERAL_PROPERTY, "xnFOV", struct.pack("<dd", hfov, vfov))
+    # libOniFile silently drops every frame of a stream without a cropping record.
+    w.prop(GENERAL_PROPERTY, "xnCropping", struct.pack("<iHHHH", 0, 0, 0, 0, 0))
+    w.prop(INT_PROPERTY, "xnMirror", struct.pack("<Q", 0))
+
+
+def _write_body(fh: BinaryIO, first: Frame, frames: Iterator[Frame], fps: int, where: str) -> int:
+    """Header, node, frames one at a time, seek table; the counts patched in at the end."""
+    w = _Writer(fh)
+    intr, t0 = first.intrinsics, first.timestamp_s
+    fh.write(FILE_HEADER.pack(MAGIC_FILE, 1, 0, 1, 0, 0, 1))  # max timestamp patched below
+    added = w.record(NODE_ADDED, _node_added(0, 0, 0))
+    _write_props(w, intr, fps)
+    w.record(NODE_STATE_READY)
+    begin = w.record(NODE_DATA_BEGIN, struct.pack("<IQ", 0, 0))
+    stamps, positions = array("Q"), array("Q")  # the seek table: 16 bytes a frame
+    last = 0
+    for number, frame in enumerate(itertools.chain([first], frames), 1):
+        if frame.depth_mm.shape != (intr.height, intr.width):
+            raise RecordingError(f"{where}: frame {frame.seq} changes the image size")
+        ts = max(0, round((frame.timestamp_s - t0) * 1e6))
+        payload = np.ascontiguousarray(frame.depth_mm, dtype="<u2").tobytes()
+        last = w.record(NEW_DATA, struct.pack("<QI", ts, number), payload, undo=last)
+        stamps.append(ts)
+        positions.append(last)
+    n, max_ts = len(stamps), max(stamps)
+    w.record(NODE_REMOVED, undo=added)
+    seek_pos = fh.tell()
+    fh.write(RECORD_HEADER.pack(MAGIC_RECORD, SEEK_TABLE, 1, RECORD_HEADER.size, 20 + 20 * n, 0))
+    fh.write(b"\0" * 20)
+    for i in range(0, n, 4096):  # written in chunks: no second copy of the table
+        fh.write(
+            b"".join(
+                struct.pack("<QIQ", ts, 0, pos)
+                for ts, pos in zip(stamps[i : i + 4096], positions[i : i + 4096], strict=True)
+            )
+        )
+    w.record(END, node=0)
+    fh.seek(0)
+    fh.write(FILE_HEADER.pack(MAGIC_FILE, 1, 0, 1, 0, max_ts, 1))
+    fh.seek(added + RECORD_HEADER.size)
+    fh.write(_node_added(n, max_ts, seek_pos))
+    fh.seek(begin + RECORD_HEADER.size)
+    fh.write(struct.pack("<IQ", n, max_ts))
+    return n
+
+
 def write_oni(path: str | os.PathLike[str], frames: Iterable[Frame], fps: int = 30) -> int:
-    """Write depth frames to an uncompressed ``.oni`` file (DEPTH_1_MM).
+    """Write depth frames to an uncompressed ``.oni`` file (DEPTH_1_MM), one frame in memory at
+    a time (the seek table keeps 16 bytes a frame); written as ``PATH.partial``, renamed when
+    complete.
 
     The field of view is derived from the first frame's fx, fy; OpenNI has no principal point, so
     playback recovers intrinsics with the principal point at the image centre.
 
     Returns:
         The number of frames written.
+
+    Raises:
+        RecordingError: no frames, frames that change size, the file exists, a failed write.
     """
-    items = list(frames)
-    if not items:
-        raise RecordingError(f"{path}: no frames to write")
-    intr = items[0].intrinsics
-    hfov = 2.0 * math.atan(intr.width / (2.0 * intr.fx))
-    vfov = 2.0 * math.atan(intr.height / (2.0 * intr.fy))
-    t0 = items[0].timestamp_s
-    stamps = [max(0, round((f.timestamp_s - t0) * 1e6)) for f in items]
-    with open(path, "wb") as fh:
-        w = _Writer(fh)
-        fh.write(FILE_HEADER.pack(MAGIC_FILE, 1, 0, 1, 0, stamps[-1], 1))
-        added = w.record(NODE_ADDED, _node_added(len(items), stamps[-1], 0))
-        w.prop(
-            INT_PROPERTY, "oniRequiredFrameSize", struct.pack("<Q", intr.width * intr.height * 2)
-        )
-        w.prop(INT_PROPERTY, "xnIsGenerating", struct.pack("<Q", 1))
-        w.prop(INT_PROPERTY, "xnDeviceMaxDepth", struct.pack("<Q", 65535))
-        w.prop(
-            GENERAL_PROPERTY, "xnMapOutputMode", struct.pack("<III", intr.width, intr.height, fps)
-        )
-        w.prop(INT_PROPERTY, "xnPixelFormat", struct.pack("<Q", XN_PIXEL_FORMAT_GRAYSCALE_16))
-        w.prop(INT_PROPERTY, "oniPixelFormat", struct.pack("<Q", PIXEL_FORMAT_DEPTH_1_MM))
-        w.prop(GENERAL_PROPERTY, "xnFOV", struct.pack("<dd", hfov, vfov))
-        # libOniFile silently drops every frame of a stream without a cropping record.
-        w.prop(GENERAL_PROPERTY, "xnCropping", struct.pack("<iHHHH", 0, 0, 0, 0, 0))
-        w.prop(INT_PROPERTY, "xnMirror", struct.pack("<Q", 0))
-        w.record(NODE_STATE_READY)
-        w.record(NODE_DATA_BEGIN, struct.pack("<IQ", len(items), stamps[-1]))
-        seek: list[tuple[int, int]] = []
-        last = 0
-        for number, (frame, ts) in enumerate(zip(items, stamps, strict=True), 1):
-            if frame.intrinsics.width != intr.width or frame.intrinsics.height != intr.height:
-                raise RecordingError(f"{path}: frame {frame.seq} changes the image size")
-            payload = np.ascontiguousarray(frame.depth_mm, dtype="<u2").tobytes()
-            last = w.record(NEW_DATA, struct.pack("<QI", ts, number), payload, undo=last)
-            seek.append((ts, last))
-        w.record(NODE_REMOVED, undo=added)
-        seek_pos = w.record(
-            SEEK_TABLE,
-            payload=b"\0" * 20 + b"".join(struct.pack("<QIQ", ts, 0, pos) for ts, pos in seek),
-        )
-        w.record(END, node=0)
-        fh.seek(added + RECORD_HEADER.size)
-        fh.write(_node_added(len(items), stamps[-1], seek_pos))
-    return len(items)
+    out = Path(path)
+    items = iter(frames)
+    first = next(items, None)
+    if first is None:
+        raise RecordingError(f"{out}: no frames to write")
+    if os.path.lexists(out):
+        raise RecordingError(f"{out}: exists; refusing to overwrite", hint="choose a new name")
+    partial = out.with_name(out.name + ".partial")
+    try:
+        with open(partial, "xb") as fh:
+            n = _write_body(fh, first, items, fps, str(out))
+        os.replace(partial, out)
+    except OSError as exc:
+        partial.unlink(missing_ok=True)
+        raise RecordingError(f"{out}: cannot write: {exc.strerror or exc}") from None
+    except BaseException:
+        partial.unlink(missing_ok=True)
+        raise
+    return n
 
 
 @dataclass(frozen=True, slots=True)

@@ -1,9 +1,18 @@
-"""Folders of 16-bit PNG depth images (TUM RGB-D style), read and written.
+"""Folders of 16-bit PNG or PGM depth images (TUM RGB-D style), read and written.
 
-Layout: ``depth.txt`` with lines ``<timestamp_s> <relative/path.png>`` (``#`` comments allowed), or,
-without it, every ``*.png`` in the folder (and in ``depth/``) in name order at a fixed frame rate.
-Pixel values are depth units, ``scale`` of them per metre (TUM: 5000; 1000 means millimetres),
-0 = no reading. Intrinsics and scale come from a sidecar ``camera.toml``::
+Which images (at a fixed frame rate unless ``depth.txt`` gives timestamps):
+- the replay option ``glob=PATTERN`` (relative to the folder, e.g. ``*_depth.png``,
+  ``depth/*.pgm``): the files it matches, in natural name order (2 before 10);
+- else ``depth.txt`` with lines ``<timestamp_s> <relative/path.png>`` (``#`` comments allowed);
+- else the folder's ``*.png`` and ``*.pgm`` files, or if none of them is depth those in
+  ``depth/``, in natural name order. Colour images (RGB PNG, PPM, JPEG) and 8-bit images beside
+  them are skipped, said in one INFO line (TUM's rgb/ + depth/, slambook's color/ + depth/,
+  ``1.png`` beside ``1_depth.png``); a folder of colour images only is refused in one line.
+
+Images are read by drivers.formats.depth_images (16-bit single-channel PNG; binary PGM with
+maxval above 255, big-endian as netpbm says). Pixel values are depth units, ``scale`` of them
+per metre (TUM: 5000; 1000 means millimetres), 0 = no reading. Intrinsics and scale come from
+a sidecar ``camera.toml``::
 
     depth_scale = 5000          # units per metre
     [intrinsics]
@@ -11,8 +20,10 @@ Pixel values are depth units, ``scale`` of them per metre (TUM: 5000; 1000 means
     fy = 525.0
     cx = 319.5
     cy = 239.5
+    k1 = -0.28                  # optional lens distortion (plumb_bob: k1 k2 p1 p2 k3), 0 if absent
 
-or from the replay spec options ``fx``, ``fy``, ``cx``, ``cy``, ``scale`` (which win).
+or from the replay spec options ``fx``, ``fy``, ``cx``, ``cy``, ``k1``.. ``k3``, ``scale`` (which
+win).
 """
 
 from __future__ import annotations
@@ -20,19 +31,19 @@ from __future__ import annotations
 import itertools
 import logging
 import os
-import struct
+import re
 from collections.abc import Iterable, Iterator
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import numpy.typing as npt
-from PIL import Image, UnidentifiedImageError
+from PIL import Image
 
-from drivers.base import MM_PER_M, UINT16_MAX, Frame, Intrinsics
+from drivers.base import DISTORTION_KEYS, UINT16_MAX, Frame, Intrinsics
 from drivers.errors import RecordingError
-from drivers.files import INDEX_MAX_BYTES, check_regular, open_input, read_bytes, read_toml
-from drivers.limits import image_size_problem
+from drivers.files import INDEX_MAX_BYTES, check_regular, read_bytes, read_toml
+from drivers.formats.depth_images import MAX_IMAGE_BYTES, SUFFIXES, kind_of, read_depth_image
 from drivers.values import NumberError, short_repr, short_text, to_number
 
 log = logging.getLogger(__name__)
@@ -42,18 +53,30 @@ INDEX = "depth.txt"
 MAX_SCALE = 1e6  # depth units per metre
 
 
-MAX_PNG_BYTES = 256 << 20  # a 8192x8192 16-bit PNG is 128 MiB uncompressed
-_PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
-_IHDR = struct.Struct(">I4sII")  # chunk length, b"IHDR", width, height
+MAX_PNG_BYTES = MAX_IMAGE_BYTES
+
+
+def _images(where: Path) -> list[Path]:
+    """The PNG and PGM files directly in ``where``, in natural name order (2.png before 10.png)."""
+    try:
+        names = [p for p in where.iterdir() if p.suffix.lower() in SUFFIXES]
+    except OSError:  # not a folder, unreadable
+        return []
+    return sorted(names, key=_natural_key)
+
+
+def _natural_key(path: Path) -> tuple[tuple[int, int | str], ...]:
+    return tuple(
+        (0, int(part)) if part.isdigit() else (1, part) for part in _DIGITS.split(path.name) if part
+    )
+
+
+_DIGITS = re.compile(r"([0-9]{1,18})")
 
 
 def is_png_folder(folder: Path) -> bool:
-    """True if the folder looks like a PNG depth folder."""
-    return (
-        os.path.lexists(folder / INDEX)
-        or any(folder.glob("*.png"))
-        or any(folder.glob("depth/*.png"))
-    )
+    """True if the folder looks like a folder of depth images (PNG or PGM)."""
+    return os.path.lexists(folder / INDEX) or any(_images(w) for w in (folder, folder / "depth"))
 
 
 def _index_line(index: Path, number: int, text: str, folder: Path) -> tuple[float, Path]:
@@ -85,11 +108,88 @@ def _index_line(index: Path, number: int, text: str, folder: Path) -> tuple[floa
     return stamp, path
 
 
-def list_frames(folder: Path, fps: float) -> list[tuple[float, Path]]:
-    """(timestamp_s from the first frame, path) for every depth image, in playback order."""
+def _globbed(folder: Path, pattern: str) -> list[Path]:
+    """The files ``pattern`` (relative to the folder, ``*``, ``?``, ``[..]``, ``**``) matches."""
+    if not pattern or Path(pattern).is_absolute() or ".." in Path(pattern).parts:
+        raise RecordingError(
+            f"glob={short_repr(pattern)} must be a pattern inside the folder, e.g. depth_*.png"
+        )
+    try:
+        paths = [p for p in folder.glob(pattern) if not p.is_dir()]
+    except (ValueError, OSError) as exc:
+        raise RecordingError(f"glob={short_repr(pattern)}: {short_text(str(exc), 80)}") from None
+    root = os.path.realpath(folder)
+    for path in paths:  # a symlink out of the folder is not part of the recording
+        if not Path(os.path.realpath(path)).is_relative_to(root):
+            raise RecordingError(f"{path}: is outside the recording folder")
+    if not paths:
+        raise RecordingError(
+            f"{folder}: glob={short_repr(pattern)} matches no file",
+            hint="the pattern is relative to the folder, e.g. glob=depth/*.png or glob=*_depth.png",
+        )
+    return sorted(paths, key=_natural_key)
+
+
+def _kinds(paths: list[Path]) -> list[tuple[Path, str]]:
+    """Each image with its kind (depth_images.kind_of), read from the first file of each name
+    shape (the name with its digits as one mark: ``#_depth.png``, ``#_rgb.png``, ``#.png``):
+    a 100 000-frame folder is not opened 100 000 times. A file of another kind inside a group
+    is refused when read, with the glob hint."""
+    seen: dict[str, str] = {}
+    out = []
+    for path in paths:
+        shape = _DIGITS.sub("#", path.name)
+        if shape not in seen:
+            seen[shape] = kind_of(path)
+        kind = seen[shape]
+        out.append((path, kind))
+    return out
+
+
+def _depth_images(folder: Path) -> list[Path]:
+    """The depth images of a folder without ``depth.txt``: its own PNG/PGM files, else those in
+    ``depth/``; colour and 8-bit images beside them are skipped (said in one INFO line)."""
+    skipped: list[tuple[Path, str]] = []
+    for where in (folder, folder / "depth"):
+        kinds = _kinds(_images(where))
+        depth = [p for p, kind in kinds if kind in ("depth", "unknown")]
+        skipped += [(p, kind) for p, kind in kinds if kind not in ("depth", "unknown")]
+        if depth:
+            break
+    counts = {k: sum(1 for _, kind in skipped if kind == k) for k in ("colour", "8-bit")}
+    said = " and ".join(f"{n} {k}" for k, n in counts.items() if n)
+    if not depth:
+        if skipped:
+            raise RecordingError(
+                f"{folder}: no 16-bit depth images; skipped {said} images "
+                f"(e.g. {short_text(skipped[0][0].name, 60)})",
+                hint="depth images are single-channel 16-bit PNG or PGM; "
+                "name others with replay:PATH?glob=PATTERN",
+            )
+        raise RecordingError(f"{folder}: no depth images (*.png, *.pgm or {INDEX})")
+    if skipped:
+        log.info(
+            "%s: reading %d depth images%s; skipped %s images (e.g. %s); choose with ?glob=PATTERN",
+            folder,
+            len(depth),
+            "" if depth[0].parent == folder else " from depth/",
+            said,
+            skipped[0][0].relative_to(folder),
+        )
+    return depth
+
+
+def list_frames(folder: Path, fps: float, pattern: str | None = None) -> list[tuple[float, Path]]:
+    """(timestamp_s from the first frame, path) for every depth image, in playback order.
+
+    The images are the ones ``pattern`` (a glob relative to the folder) matches, else those
+    ``depth.txt`` names, else the folder's 16-bit PNG and PGM images (or ``depth/``'s).
+    """
     index = folder / INDEX
     items: list[tuple[float, Path]] = []
-    if os.path.lexists(index):
+    if pattern is not None:
+        items = [(i / fps, p) for i, p in enumerate(_globbed(folder, pattern))]
+    elif os.path.lexists(index):
         text = read_bytes(index, what="frame index", max_bytes=INDEX_MAX_BYTES)
         for number, raw in enumerate(text.decode("utf-8", errors="replace").splitlines(), 1):
             line = raw.strip()
@@ -98,16 +198,15 @@ def list_frames(folder: Path, fps: float) -> list[tuple[float, Path]]:
         if items and any(b[0] < a[0] for a, b in itertools.pairwise(items)):
             raise RecordingError(f"{index}: timestamps go backwards")
     else:
-        paths = sorted(folder.glob("*.png")) or sorted(folder.glob("depth/*.png"))
-        items = [(i / fps, p) for i, p in enumerate(paths)]
+        items = [(i / fps, p) for i, p in enumerate(_depth_images(folder))]
     if not items:
-        raise RecordingError(f"{folder}: no depth images (*.png or {INDEX})")
+        raise RecordingError(f"{folder}: no depth images (*.png, *.pgm or {INDEX})")
     t0 = items[0][0]
     return [(t - t0, p) for t, p in items]
 
 
 SIDECAR_KEYS = ("depth_scale", "intrinsics")
-INTRINSICS_KEYS = ("width", "height", "fx", "fy", "cx", "cy")
+INTRINSICS_KEYS = ("width", "height", "fx", "fy", "cx", "cy", *DISTORTION_KEYS)
 TUM_SCALE = 5000.0
 TUM_MARK = b"rgbd_dataset_"  # TUM RGB-D's depth.txt names its bag: "# file: 'rgbd_dataset_..."
 SCALE_HINT = (
@@ -132,7 +231,8 @@ def read_sidecar(folder: Path) -> dict[str, Any]:
         if key not in SIDECAR_KEYS:
             raise RecordingError(
                 f"{path}: unknown key {short_text(str(key))!r} (valid: {', '.join(SIDECAR_KEYS)})",
-                hint="depth_scale = units per metre; [intrinsics] fx, fy, cx, cy in pixels",
+                hint="depth_scale = units per metre; [intrinsics] fx, fy, cx, cy in pixels, "
+                "optional lens k1, k2, p1, p2, k3",
             )
         if key == "intrinsics" and isinstance(value, dict):
             for sub in value:
@@ -192,8 +292,10 @@ def sidecar_intrinsics(
         return None
     where = folder / SIDECAR
     values = {}
-    for key in ("fx", "fy", "cx", "cy"):
+    for key in ("fx", "fy", "cx", "cy", *DISTORTION_KEYS):
         if key not in table:
+            if key in DISTORTION_KEYS:
+                continue  # no lens coefficient: an ideal pinhole
             raise RecordingError(f"{where}: bad [intrinsics]: {key!r} is missing")
         if isinstance(table[key], str):
             raise RecordingError(f"{where}: bad [intrinsics]: {key} is text, not a number")
@@ -209,58 +311,20 @@ def sidecar_intrinsics(
         raise RecordingError(f"{where}: bad [intrinsics]: {exc}") from None
 
 
-def _png_size(head: bytes) -> tuple[int, int] | None:
-    """(width, height) from a PNG's IHDR chunk, or None if ``head`` is not a PNG's start."""
-    if len(head) < len(_PNG_SIGNATURE) + _IHDR.size or not head.startswith(_PNG_SIGNATURE):
-        return None
-    _, kind, width, height = _IHDR.unpack_from(head, len(_PNG_SIGNATURE))
-    return (width, height) if kind == b"IHDR" else None
-
-
-def read_depth_png(path: Path, scale: float) -> npt.NDArray[np.uint16]:
-    """One 16-bit PNG as (H, W) uint16 millimetres, given ``scale`` units per metre.
-
-    The size in the PNG's header is checked (drivers.limits) before anything is decoded: a PNG
-    claiming 20000x20000 pixels is one line, not Pillow's DecompressionBombError, and a 12000 x
-    12000 one is refused before its 3 GB are allocated.
-    """
-    with open_input(path, what="depth image", max_bytes=MAX_PNG_BYTES) as fh:
-        size = _png_size(fh.read(len(_PNG_SIGNATURE) + _IHDR.size))
-        if size is None:
-            raise RecordingError(f"{path}: not a PNG file", hint="the file is corrupt or truncated")
-        problem = image_size_problem(*size)
-        if problem:
-            raise RecordingError(f"{path}: {problem}")
-        fh.seek(0)
-        try:
-            with Image.open(fh, formats=["PNG"]) as img:
-                img.load()
-                if img.mode not in ("I;16", "I;16B", "I;16L", "I"):
-                    raise RecordingError(
-                        f"{path}: a {img.mode} image, expected 16-bit greyscale depth"
-                    )
-                raw = np.asarray(img)
-        except Image.DecompressionBombError as exc:
-            raise RecordingError(f"{path}: too big to decode ({exc})") from None
-        except (UnidentifiedImageError, OSError, SyntaxError, ValueError, EOFError) as exc:
-            raise RecordingError(
-                f"{path}: not a readable PNG ({short_text(str(exc), 120)})",
-                hint="the file is corrupt or truncated",
-            ) from None
-    if raw.ndim != 2 or raw.min() < 0 or raw.max() > UINT16_MAX:  # noqa: PLR2004 - (H, W)
-        raise RecordingError(f"{path}: not a single-channel 16-bit depth image")
-    if scale == MM_PER_M:
-        return raw.astype(np.uint16)
-    mm = np.rint(raw.astype(np.float64) * (1000.0 / scale))
-    return np.clip(mm, 0, 65535).astype(np.uint16)
+read_depth_png = read_depth_image  # the older name: it reads 16-bit PGM as well
 
 
 def iter_png_folder(
-    folder: Path, intrinsics: Intrinsics | None, scale: float, fps: float
+    folder: Path,
+    intrinsics: Intrinsics | None,
+    scale: float,
+    fps: float,
+    frames: list[tuple[float, Path]] | None = None,
 ) -> Iterator[tuple[float, npt.NDArray[np.uint16]]]:
-    """Yield (timestamp_s, depth_mm (H, W)); every image must match ``intrinsics`` in size."""
-    for stamp, path in list_frames(folder, fps):
-        depth = read_depth_png(path, scale)
+    """Yield (timestamp_s, depth_mm (H, W)) of ``frames`` (default: ``list_frames``); every image
+    must match ``intrinsics`` in size."""
+    for stamp, path in frames if frames is not None else list_frames(folder, fps):
+        depth = read_depth_image(path, scale)
         if intrinsics is not None and depth.shape != (intrinsics.height, intrinsics.width):
             raise RecordingError(
                 f"{path}: image is {depth.shape[1]}x{depth.shape[0]}, "
@@ -290,7 +354,8 @@ def write_png_folder(
             raise RecordingError(
                 f"{out}: frame {frame.seq} has depth beyond 16 bits at scale {scale:g}"
             )
-        name = f"depth/{frame.timestamp_s:.6f}.png"
+        # numbered: two frames with one timestamp (a device's clock, a paused replay) keep both
+        name = f"depth/{len(lines) - 2:06d}.png"
         Image.fromarray(units.astype(np.uint16)).save(out / name)
         lines.append(f"{frame.timestamp_s:.6f} {name}")
     if intr is None:
@@ -298,7 +363,12 @@ def write_png_folder(
     (out / INDEX).write_text("\n".join(lines) + "\n", encoding="utf-8")
     (out / SIDECAR).write_text(
         f"depth_scale = {scale!r}\n\n[intrinsics]\nwidth = {intr.width}\nheight = {intr.height}\n"
-        f"fx = {intr.fx!r}\nfy = {intr.fy!r}\ncx = {intr.cx!r}\ncy = {intr.cy!r}\n",
+        f"fx = {intr.fx!r}\nfy = {intr.fy!r}\ncx = {intr.cx!r}\ncy = {intr.cy!r}\n"
+        + "".join(
+            f"{key} = {float(value)!r}\n"
+            for key, value in zip(DISTORTION_KEYS, intr.distortion, strict=True)
+            if intr.has_distortion
+        ),
         encoding="utf-8",
     )
     return len(lines) - 2

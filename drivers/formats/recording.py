@@ -5,7 +5,11 @@
 ``odom`` (N, 3) float64 ``[x_m, y_m, yaw_rad]`` (the robot's pose in its odometry frame at each
 frame).
 ``recording.toml`` holds ``format_version``, ``description``, ``device``, an ``[intrinsics]``
-table and an optional ``[truth]`` table. A bare ``.npz`` with the same arrays is also readable.
+table (width, height, fx, fy, cx, cy and, for a distorting lens, plumb_bob k1, k2, p1, p2, k3; 0
+when absent) and an optional ``[truth]`` table. A bare ``.npz`` with the same arrays is also
+readable (as a pinhole: its ``intrinsics`` array has no lens coefficients); it may hold
+``depth_m`` float32/float64 (N, H, W) metres instead of ``depth_mm`` (converted by
+``metres_to_mm``), and its intrinsics may come from the caller (replay's ``fx, fy, cx, cy``).
 
 Memory: ``read_recording`` decompresses every frame into memory, ``open_recording_stream`` one
 frame at a time; ``drivers.formats.recording_writer.write_recording`` holds one frame at a time.
@@ -27,8 +31,8 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from drivers.base import Frame, Intrinsics
-from drivers.errors import RecordingError
+from drivers.base import DISTORTION_KEYS, MM_PER_M, UINT16_MAX, Frame, Intrinsics
+from drivers.errors import DeviceSpecError, RecordingError
 from drivers.files import read_toml
 from drivers.formats.npz import Archive, Member, is_numeric, open_archive
 from drivers.limits import image_size_problem
@@ -90,8 +94,10 @@ def _intrinsics_from_meta(table: Any, shape: tuple[int, int], where: Path) -> In
             f"{where}: [intrinsics] table is missing", hint="add width, height, fx, fy, cx, cy"
         )
     values: dict[str, int | float] = {}
-    for key in ("width", "height", "fx", "fy", "cx", "cy"):
+    for key in ("width", "height", "fx", "fy", "cx", "cy", *DISTORTION_KEYS):
         if key not in table:
+            if key in DISTORTION_KEYS:
+                continue  # recordings of a pinhole (and those older than the lens model)
             raise RecordingError(f"{where}: [intrinsics] lacks {key!r}")
         try:
             values[key] = to_number(table[key], integer=key in ("width", "height"))
@@ -145,28 +151,65 @@ def _read_meta(folder: Path) -> dict[str, Any]:
     return meta
 
 
-def _depth(archive: Archive) -> Member:
-    """The ``depth_mm`` header, checked: uint16 (N, H, W), a size depthnav takes, all stored."""
+def _depth(archive: Archive, bare: bool = False) -> Member:
+    """The depth header, checked: ``depth_mm`` uint16 (N, H, W) (or, in a bare ``.npz``,
+    ``depth_m`` float32/float64 metres), a size depthnav takes, all stored."""
     member = archive.member("depth_mm")
+    if member is None and bare:
+        member = archive.member("depth_m")
     if member is None:
         found = ", ".join(short_repr(n, 30) for n in archive.names()[:8]) or "none"
-        raise RecordingError(f"{archive.path}: has no 'depth_mm' array (found: {found})")
-    shape = member.shape
-    if member.dtype != np.uint16 or len(shape) != 3 or min(shape) < 1:  # noqa: PLR2004
         raise RecordingError(
-            f"{archive.path}: 'depth_mm' must be uint16 (N, H, W) with N >= 1, "
-            f"got {member.dtype} {shape}"
+            f"{archive.path}: has no 'depth_mm' array (found: {found})",
+            hint="depth_mm: uint16 (N, H, W) millimetres"
+            + ("; or depth_m: float32 (N, H, W) metres" if bare else ""),
+        )
+    shape = member.shape
+    if member.name == "depth_m":
+        dtype_ok = member.dtype.kind == "f" and member.dtype.itemsize in (4, 8)
+    else:
+        dtype_ok = member.dtype == np.uint16
+    if not dtype_ok or len(shape) != 3 or min(shape) < 1:  # noqa: PLR2004
+        what = "float32 or float64 metres" if member.name == "depth_m" else "uint16"
+        hint = None
+        if member.name == "depth_mm" and member.dtype.kind == "f":
+            hint = "store float depth in metres as 'depth_m' (a bare .npz), or uint16 millimetres"
+        raise RecordingError(
+            f"{archive.path}: {member.name!r} must be {what} (N, H, W) with N >= 1, "
+            f"got {member.dtype} {shape}",
+            hint=hint,
         )
     problem = image_size_problem(shape[2], shape[1])
     if problem:
-        raise RecordingError(f"{archive.path}: 'depth_mm' holds {problem}")
+        raise RecordingError(f"{archive.path}: {member.name!r} holds {problem}")
     if shape[0] > MAX_FRAMES:
         raise RecordingError(
-            f"{archive.path}: 'depth_mm' holds {shape[0]} frames, more than the {MAX_FRAMES} "
-            "a recording may have",
+            f"{archive.path}: {member.name!r} holds {shape[0]} frames, more than the "
+            f"{MAX_FRAMES} a recording may have",
             hint="split it into several recordings",
         )
     return member
+
+
+MAX_DEPTH_M = 65.535  # the largest depth uint16 millimetres hold
+
+
+def metres_to_mm(depth_m: npt.NDArray[np.floating], where: Path) -> npt.NDArray[np.uint16]:
+    """Float metres (any shape) as uint16 millimetres, rounded as the pipeline's depth_to_mm:
+    NaN, inf, 0 and negative depths become 0 (no reading); finite depths beyond 65.535 m become
+    0 as well, with a warning (a rendered sky at 1e10 m is no reading, not an error)."""
+    with np.errstate(invalid="ignore", over="ignore"):
+        mm = np.rint(depth_m.astype(np.float64) * MM_PER_M)
+    finite = np.isfinite(mm)
+    far = finite & (mm > UINT16_MAX)
+    if far.any():
+        log.warning(
+            "%s: %d depths beyond %g m (the uint16 millimetre limit) read as no reading",
+            where,
+            int(far.sum()),
+            MAX_DEPTH_M,
+        )
+    return np.where(finite & (mm > 0) & ~far, mm, 0).astype(np.uint16)
 
 
 def _small(archive: Archive, name: str, shape: tuple[int, ...], what: str) -> Any:
@@ -249,15 +292,31 @@ def _described(
     arrays: dict[str, npt.NDArray[Any]],
     shape: tuple[int, int, int],
     default_fps: float,
+    intrinsics_override: Mapping[str, float] | None = None,
 ) -> dict[str, Any]:
-    """Everything of a recording but its depth, checked against the depth's (N, H, W)."""
+    """Everything of a recording but its depth, checked against the depth's (N, H, W).
+
+    ``intrinsics_override`` (fx, fy, cx, cy, pixels) stands in for intrinsics the file lacks.
+    """
     n, image = shape[0], (shape[1], shape[2])
     if "intrinsics" in meta:
         intr = _intrinsics_from_meta(meta["intrinsics"], image, where / META_FILE)
     elif "intrinsics" in arrays:
         intr = intrinsics_from_array(arrays["intrinsics"], image, npz_path)
+    elif intrinsics_override and all(k in intrinsics_override for k in ("fx", "fy", "cx", "cy")):
+        keys = ("fx", "fy", "cx", "cy", *DISTORTION_KEYS)
+        values = {k: float(v) for k, v in intrinsics_override.items() if k in keys}
+        try:
+            intr = Intrinsics(image[1], image[0], **values)
+        except ValueError as exc:
+            raise DeviceSpecError(
+                f"{npz_path}: intrinsics options do not fit the {image[1]}x{image[0]} image: {exc}"
+            ) from None
     else:
-        raise RecordingError(f"{npz_path}: has no 'intrinsics' array [fx, fy, cx, cy]")
+        raise RecordingError(
+            f"{npz_path}: has no 'intrinsics' array [fx, fy, cx, cy]",
+            hint="add one, or give them in the spec: replay:PATH?fx=..&fy=..&cx=..&cy=..",
+        )
     truth = meta.get("truth", {})
     return {
         "intrinsics": intr,
@@ -271,7 +330,10 @@ def _described(
 
 
 def read_recording(
-    path: str | os.PathLike[str], default_fps: float = 30.0, max_depth_bytes: int | None = None
+    path: str | os.PathLike[str],
+    default_fps: float = 30.0,
+    max_depth_bytes: int | None = None,
+    intrinsics_override: Mapping[str, float] | None = None,
 ) -> Recording:
     """Load a recording folder or a bare ``.npz``, every frame decompressed into memory.
 
@@ -280,6 +342,7 @@ def read_recording(
         default_fps: frame rate assumed when the file has no timestamps, frames per second.
         max_depth_bytes: refuse (before decoding) depth frames larger than this, bytes; the
             limit applies to exactly the member that is decoded.
+        intrinsics_override: fx, fy, cx, cy (pixels) for a file that has no intrinsics.
 
     Raises:
         RecordingError: missing, corrupt, truncated, inconsistent or too big; the message names
@@ -287,18 +350,19 @@ def read_recording(
     """
     where, meta, npz_path = _locate(path)
     with open_archive(npz_path) as archive:
-        member = _depth(archive)
+        member = _depth(archive, bare=not meta)
         if max_depth_bytes is not None and member.nbytes > max_depth_bytes:
             raise RecordingError(
-                f"{npz_path}: 'depth_mm' decodes to {member.nbytes} bytes, more than the "
+                f"{npz_path}: {member.name!r} decodes to {member.nbytes} bytes, more than the "
                 f"{max_depth_bytes} allowed here (changed while being opened?)"
             )
         depth = archive.read(member)
         arrays = _small_arrays(archive, member.shape[0], "intrinsics" not in meta)
+    if depth.dtype.kind == "f":
+        depth = metres_to_mm(depth, npz_path)
     shape = (member.shape[0], member.shape[1], member.shape[2])
-    return Recording(
-        depth_mm=depth, **_described(where, meta, npz_path, arrays, shape, default_fps)
-    )
+    described = _described(where, meta, npz_path, arrays, shape, default_fps, intrinsics_override)
+    return Recording(depth_mm=depth, **described)
 
 
 # --- streaming: one frame in memory at a time -------------------------------------------------
@@ -310,7 +374,7 @@ def recording_depth_nbytes(path: str | os.PathLike[str]) -> int:
     """
     where = Path(path)
     with open_archive(where / FRAMES_FILE if where.is_dir() else where) as archive:
-        return _depth(archive).nbytes
+        return _depth(archive, bare=not where.is_dir()).nbytes
 
 
 @dataclass(frozen=True, slots=True)
@@ -332,6 +396,7 @@ class RecordingStream:
     device: str = ""
     truth: Mapping[str, Any] = field(default_factory=dict)
     odom: npt.NDArray[np.float64] | None = None
+    bare: bool = False  # a bare .npz (may hold float 'depth_m')
 
     @property
     def depth_nbytes(self) -> int:
@@ -347,23 +412,28 @@ class RecordingStream:
             RecordingError: the file is corrupt, truncated or changed since it was opened.
         """
         n, height, width = self.shape
-        frame_bytes = height * width * 2
         with open_archive(self.npz_path) as archive:
-            member = _depth(archive)
+            member = _depth(archive, bare=self.bare)
             if (member.shape, member.fortran_order) != (self.shape, False):
                 raise RecordingError(f"{self.npz_path}: changed while being replayed")
+            frame_bytes = height * width * member.dtype.itemsize
             with archive.data(member) as fid:
                 for i in range(n):
                     data = fid.read(frame_bytes)
                     if len(data) != frame_bytes:
-                        raise EOFError(f"'depth_mm' ends in frame {i} of {n}")
-                    yield np.frombuffer(data, dtype=np.uint16).reshape(height, width)
+                        raise EOFError(f"{member.name!r} ends in frame {i} of {n}")
+                    frame = np.frombuffer(data, dtype=member.dtype).reshape(height, width)
+                    if member.dtype.kind == "f":  # float metres, bare .npz only
+                        frame = metres_to_mm(frame, self.npz_path)
+                    yield frame
                 if member.stored_bytes == member.nbytes:
                     fid.read(1)  # to the end of the member, where zipfile checks its CRC-32
 
 
 def open_recording_stream(
-    path: str | os.PathLike[str], default_fps: float = 30.0
+    path: str | os.PathLike[str],
+    default_fps: float = 30.0,
+    intrinsics_override: Mapping[str, float] | None = None,
 ) -> RecordingStream:
     """Open a recording folder or a bare ``.npz`` for reading frame by frame.
 
@@ -373,6 +443,7 @@ def open_recording_stream(
     Args:
         path: a recording folder (``recording.toml`` + ``frames.npz``) or an ``.npz`` file.
         default_fps: frame rate assumed when the file has no timestamps, frames per second.
+        intrinsics_override: fx, fy, cx, cy (pixels) for a file that has no intrinsics.
 
     Raises:
         RecordingError: missing, corrupt or inconsistent, or ``depth_mm`` not stored as uint16
@@ -380,10 +451,11 @@ def open_recording_stream(
     """
     where, meta, npz_path = _locate(path)
     with open_archive(npz_path) as archive:
-        member = _depth(archive)
+        member = _depth(archive, bare=not meta)
         if member.fortran_order:
             raise RecordingError(
-                f"{npz_path}: 'depth_mm' must be uint16 (N, H, W) in C order, "
+                f"{npz_path}: {member.name!r} must be "
+                f"{'float' if member.name == 'depth_m' else 'uint16'} (N, H, W) in C order, "
                 f"got {member.dtype} {member.shape} in Fortran order",
                 hint="save it again with np.ascontiguousarray(depth_mm)",
             )
@@ -392,5 +464,6 @@ def open_recording_stream(
     return RecordingStream(
         npz_path=npz_path,
         shape=shape,
-        **_described(where, meta, npz_path, arrays, shape, default_fps),
+        bare=not meta,
+        **_described(where, meta, npz_path, arrays, shape, default_fps, intrinsics_override),
     )

@@ -23,7 +23,7 @@ import numpy as np
 import numpy.typing as npt
 import tomli_w
 
-from drivers.base import Frame, Intrinsics
+from drivers.base import DISTORTION_KEYS, Frame, Intrinsics
 from drivers.errors import RecordingError
 from drivers.formats.recording import DEPTH_MEMBER, FORMAT_VERSION, FRAMES_FILE, META_FILE
 
@@ -240,6 +240,12 @@ def _meta_document(
             "cx": float(intrinsics.cx),
             "cy": float(intrinsics.cy),
         }
+        # lens coefficients only when there are any: a pinhole recording reads as before
+        | (
+            dict(zip(DISTORTION_KEYS, map(float, intrinsics.distortion), strict=True))
+            if intrinsics.has_distortion
+            else {}
+        )
     }
     if truth:
         tables["truth"] = dict(truth)

@@ -28,9 +28,10 @@ class CameraModel:
     """The camera of a CameraInfo message.
 
     Attributes:
-        intrinsics: pinhole fx, fy, cx, cy (pixels) for the depth image's size.
-        distortion_model: e.g. "plumb_bob", "" when none is given (not applied yet).
-        distortion: the D coefficients as recorded (not applied yet).
+        intrinsics: fx, fy, cx, cy (pixels) for the depth image's size, with the lens
+            coefficients of a ``plumb_bob`` D (see ``camera_model`` for the other models).
+        distortion_model: e.g. "plumb_bob", "" when none is given.
+        distortion: the D coefficients as recorded.
         frame_id: the camera's frame.
     """
 
@@ -90,31 +91,61 @@ def decode_depth(msg: Any, where: str) -> npt.NDArray[np.uint16]:
     return np.where(ok, mm, 0).astype(np.uint16)
 
 
+RATIONAL_MODEL = "rational_polynomial"  # D = k1 k2 p1 p2 k3 k4 k5 k6: plumb_bob when k4..k6 = 0
+
+
 def camera_model(info: Any, shape: tuple[int, int], where: str) -> CameraModel | None:
-    """The camera of a CameraInfo for images of ``shape`` (H, W); None when K is all zero."""
+    """The camera of a CameraInfo for images of ``shape`` (H, W); None when K is all zero.
+
+    Lens distortion: a ``plumb_bob`` D (k1, k2, p1, p2, k3) is applied, and so is a
+    ``rational_polynomial`` D whose k4..k6 are zero (then the same model). Other models (a
+    rational D with a denominator, ``equidistant`` fisheye, unknown names) are not modelled:
+    the image is read as an ideal pinhole, with a warning (dropping a rational denominator alone
+    would be worse than ignoring the lens). An all-zero D is a rectified image (``image_rect``)
+    or an ideal camera.
+
+    Raises:
+        RecordingError: K, or the plumb_bob D, that does not fit the image.
+    """
     k = np.asarray(_field(info, "k", "K"), dtype=np.float64)
     if k.shape != (9,) or not np.any(k):
         return None  # an uncalibrated camera publishes K = 0
     height, width = shape
     info_w, info_h = int(info.width), int(info.height)
+    d = tuple(float(x) for x in np.asarray(_field(info, "d", "D"), dtype=np.float64).reshape(-1))
+    model = str(info.distortion_model).strip()
+    coeffs = _lens_coefficients(model, d, where)
     try:
         intr = Intrinsics(
-            info_w or width, info_h or height, float(k[0]), float(k[4]), float(k[2]), float(k[5])
+            info_w or width,
+            info_h or height,
+            float(k[0]),
+            float(k[4]),
+            float(k[2]),
+            float(k[5]),
+            *coeffs,
         )
         if (intr.width, intr.height) != (width, height):
             log.info("%s: CameraInfo is %dx%d, images %dx%d: intrinsics scaled", where,
                      intr.width, intr.height, width, height)  # fmt: skip
             intr = intr.scaled(width, height)
     except ValueError as exc:
-        raise RecordingError(f"{where}: CameraInfo K does not fit the image: {exc}") from None
-    d = tuple(float(x) for x in np.asarray(_field(info, "d", "D"), dtype=np.float64))
-    model = str(info.distortion_model)
-    if any(d):
-        log.warning(
-            "%s: lens distortion (%s, %s) is not modelled yet; the depth image is treated as "
-            "an undistorted pinhole", where, model or "unnamed", ", ".join(f"{x:.4g}" for x in d)
-        )  # fmt: skip
+        raise RecordingError(f"{where}: CameraInfo K/D does not fit the image: {exc}") from None
     return CameraModel(intr, model, d, str(info.header.frame_id))
+
+
+def _lens_coefficients(model: str, d: tuple[float, ...], where: str) -> tuple[float, ...]:
+    """(k1, k2, p1, p2, k3) to apply for a CameraInfo's distortion model and D; () for none."""
+    if not any(d):
+        return ()
+    shown = f"{model or 'unnamed'} D = [{', '.join(f'{x:.4g}' for x in d)}]"
+    if model == "plumb_bob" or (model == RATIONAL_MODEL and not any(d[5:])):
+        return (d + (0.0,) * 5)[:5]
+    log.warning(
+        "%s: lens distortion %s is not modelled (depthnav models plumb_bob); the depth image is "
+        "read as an ideal pinhole", where, shown,
+    )  # fmt: skip
+    return ()
 
 
 def quat_matrix(q: Any) -> npt.NDArray[np.float64]:

@@ -6,6 +6,9 @@ Spec: ``openni://[URI][?mode=WxH@FPS]`` for a live device (first device when URI
 for a recording. ``rate=max`` (default for files) plays every frame in order as fast as it is read.
 ``fx, fy, cx, cy`` (pixels) replace the intrinsics, which otherwise come from the stream's field of
 view with the principal point at the image centre (58 x 45 degrees when the device reports none).
+OpenNI2 reports no lens distortion for depth (its API has only the field of view; PS1080 sensors
+compute depth in the device), so the image is an ideal pinhole unless ``k1, k2, p1, p2, k3``
+(plumb_bob) are given as options.
 
 Uses PyPI ``openni`` over the system libOpenNI2 (Debian: ``apt-get install libopenni2-0``), found
 without user setup: a private folder of two symlinks is built next to the system library, because

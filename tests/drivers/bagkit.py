@@ -34,6 +34,7 @@ class BagSpec:
         tf_static: (parent, child, quaternion xyzw) static transforms to write.
         extra_images: more Image topics: name -> encoding (written with the same frames).
         distortion: D coefficients of the CameraInfo.
+        distortion_model: its distortion_model.
     """
 
     kind: str = "ros1"
@@ -45,6 +46,7 @@ class BagSpec:
     tf_static: Sequence[tuple[str, str, tuple[float, float, float, float]]] = ()
     extra_images: dict[str, str] = field(default_factory=dict)
     distortion: tuple[float, ...] = (0.0, 0.0, 0.0, 0.0, 0.0)
+    distortion_model: str = "plumb_bob"
 
 
 def _typestore(kind: str) -> Any:
@@ -105,7 +107,7 @@ def info_msg(ts: Any, frame: Frame, stamp: Any, spec: BagSpec) -> Any:
         header=header(ts, stamp, OPTICAL),
         height=i.height,
         width=i.width,
-        distortion_model="plumb_bob",
+        distortion_model=spec.distortion_model,
         binning_x=0,
         binning_y=0,
         roi=roi,

@@ -260,14 +260,55 @@ def test_the_cli_says_one_line(tmp_path: Path) -> None:
     assert "depthnav: hint: choose one with ?topic=" in p.stderr
 
 
-def test_distortion_is_kept_and_reported(tmp_path: Path, caplog) -> None:
+def test_plumb_bob_distortion_is_applied(tmp_path: Path, caplog) -> None:
     from drivers.formats.rosbag import DepthBag
 
-    d = (0.1, -0.2, 0.0, 0.0, 0.05)
+    d = (0.1, -0.2, 0.001, -0.002, 0.05)
     bag = write_bag(tmp_path / "d.bag", ramp_frames(1), BagSpec("ros1", distortion=d))
     with caplog.at_level(logging.WARNING):
         probe = DepthBag(bag).probe()
     assert probe.camera is not None and probe.camera.distortion == d
     assert probe.camera.distortion_model == "plumb_bob"
-    assert "not modelled yet" in caplog.text
+    assert probe.camera.intrinsics.distortion == d and "not modelled" not in caplog.text
     assert math.isclose(probe.camera.intrinsics.fx, ramp_frames(1)[0].intrinsics.fx)
+    # and the replayed frames carry it
+    with drivers.opened(drivers.create_driver(f"replay:{bag}?rate=max")) as driver:
+        frame = driver.read_frame()
+    assert frame is not None and frame.intrinsics.distortion == d
+
+
+@pytest.mark.parametrize(
+    ("model", "d", "applied"),
+    [
+        ("rational_polynomial", (0.1, -0.2, 0.0, 0.0, 0.05, 0.0, 0.0, 0.0), True),
+        ("rational_polynomial", (2.0, 0.5, 0.0, 0.0, 0.0, 2.1, 0.6, 0.0), False),
+        ("equidistant", (0.1, 0.01, 0.0, 0.0), False),
+    ],
+    ids=["rational_without_denominator", "rational", "equidistant"],
+)
+def test_other_lens_models_are_applied_only_when_plumb_bob(
+    tmp_path: Path, caplog, model: str, d: tuple[float, ...], applied: bool
+) -> None:
+    from drivers.formats.rosbag import DepthBag
+
+    spec = BagSpec("ros1", distortion=d, distortion_model=model)
+    bag = write_bag(tmp_path / "d.bag", ramp_frames(1), spec)
+    with caplog.at_level(logging.WARNING):
+        probe = DepthBag(bag).probe()
+    assert probe.camera is not None and probe.camera.distortion == d
+    intr = probe.camera.intrinsics
+    if applied:
+        assert intr.distortion == d[:5] and "not modelled" not in caplog.text
+    else:
+        assert not intr.has_distortion
+        assert f"lens distortion {model} D = [" in caplog.text
+        assert "is not modelled" in caplog.text and "ideal pinhole" in caplog.text
+
+
+def test_a_folding_plumb_bob_d_is_a_one_line_error(tmp_path: Path) -> None:
+    from drivers.formats.rosbag import DepthBag
+
+    spec = BagSpec("ros1", distortion=(-2.0, 0.0, 0.0, 0.0, 0.0))
+    bag = write_bag(tmp_path / "d.bag", ramp_frames(1), spec)
+    with pytest.raises(RecordingError, match=r"CameraInfo K/D does not fit the image: lens"):
+        DepthBag(bag).probe()

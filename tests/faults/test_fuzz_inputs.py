@@ -713,6 +713,24 @@ def _make_png_folder(folder: Path) -> Path:
     return root
 
 
+def _make_npy(folder: Path) -> Path:
+    np.save(folder / "x.npy", np.stack([f.depth_mm for f in frames()]))
+    return folder / "x.npy"
+
+
+def _make_image_folder(folder: Path) -> Path:
+    """TUM/slambook style without an index: colour beside 16-bit PGM depth, picked by header."""
+    root = folder / "img"
+    root.mkdir()
+    for i, frame in enumerate(frames()[:2]):
+        depth = frame.depth_mm
+        head = f"P5\n{depth.shape[1]} {depth.shape[0]}\n65535\n".encode()
+        (root / f"{i}_depth.pgm").write_bytes(head + depth.astype(">u2").tobytes())
+        (root / f"{i}.ppm").write_bytes(f"P6 {depth.shape[1]} {depth.shape[0]} 255\n".encode())
+    (root / "camera.toml").write_text("depth_scale = 1000.0\n")
+    return root
+
+
 def _make_fakenect(folder: Path) -> Path:
     shutil.copytree(FAKENECT_DIR / "base", folder / "fk")
     return folder / "fk"
@@ -754,6 +772,14 @@ READERS = [
         _replay_recording,
     ),
     Reader("bare npz", _make_npz, ("",), (), _replay_recording),
+    Reader("bare npy", _make_npy, ("",), (), _replay),
+    Reader(
+        "image folder",
+        _make_image_folder,
+        ("", "camera.toml", "0_depth.pgm", "1_depth.pgm"),
+        ("camera.toml",),
+        _replay,
+    ),
     Reader(
         "png folder",
         _make_png_folder,

@@ -259,3 +259,30 @@ def test_mcap_file_and_port_in_use(tmp_path: Path) -> None:
         c.topic: summary.statistics.channel_message_counts[c.id] for c in summary.channels.values()
     }
     assert counts == dict.fromkeys(TOPICS, 2)
+
+
+def test_camera_calibration_carries_the_lens_coefficients(tmp_path: Path) -> None:
+    from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
+    from mcap.reader import make_reader
+
+    rec = special_recording(tmp_path / "rec", n=1)
+    out = tmp_path / "lens.mcap"
+    lens = "&k1=-0.2&k2=0.05&p1=0.001&p2=-0.002&k3=0.01"
+    p = depthnav("run", "--device", f"replay:{rec}?rate=max{lens}", "--sink", f"foxglove:{out}")
+    assert p.returncode == 0, p.stderr
+    with open(out, "rb") as fh:
+        (schema, _, raw) = next(
+            iter(make_reader(fh).iter_messages(topics=["/depthnav/depth/camera_info"]))
+        )
+    pool = descriptor_pool.DescriptorPool()
+    pending = list(descriptor_pb2.FileDescriptorSet.FromString(schema.data).file)
+    while pending:  # add each file once its dependencies are in
+        done = [f for f in pending if all(_has(pool, d) for d in f.dependency)]
+        assert done, "unresolvable schema"
+        for f in done:
+            pool.Add(f)
+            pending.remove(f)
+    cls = message_factory.GetMessageClass(pool.FindMessageTypeByName(schema.name))
+    info = cls.FromString(raw.data)
+    assert info.distortion_model == "plumb_bob"
+    assert list(info.D) == pytest.approx([-0.2, 0.05, 0.001, -0.002, 0.01])

@@ -12,6 +12,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from depthnav_daemon.pipeline import MountTrust
 from depthnav_daemon.pipeline.pose import PoseEstimate
 from depthnav_daemon.sinks import jsonmsg
 from tests.sinks.conftest import make_pair, with_memory, with_ranges
@@ -179,6 +180,7 @@ def test_documented_example_has_exactly_the_real_fields(pairs):
     example = json.loads(block.replace("\n", ""))
     frame, result = pairs[2]  # a frame with cliff and a floor estimate
     result = with_memory(result)  # and the obstacle memory on
+    result = replace(result, mount_trust=MountTrust(source="config", floor="confirmed"))
     real = json.loads(jsonmsg.dumps(jsonmsg.frame_message(frame, result, "0.1.0", 1.0)))
 
     def fixed(keys: set[str]) -> set[str]:

@@ -17,10 +17,21 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from depthnav_daemon.errors import ConfigError, SinkError
+from depthnav_daemon.pipeline import MountTrust, Result, StageParams, process
+from depthnav_daemon.pipeline.geometry import Mount
 from depthnav_daemon.pipeline.scan import LaserScan
+from depthnav_daemon.sim.synthetic import Box, Scene, render
 from depthnav_daemon.sinks import create_sink
 from depthnav_daemon.sinks.mavlink import MavlinkSink
-from depthnav_daemon.sinks.mavlink_sectors import UNKNOWN, Schedule, merge_cliff, obstacle_sectors
+from depthnav_daemon.sinks.mavlink_sectors import (
+    UNKNOWN,
+    Schedule,
+    merge_cliff,
+    obstacle_sectors,
+    trust_statustext,
+)
+from drivers.base import Frame
+from tests.sinks.conftest import ASYM_640, CLIFF, SCAN
 
 mavlink2 = pytest.importorskip("pymavlink.dialects.v20.common")
 
@@ -334,3 +345,80 @@ def test_schedule_never_bursts_after_a_stall():
     clock.due(0.0)
     assert clock.due(5.0) == (True, True)  # a 5 s stall: one of each, not 50 queued scans
     assert clock.due(5.01) == (False, False)
+
+
+# --- mount trust ----------------------------------------------------------------------------------
+
+FLOOR_ONLY = Scene(boxes=(Box(1.6, 0.3, 0.3, 0.3, 0.4),))
+CONTRADICTED = MountTrust(
+    source="config",
+    pinned=True,
+    floor="contradicted",
+    floor_height_m=0.5,
+    floor_tilt_deg=12.0,
+    floor_roll_deg=0.0,
+    dropoffs_trusted=False,
+    note="the floor says height 0.50 m ...",
+)
+
+
+def wrong_mount_pair(seq: int, trust: MountTrust) -> tuple[Frame, Result]:
+    """A camera at 0.5 m processed with a mount 0.2 m too low: the floor becomes drop-offs."""
+    view = render(FLOOR_ONLY, ASYM_640, Mount(0.5, 12.0, 0.0))
+    frame = Frame(seq, seq / 30.0, view.depth_mm, ASYM_640)
+    params = StageParams(scan=SCAN, cliff=CLIFF)
+    return frame, process(frame, Mount(0.3, 12.0, 0.0), params, mount_trust=trust)
+
+
+@pytest.mark.parametrize("policy", ["send", "drop"])
+def test_untrusted_dropoffs_option_and_statustext(udp_receiver, context, policy):
+    port = udp_receiver.getsockname()[1]
+    sink = create_sink(
+        f"mavlink+udp://127.0.0.1:{port}?cliff=1&rate=20&stale=10&untrusted_dropoffs={policy}"
+    )
+    _frame, result = wrong_mount_pair(0, CONTRADICTED)
+    with_cliff = merge_cliff(obstacle_sectors(result.scan), result.cliff.scan).distances_cm
+    without = obstacle_sectors(result.scan).distances_cm
+    assert (with_cliff != without).any()  # the flagged drop-offs do change the message
+    sink.open(context)
+    try:
+        read = udp_reader(udp_receiver)
+        for seq in range(3):  # untrusted on every frame: one STATUSTEXT, not three
+            sink.write(*wrong_mount_pair(seq, CONTRADICTED))
+        msgs = collect(read, lambda m: len(of_type(m, "OBSTACLE_DISTANCE")) >= 3)
+        trusted = replace(CONTRADICTED, floor="confirmed", dropoffs_trusted=True, note=None)
+        sink.write(*wrong_mount_pair(3, trusted))
+        msgs += collect(read, lambda m: len(of_type(m, "STATUSTEXT")) >= 1)
+        msgs += collect(read, lambda m: False, timeout_s=0.5)  # nothing more comes
+    finally:
+        sink.close()
+    texts = [(m.severity, m.text) for m in of_type(msgs, "STATUSTEXT")]
+    verb = "sent" if policy == "send" else "dropped"
+    assert texts == [
+        (4, f"depthnav: floor contradicts mount, cliffs {verb}"),  # MAV_SEVERITY_WARNING
+        (6, "depthnav: mount trusted again"),  # MAV_SEVERITY_INFO
+    ]
+    obstacle = of_type(msgs, "OBSTACLE_DISTANCE")
+    untrusted = [m for m in obstacle if m.time_usec == obstacle[0].time_usec]
+    expected = with_cliff if policy == "send" else without
+    assert list(untrusted[0].distances) == expected.tolist()
+    # trusted again: the drop-offs go out whatever the policy
+    assert list(obstacle[-1].distances) == with_cliff.tolist()
+
+
+def test_default_unconfirmed_mount_statustext_and_bad_policy():
+    trust = MountTrust(source="default", dropoffs_trusted=False, note="not configured")
+    assert trust_statustext(trust, True, "drop") == (
+        4,
+        "depthnav: mount not configured, cliffs dropped",
+    )
+    assert trust_statustext(trust, False, "send") == (4, "depthnav: mount not configured")
+    assert all(
+        len(trust_statustext(t, c, p)[1]) <= 50
+        for t in (trust, CONTRADICTED, None)
+        for c in (True, False)
+        for p in ("send", "drop")
+    )
+    with pytest.raises(ConfigError, match="untrusted_dropoffs"):
+        create_sink("mavlink+udp://127.0.0.1:14550?untrusted_dropoffs=maybe")
+    assert create_sink("mavlink+udp://").untrusted_dropoffs == "send"

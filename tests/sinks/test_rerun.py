@@ -332,3 +332,93 @@ def test_a_second_writer_of_the_same_rrd_is_refused_and_the_first_file_stays_who
     ent = temporal(path)
     assert len(column(ent["/world/scan"], "Points3D:positions")) == len(pairs)
     record(path, pairs, context)  # the lock is released at close: the file can be written again
+
+
+def rgba(rgb) -> int:
+    """rerun's packed colour, 0xRRGGBBAA."""
+    r, g, b = rgb
+    return (r << 24) | (g << 16) | (b << 8) | 0xFF
+
+
+def test_untrusted_dropoffs_are_amber_and_the_trust_is_logged(tmp_path, pairs, context):
+    from depthnav_daemon.pipeline import MountTrust
+    from depthnav_daemon.sinks.rerun_topdown import CLIFF_RGB, UNTRUSTED_CLIFF_RGB
+
+    good = MountTrust(source="config", floor="confirmed")
+    bad = MountTrust(
+        source="config",
+        pinned=True,
+        floor="contradicted",
+        floor_height_m=0.7,
+        floor_tilt_deg=12.0,
+        floor_roll_deg=0.0,
+        dropoffs_trusted=False,
+        note="the floor says height 0.70 m ...: drop-offs are not trusted",
+    )
+    trusts = [good, bad, bad, good]
+    flagged = [replace(r, mount_trust=t) for (_, r), t in zip(pairs, trusts, strict=False)]
+    path = tmp_path / "run.rrd"
+    record(path, [(f, r) for (f, _), r in zip(pairs, flagged, strict=False)], context)
+    ent = temporal(path)
+    want = [rgba(UNTRUSTED_CLIFF_RGB if not t.dropoffs_trusted else CLIFF_RGB) for t in trusts]
+    for entity, col in (
+        ("/world/cliff/points", "Points3D:colors"),
+        ("/world/cliff/cells", "Boxes3D:colors"),
+        ("/topdown/cliff", "Boxes2D:colors"),
+    ):
+        assert [c[0] for c in column(ent[entity], col)] == want, entity
+    # the trust is logged when it changes (frames 0, 1, 3), besides frame 3's own warning
+    texts = [t[0] for t in column(ent["/log"], "TextLog:text")]
+    levels = [t[0] for t in column(ent["/log"], "TextLog:level")]
+    trust_lines = [(t, lv) for t, lv in zip(texts, levels, strict=True) if "mount from" in t]
+    assert [lv for _, lv in trust_lines] == ["INFO", "WARN", "INFO"]
+    assert "floor confirmed: drop-offs trusted" in trust_lines[0][0]
+    assert "(pinned)" in trust_lines[1][0] and "drawn amber" in trust_lines[1][0]
+
+
+def test_a_viewer_that_goes_away_is_not_claimed_delivered(tmp_path, pairs, context, caplog):
+    """The viewer dies mid-run: the summary says the frames were not confirmed delivered."""
+    import rerun_cli
+
+    binary = Path(rerun_cli.__file__).with_name("rerun")
+    if not binary.exists():
+        pytest.skip("rerun_cli binary not installed")
+    port, log_path = free_port(), tmp_path / "server.log"
+    with open(log_path, "wb") as log_file:
+        server = subprocess.Popen(
+            [str(binary), "--bind", "127.0.0.1", "--port", str(port), "--save", "/dev/null"],
+            stdout=log_file,
+            stderr=subprocess.STDOUT,
+            start_new_session=True,
+        )
+    try:
+        deadline = time.monotonic() + 30
+        while b"Listening for gRPC" not in log_path.read_bytes():
+            assert server.poll() is None and time.monotonic() < deadline, log_path.read_text()
+            time.sleep(0.1)
+        sink = create_sink(f"rerun+grpc://127.0.0.1:{port}")
+        sink.open(context)  # the viewer is there: the probe lets it through
+        sink.write(*pairs[0])
+    finally:
+        os.killpg(server.pid, signal.SIGKILL)
+        server.wait(timeout=10)
+    with caplog.at_level("INFO"):
+        for frame, result in pairs[1:]:
+            sink.write(frame, result)
+        sink.close()
+    text = caplog.text
+    assert "not confirmed delivered" in text and "frames logged" not in text
+
+
+def test_check_viewer_refuses_a_silent_listener_and_a_closed_port():
+    from depthnav_daemon.sinks.rerun import check_viewer
+
+    with socket.socket() as listener:  # accepts connections (backlog) but never answers
+        listener.bind(("127.0.0.1", 0))
+        listener.listen(1)
+        port = listener.getsockname()[1]
+        with pytest.raises(SinkError, match="does not answer") as info:
+            check_viewer(f"rerun+http://127.0.0.1:{port}/proxy", timeout_s=0.5)
+        assert f"rerun --port {port}" in info.value.hint
+    with pytest.raises(SinkError, match=f"no rerun viewer at 127.0.0.1:{port}"):
+        check_viewer(f"rerun+http://127.0.0.1:{port}/proxy", timeout_s=0.5)

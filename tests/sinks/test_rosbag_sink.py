@@ -171,23 +171,26 @@ def test_ros1_bag_passes_debian_ros1_tools(run) -> None:
         assert scan["tf"] == ["depthnav_scan", "depthnav_optical"]
 
 
-def test_image_option_replays_the_run(tmp_path: Path) -> None:
-    """``image=1`` writes the depth and its CameraInfo: ``replay:`` gives the frames back."""
+@pytest.mark.parametrize("lens", ["", "&k1=-0.2&k2=0.05&p1=0.001&p2=-0.002&k3=0.01"])
+def test_image_option_replays_the_run(tmp_path: Path, lens: str) -> None:
+    """``image=1`` writes the depth and its CameraInfo (with the lens coefficients in D):
+    ``replay:`` gives the frames back."""
     import drivers
 
     rec = special_recording(tmp_path / "rec", n=3)
     out = tmp_path / "names.mcap"
     spec = f"rosbag:{out}?image=1&base_frame=base_footprint&scan_topic=/depth/scan&tf=0"
-    p = depthnav("run", "--device", f"replay:{rec}?rate=max", "--sink", spec)
+    p = depthnav("run", "--device", f"replay:{rec}?rate=max{lens}", "--sink", spec)
     assert p.returncode == 0, p.stderr
     got = rosbags_messages(out)
     assert "/tf" not in got and len(got["/depth/scan"]) == 3
     assert got["/depth_sensor_pose"][0].header.frame_id == "base_footprint"
-    with drivers.opened(drivers.create_driver(f"replay:{rec}?rate=max")) as a:
+    with drivers.opened(drivers.create_driver(f"replay:{rec}?rate=max{lens}")) as a:
         with drivers.opened(drivers.create_driver(f"replay:{out}?rate=max")) as b:
             for x, y in zip(drivers.iter_frames(a), drivers.iter_frames(b), strict=True):
                 np.testing.assert_array_equal(x.depth_mm, y.depth_mm)
                 assert x.intrinsics == y.intrinsics
+                assert x.intrinsics.has_distortion == bool(lens)
                 assert x.timestamp_s == pytest.approx(y.timestamp_s, abs=1e-6)
 
 

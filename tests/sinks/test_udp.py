@@ -185,6 +185,7 @@ def test_slim_datagrams_scan_only_in_millimetres(receiver, pairs, context):
         "wall_s",
         "scan",
         "pose",
+        "mount",
         "warning",
         "message",
     }
