@@ -22,6 +22,7 @@ from drivers.base import KINECT_V1, Intrinsics
 
 HD = Intrinsics(1280, 720, 640.0, 640.0, 639.5, 359.5)
 SMALL = Intrinsics(200, 150, 180.0, 181.0, 97.3, 77.9)
+LENS = Intrinsics(640, 480, 580.0, 580.0, 319.5, 239.5, -0.28, 0.07, 0.001, -0.001)  # Brown-Conrady
 MOUNTS = [
     Mount(0.55, 15.0, 0.0),
     Mount(0.8, 40.0, 5.0),
@@ -121,7 +122,7 @@ def assert_exact_table_equal(intr: Intrinsics, mount: Mount, params: ScanParams)
 @pytest.mark.parametrize(
     "mount", MOUNTS, ids=lambda m: f"h{m.height_m:g}_t{m.tilt_deg:g}_r{m.roll_deg:g}"
 )
-@pytest.mark.parametrize("intr", [KINECT_V1, HD], ids=["640x480", "1280x720"])
+@pytest.mark.parametrize("intr", [KINECT_V1, HD, LENS], ids=["640x480", "1280x720", "lens"])
 def test_exact_table_equals_the_numpy_definition(intr: Intrinsics, mount: Mount) -> None:
     assert_exact_table_equal(intr, mount, ScanParams())
 
@@ -286,7 +287,7 @@ def reference_pose_table(intr: Intrinsics, params: PoseParams) -> tuple[np.ndarr
         PoseParams(tilt_min_deg=33.0, tilt_max_deg=33.0, height_min_m=0.9, height_max_m=1.5),
     ],
 )
-@pytest.mark.parametrize("intr", [KINECT_V1, HD], ids=["640x480", "1280x720"])
+@pytest.mark.parametrize("intr", [KINECT_V1, HD, LENS], ids=["640x480", "1280x720", "lens"])
 def test_pose_table_equals_the_numpy_definition(intr: Intrinsics, params: PoseParams) -> None:
     got = pose_fit._pose_table(intr, params)
     for g, w in zip(
