@@ -16,7 +16,7 @@ import numpy as np
 
 from depthnav_daemon.pipeline import StageParams, process
 from depthnav_daemon.pipeline.cliff import CliffParams, detect_cliffs
-from depthnav_daemon.pipeline.geometry import Mount
+from depthnav_daemon.pipeline.geometry import MAX_MOUNT_HEIGHT_M, Mount
 from depthnav_daemon.pipeline.pose import (
     PoseParams,
     estimate_pose,
@@ -251,6 +251,7 @@ def stage_work(frames: Sequence[Frame], mount: Mount, pipeline: bool = True) -> 
         Work("pose: candidates + RANSAC 200 x 5000 (no early stop) + refine", ransac_target),
     ]
     work += robot_work(frames, mount, cliff)
+    work.append(mount_change_work(intr, mount, StageParams(scan=exact, cliff=cliff), pose))
     if pipeline:
         work.append(
             Work(
@@ -260,6 +261,31 @@ def stage_work(frames: Sequence[Frame], mount: Mount, pipeline: bool = True) -> 
             )
         )
     return work
+
+
+def mount_change_work(
+    intr: Intrinsics, mount: Mount, params: StageParams, pose: PoseParams
+) -> Work:
+    """A large mount change: every table of a mount never seen before (the scan's, the cliff
+    detector's, the memory's view, and the pose stage's prior window around it), as the worker
+    of daemon.stage_tables builds them (the frame loop goes on meanwhile)."""
+    from depthnav_daemon.pipeline import prepare
+    from depthnav_daemon.pipeline.pose_fit import _pose_table
+
+    count = itertools.count(1)
+    # 10 cm, 10 deg of tilt and 5 of roll away (toward the middle of the accepted ranges)
+    tilt = mount.tilt_deg + (10.0 if mount.tilt_deg < 0 else -10.0)
+    roll = mount.roll_deg + (5.0 if mount.roll_deg < 0 else -5.0)
+    height = mount.height_m + (0.1 if mount.height_m <= MAX_MOUNT_HEIGHT_M / 2 else -0.1)
+
+    def change() -> None:
+        k = next(count)  # a little further at every call: the tables are cached
+        new = Mount(height + 1e-6 * k, tilt, roll)
+        prepare(intr, new, params)
+        prior = dataclasses.replace(pose, height_min_m=pose.height_min_m + 1e-6 * k)
+        _pose_table(intr, prior)
+
+    return Work("large mount change: all tables of a new mount (scan, cliff, pose)", change)
 
 
 def robot_work(frames: Sequence[Frame], mount: Mount, cliff: CliffParams) -> list[Work]:

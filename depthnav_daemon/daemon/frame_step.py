@@ -87,7 +87,8 @@ class FrameStep:
         trust = self._tracker.trust()
         if trust.dropoffs_trusted != self._trusted:
             self._say_trust(trust)
-        # a new floor estimate already serves the frame it was made on
+        # a new floor estimate serves the frame it was made on once its tables exist (built on
+        # a worker by StageTables; a camera's first frame builds them itself)
         result = process(
             frame,
             self._tables.mount_for(frame.intrinsics, self._tracker.mount),

@@ -33,4 +33,10 @@ def kernel(fn: Callable[..., Any]) -> Any:
     return dispatcher
 
 
-__all__ = ["KERNELS", "kernel"]
+def helper(fn: Callable[..., Any]) -> Any:
+    """``fn`` compiled as above, for kernels to call (compiled into each caller, so not
+    registered: the warm-up reaches it through them)."""
+    return _njit(fn)
+
+
+__all__ = ["KERNELS", "helper", "kernel"]

@@ -65,7 +65,11 @@ class CliffTable:
 
 def _floor_hits(intr: Intrinsics, rot: F64, u: F64, v: F64) -> tuple[F64, F64, F64]:
     """Level-frame ray per metre of optical depth through pixel coordinates (u, v): (kx, ky, kz)."""
-    x, y = normalized_coords(intr, u, v)
+    return _level_hits(rot, *normalized_coords(intr, u, v))
+
+
+def _level_hits(rot: F64, x: F64, y: F64) -> tuple[F64, F64, F64]:
+    """Level-frame ray per metre of optical depth of normalised coordinates (x, y)."""
     return (
         rot[0, 0] * x + rot[0, 1] * y + rot[0, 2],
         rot[1, 0] * x + rot[1, 1] * y + rot[1, 2],
@@ -138,6 +142,21 @@ def _probes(
     return start, bins[order].astype(np.int32), cov_col[probe][order]
 
 
+@functools.lru_cache(maxsize=16)  # four grids per configuration
+def _coords(intr: Intrinsics, us: tuple[float, ...], vs: tuple[float, ...]) -> tuple[F64, F64]:
+    """normalized_coords on the grid us x vs (pixels), (len(vs), len(us)) each, per camera: a
+    lens model's undistortion runs once per camera and sample grid, not once per mount."""
+    x, y = normalized_coords(intr, np.array(us)[None, :], np.array(vs)[:, None])
+    x.setflags(write=False)
+    y.setflags(write=False)
+    return x, y
+
+
+def _grid_coords(intr: Intrinsics, u: F64, v: F64) -> tuple[F64, F64]:
+    """``_coords`` of the grid u (1, C) x v (R, 1)."""
+    return _coords(intr, tuple(u.ravel().tolist()), tuple(v.ravel().tolist()))
+
+
 @functools.lru_cache(maxsize=16)
 def cliff_table(
     intr: Intrinsics, mount: Mount, params: CliffParams, angle_min: float, inc: float, n_bins: int
@@ -170,8 +189,8 @@ def cliff_table(
 
     # each sample covers the bearings between the left and right edges of its col_step footprint
     e = params.col_step / 2.0
-    lx, ly, _ = _floor_hits(intr, rot, u - e, v)
-    rx, ry, _ = _floor_hits(intr, rot, u + e, v)
+    lx, ly, _ = _level_hits(rot, *_grid_coords(intr, u - e, v))
+    rx, ry, _ = _level_hits(rot, *_grid_coords(intr, u + e, v))
     b_l = np.arctan2(ly, lx)
     b_r = np.arctan2(ry, rx)
     first, last = _sample_bins(np.minimum(b_l, b_r), np.maximum(b_l, b_r), angle_min, inc, n_bins)
@@ -226,7 +245,7 @@ def _thresholds(
     ground margin (``exact``: along the level-frame ray; ``paper``: eq. 6's per-row floor).
     """
     h = mount.height_m
-    kx, ky, kz = _floor_hits(intr, rot, u, v)
+    kx, ky, kz = _level_hits(rot, *_grid_coords(intr, u, v))
     down = kz < 0
     with np.errstate(divide="ignore", invalid="ignore"):
         t_floor = np.where(down, h / np.where(down, -kz, 1.0), np.inf)  # floor depth, m
@@ -254,7 +273,7 @@ def _block_floor_points(
     half = (bs - 1) / 2.0  # the sub-pixel centre
     bu = (np.arange(nbc) * bs + half)[None, :]
     bv = (intr.height - (np.arange(nbr) + 1) * bs + half)[:, None]
-    bx, by, bz = _floor_hits(intr, rot, bu, bv)
+    bx, by, bz = _level_hits(rot, *_grid_coords(intr, bu, bv))
     with np.errstate(divide="ignore", invalid="ignore"):
         bt = np.where(bz < 0, height_m / -bz, np.nan)
     return np.stack([bt * bx, bt * by], axis=-1).astype(np.float32)

@@ -27,6 +27,7 @@ from depthnav_daemon.pipeline.pose_kernels import (
     plane_moments_kernel,
     ransac_count_kernel,
 )
+from depthnav_daemon.pipeline.table_kernels import pose_envelope_kernel
 from drivers.base import Intrinsics
 
 if TYPE_CHECKING:
@@ -61,18 +62,18 @@ def _pose_table(intr: Intrinsics, params: PoseParams) -> _PoseTable:
     )
     cols = slice(0, intr.width, params.col_step)
     rays = pixel_rays(intr)[rows, cols]  # (Hs, Ws, 3)
-    lo_kz = np.full(rays.shape[:2], np.inf)
-    hi_kz = np.full(rays.shape[:2], -np.inf)
     n_tilt = max(2, math.ceil((params.tilt_max_deg - params.tilt_min_deg) / ENVELOPE_STEP_DEG) + 1)
     n_roll = max(2, math.ceil(2 * params.roll_max_deg / ENVELOPE_STEP_DEG) + 1)
     tilts = np.radians(np.linspace(params.tilt_min_deg, params.tilt_max_deg, n_tilt))
     rolls = np.radians(np.linspace(-params.roll_max_deg, params.roll_max_deg, n_roll))
-    for t in tilts:
-        for r in rolls:
-            # -kz: metres down per metre of depth, (Hs, Ws)
-            down = -(rays @ cam_to_level(float(t), float(r))[2])
-            lo_kz = np.minimum(lo_kz, down)
-            hi_kz = np.maximum(hi_kz, down)
+    rows_kz = np.array([cam_to_level(float(t), float(r))[2] for t in tilts for r in rolls])
+    lo_kz = np.empty(rays.shape[:2])
+    hi_kz = np.empty(rays.shape[:2])
+    # -kz, metres down per metre of depth, min and max over the prior's grid of tilts and rolls;
+    # compiled (numpy took 11-14 ms at 640x480 on the frame path of a new prior)
+    pose_envelope_kernel(
+        *(np.ascontiguousarray(rays[..., k]) for k in range(3)), rows_kz, lo_kz, hi_kz
+    )
     with np.errstate(divide="ignore", invalid="ignore"):
         zlo = np.where(hi_kz > 0, params.height_min_m / hi_kz, np.inf)
         zhi = np.where(lo_kz > 0, params.height_max_m / lo_kz, np.inf)

@@ -14,40 +14,6 @@ from depthnav_daemon.pipeline._jit import kernel
 SEEN = np.float32(1e30)  # "valid readings, no obstacle": sorts between ranges and no-data (+inf)
 
 
-def run_ends(
-    cb_lo: NDArray[np.integer], cb_hi: NDArray[np.integer], row_block: int = 0
-) -> tuple[NDArray[np.int32], NDArray[np.int32], NDArray[np.int32], NDArray[np.int32]]:
-    """Where the runs of a run-minimum kernel end, from the bins every pixel (or sample) feeds.
-
-    A run of column c is a stretch of rows over which c feeds the same bins; it ends after row i
-    when row i + 1 feeds other bins, or i is the last row.
-
-    Args:
-        cb_lo, cb_hi: (Hs, Ws) first and last bin each pixel feeds (cb_lo > cb_hi: none);
-            rows in the order the kernel walks them.
-        row_block: if > 0, every run also ends after each row_block-th row (a kernel that may
-            skip whole blocks of rows needs no run to cross into them).
-
-    Returns:
-        ev_start, ev_col, ev_lo, ev_hi: the runs ending after row i are ev_start[i]:ev_start[i + 1]
-        ((Hs + 1,) int32); each names its column and the bins it feeds ((E,) int32 each).
-    """
-    hs, ws = cb_lo.shape
-    ends = np.ones((hs, ws), dtype=bool)
-    ends[:-1] = (cb_lo[1:] != cb_lo[:-1]) | (cb_hi[1:] != cb_hi[:-1])
-    if row_block > 0:
-        ends[row_block - 1 :: row_block] = True
-    ii, jj = np.nonzero(ends)  # row-major: grouped by row
-    ev_start = np.zeros(hs + 1, dtype=np.int32)
-    np.cumsum(np.bincount(ii, minlength=hs), out=ev_start[1:])
-    return (
-        ev_start,
-        jj.astype(np.int32),
-        cb_lo[ii, jj].astype(np.int32),
-        cb_hi[ii, jj].astype(np.int32),
-    )
-
-
 I32 = NDArray[np.int32]
 
 
@@ -62,41 +28,66 @@ MAX_CODE_INDEX = CODE_MASK
 def run_flush_codes(
     cb_lo: NDArray[np.integer], cb_hi: NDArray[np.integer], n_bins: int, row_block: int = 0
 ) -> tuple[I32, I32]:
-    """``run_ends`` as one packed code per (run, bin): what the exact scan kernel reads.
+    """Where the runs of a run-minimum kernel end, as one packed code per (run, bin): what the
+    exact scan and cliff kernels read.
 
-    One int32 per flush instead of separate column, bin and reset lists: the kernel's flush loop
-    is bound by its loads and stores (~1 ns a flush against ~2-3 ns with three lists).
+    A run of column c is a stretch of rows over which c feeds the same bins; it ends after row i
+    when row i + 1 feeds other bins, or i is the last row. One int32 per flush instead of
+    separate column, bin and reset lists: the kernel's flush loop is bound by its loads and
+    stores (~1 ns a flush against ~2-3 ns with three lists).
 
     Args:
-        cb_lo, cb_hi: (Hs, Ws) first and last bin each pixel feeds (cb_lo > cb_hi: none);
-            Ws and the bins below 32768.
+        cb_lo, cb_hi: (Hs, Ws) first and last bin each pixel (or sample) feeds (cb_lo > cb_hi:
+            none), rows in the order the kernel walks them; Ws and the bins below 32768.
         n_bins: bins of the scan; a run feeding none is flushed into bin n_bins (a scratch slot
             the kernel's output has beyond the scan), so that its column starts again too.
-        row_block: as in ``run_ends``.
+        row_block: if > 0, every run also ends after each row_block-th row (a kernel that may
+            skip whole blocks of rows needs no run to cross into them).
 
     Returns:
         fl_start: (Hs + 1,) the flushes after row i are fl_start[i]:fl_start[i + 1];
         fl_code: (F,) ``col | last << 15 | bin << 16``: column col's run minimum goes into bin; a
         run's bins are consecutive, and its last carries ``last`` (the column starts a new run).
     """
-    hs = cb_lo.shape[0]
-    rs_start, rs_col, lo, hi = run_ends(cb_lo, cb_hi, row_block)
-    row = np.repeat(np.arange(hs), np.diff(rs_start))
-    lo = lo.astype(np.int64)
-    none = hi < lo
-    lo[none] = n_bins
-    span = np.where(none, 1, hi.astype(np.int64) - lo + 1)
-    k = np.repeat(np.arange(rs_col.size), span)
-    within = np.arange(k.size) - np.repeat(np.cumsum(span) - span, span)
-    fl_start = np.zeros(hs + 1, dtype=np.int32)
-    np.cumsum(np.bincount(row[k], minlength=hs), out=fl_start[1:])
-    last = within == span[k] - 1
-    code = (
-        rs_col[k].astype(np.int64)
-        | (last.astype(np.int64) << CODE_BITS)
-        | ((lo[k] + within) << (CODE_BITS + 1))
+    # compiled (releases the GIL): numpy held it for ~5 ms at 1280x720 on the table worker
+    return flush_codes_kernel(
+        np.ascontiguousarray(cb_lo), np.ascontiguousarray(cb_hi), int(n_bins), int(row_block)
     )
-    return fl_start, code.astype(np.int32)
+
+
+@kernel
+def flush_codes_kernel(cb_lo, cb_hi, n_bins, row_block):
+    """run_flush_codes: two passes over (Hs, Ws), counting then writing; (fl_start, fl_code)."""
+    hs, ws = cb_lo.shape
+    fl_start = np.zeros(hs + 1, np.int32)
+    total = 0
+    for p in range(2):
+        if p == 1:
+            fl_code = np.empty(total, np.int32)
+        else:
+            fl_code = np.empty(0, np.int32)
+        e = 0
+        for i in range(hs):
+            block_end = row_block > 0 and (i + 1) % row_block == 0
+            for j in range(ws):
+                lo = np.int64(cb_lo[i, j])
+                hi = np.int64(cb_hi[i, j])
+                if i + 1 < hs and not block_end and cb_lo[i + 1, j] == lo and cb_hi[i + 1, j] == hi:
+                    continue  # the run goes on
+                if hi < lo:
+                    lo = n_bins
+                    hi = n_bins
+                if p == 1:
+                    for b in range(lo, hi + 1):
+                        last = np.int64(1) if b == hi else np.int64(0)
+                        fl_code[e] = np.int32(j | (last << CODE_BITS) | (b << (CODE_BITS + 1)))
+                        e += 1
+                else:
+                    e += hi - lo + 1
+            if p == 0:
+                fl_start[i + 1] = e
+        total = e
+    return fl_start, fl_code
 
 
 @kernel
@@ -145,13 +136,14 @@ def exact_scan_kernel(depth, rows, near_lo, near_hi, obst_hi, kr, fl_start, fl_c
             v = -inf if close else v
             acc[j] = min(acc[j], v)
         for e in range(fl_start[i], fl_start[i + 1]):
-            x = fl_code[e]
-            c = x & CODE_MASK
-            b = x >> (CODE_BITS + 1)
+            # unsigned: the indices below need no wrap-around check for negative values
+            x = np.uint32(fl_code[e])
+            c = x & np.uint32(CODE_MASK)
+            b = x >> np.uint32(CODE_BITS + 1)
             a = acc[c]
             o = out[b]
             out[b] = a if a < o else o
-            if x & (1 << CODE_BITS):  # the run ends here
+            if x & np.uint32(1 << CODE_BITS):  # the run ends here
                 acc[c] = inf
     nan = np.float32(np.nan)
     for b in range(out.shape[0]):

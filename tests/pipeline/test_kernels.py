@@ -413,7 +413,13 @@ def test_refined_plane_equals_numpy_least_squares() -> None:
 
 
 def test_warm_up_compiles_every_kernel_the_daemon_path_calls() -> None:
-    from depthnav_daemon.pipeline import StageParams, cliff_kernels, process, scan_kernels
+    from depthnav_daemon.pipeline import (
+        StageParams,
+        cliff_kernels,
+        process,
+        scan_kernels,
+        table_kernels,
+    )
     from depthnav_daemon.tools import warmup
     from drivers.base import Frame
 
@@ -427,6 +433,9 @@ def test_warm_up_compiles_every_kernel_the_daemon_path_calls() -> None:
         pose_kernels.hypotheses_kernel,
         pose_kernels.ransac_count_kernel,
         pose_kernels.plane_moments_kernel,
+        scan_kernels.flush_codes_kernel,
+        table_kernels.exact_table_kernel,
+        table_kernels.pose_envelope_kernel,
     ]
     warmup.warm_up()
     before = [len(k.signatures) for k in kernels]
@@ -436,6 +445,13 @@ def test_warm_up_compiles_every_kernel_the_daemon_path_calls() -> None:
     for scan in (ScanParams(), ScanParams(method="paper", scan_height=100)):
         estimate_pose(
             frame.depth_mm, SMALL, PoseParams(used_depth_height=100), np.random.default_rng(0)
+        )
+        # a new prior window (the daemon narrows it around a tilt sensor's reading)
+        estimate_pose(
+            frame.depth_mm,
+            SMALL,
+            PoseParams(used_depth_height=100, tilt_min_deg=5.0, tilt_max_deg=25.0),
+            np.random.default_rng(0),
         )
         process(frame, mount, StageParams(scan=scan, cliff=CliffParams()))
     depth_to_scan(depth.astype(np.float32) / 1000, SMALL, mount, ScanParams())  # float metres input

@@ -1,0 +1,177 @@
+"""Compiled table builders (once per mount): the exact scan's per-pixel thresholds and bearings,
+and the pose stage's prior envelope.
+
+numpy took 50-70 ms for these at 640x480 (arctan2 and a dozen full-size temporaries); a mount
+change rebuilt them on the frame path. The arithmetic is written out operation by operation, in
+the order the numpy definitions in scan_table.py and pose_fit.py use, so the tables are bit-for-bit
+those of the definitions (tests/pipeline/test_tables.py). The rays come in as (Hs, Ws) arrays of
+normalised coordinates from ``geometry.normalized_coords`` (no separability is assumed: a lens
+model makes x depend on both u and v).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from depthnav_daemon.pipeline._jit import helper, kernel
+
+U16_MAX = 65535.0
+
+
+@helper
+def _fmax(a: float, b: float) -> float:
+    """np.maximum on scalars (NaN wins)."""
+    return a if (a >= b or math.isnan(a)) else b
+
+
+@helper
+def _fmin(a: float, b: float) -> float:
+    """np.minimum on scalars (NaN wins)."""
+    return a if (a <= b or math.isnan(a)) else b
+
+
+@helper
+def _clip(a: float, lo: float, hi: float) -> float:
+    """np.clip on a scalar: minimum(maximum(a, lo), hi)."""
+    return _fmin(_fmax(a, lo), hi)
+
+
+@helper
+def _bounds_mm(k: float, lo: float, hi: float) -> tuple[float, float]:
+    """Depth interval (mm) where lo <= k * z_m <= hi (scan_table._depth_bounds_mm, one pixel)."""
+    a = lo / k * 1000.0
+    b = hi / k * 1000.0
+    inside = lo <= 0.0 <= hi
+    if k > 0:
+        return a, b
+    if k < 0:
+        return b, a
+    return (0.0, math.inf) if inside else (math.inf, -math.inf)
+
+
+@kernel
+def exact_table_kernel(
+    x,
+    y,
+    xe,
+    ye,
+    rot,
+    height_m,
+    min_h_m,
+    max_h_m,
+    range_min_m,
+    range_max_m,
+    zlo_mm,
+    zhi_mm,
+    near_lo_mm,
+    near_hi_mm,
+    k_lo,
+    k_mid,
+    k_hi,
+    kr32,
+    centre,
+    lo_b,
+    hi_b,
+    sane,
+):
+    """The exact scan's per-pixel tables (scan_table.exact_table, the numpy definition).
+
+    Args:
+        x, y: (Hs, Ws) float64 normalised coordinates of the used pixels' centres.
+        xe, ye: (Hs, Ws + 1) float64 normalised coordinates of their footprint edges (pixel j
+            spans edges j and j + 1).
+        rot: (3, 3) camera to level frame.
+        height_m, min_h_m, max_h_m, range_min_m, range_max_m: the mount and the scan's limits.
+        zlo_mm .. k_hi: (Hs, Ws) uint16, overwritten (ExactTable's fields of the same names).
+        kr32: (Hs, Ws) float32, overwritten: horizontal range per mm of depth.
+        centre, lo_b, hi_b: (Hs, Ws) float64, overwritten: bearings of the centre and of the
+            footprint's lower and upper edge, radians.
+        sane: (Hs, Ws) bool, overwritten: the footprint does not straddle the +-pi seam.
+
+    Returns:
+        (edge_min, edge_max, used): lowest and highest edge bearing of the sane pixels, and
+        their number (0: the two bounds are meaningless).
+    """
+    hs, ws = x.shape
+    r00, r01, r02 = rot[0, 0], rot[0, 1], rot[0, 2]
+    r10, r11, r12 = rot[1, 0], rot[1, 1], rot[1, 2]
+    r20, r21, r22 = rot[2, 0], rot[2, 1], rot[2, 2]
+    lo_h = min_h_m - height_m
+    hi_h = max_h_m - height_m
+    edge = np.empty(ws + 1, np.float64)
+    edge_min = math.inf
+    edge_max = -math.inf
+    used = 0
+    for i in range(hs):
+        for j in range(ws + 1):
+            fx = r00 * xe[i, j] + r01 * ye[i, j] + r02
+            fy = r10 * xe[i, j] + r11 * ye[i, j] + r12
+            edge[j] = math.atan2(fy, fx)
+        for j in range(ws):
+            xi = x[i, j]
+            yi = y[i, j]
+            fwd = r00 * xi + r01 * yi + r02
+            left = r10 * xi + r11 * yi + r12
+            kh = r20 * xi + r21 * yi + r22
+            kr = math.hypot(fwd, left)
+            hlo, hhi = _bounds_mm(kh, lo_h, hi_h)
+            rlo, rhi = _bounds_mm(kr, range_min_m, range_max_m)
+            zlo = _fmax(_fmax(hlo, rlo), 1.0)
+            zhi = _fmin(hhi, rhi)
+            a = np.uint16(_clip(np.ceil(zlo), 1.0, U16_MAX))
+            b = np.uint16(_clip(np.floor(zhi), 0.0, U16_MAX))
+            nl = np.uint16(_clip(np.ceil(_fmax(hlo, 1.0)), 1.0, U16_MAX))
+            nh = np.uint16(_clip(np.ceil(_fmin(hhi, rlo)) - 1.0, 0.0, U16_MAX))
+            zlo_mm[i, j] = a
+            zhi_mm[i, j] = b
+            near_lo_mm[i, j] = nl
+            near_hi_mm[i, j] = nh
+            # see exact_table: close iff k_lo <= d <= k_mid, obstacle iff k_mid < d <= k_hi
+            near = nl <= nh
+            k_lo[i, j] = nl if near else a
+            k_mid[i, j] = nh if near else np.uint16(a - np.uint16(1))
+            k_hi[i, j] = b if a <= b else np.uint16(0)
+            kr32[i, j] = np.float32(kr / 1000.0)
+            centre[i, j] = math.atan2(left, fwd)
+            el = edge[j]
+            er = edge[j + 1]
+            lo = _fmin(el, er)
+            hi = _fmax(el, er)
+            lo_b[i, j] = lo
+            hi_b[i, j] = hi
+            ok = (hi - lo) < math.pi
+            sane[i, j] = ok
+            if ok:
+                used += 1
+                edge_min = min(edge_min, lo)
+                edge_max = max(edge_max, hi)
+    return edge_min, edge_max, used
+
+
+@kernel
+def pose_envelope_kernel(rx, ry, rz, rows_kz, lo_kz, hi_kz):
+    """Lowest and highest metres down per metre of depth of every ray over a grid of rotations.
+
+    Args:
+        rx, ry, rz: (Hs, Ws) float32-valued camera ray components (float64 arrays: the pose
+            table's rays before its float32 copy).
+        rows_kz: (K, 3) float64: the level frame's z row of every rotation of the prior grid.
+        lo_kz, hi_kz: (Hs, Ws) float64, overwritten: min and max over the grid of
+            -(rays . rows_kz[k]).
+    """
+    hs, ws = rx.shape
+    for i in range(hs):
+        for j in range(ws):
+            lo_kz[i, j] = math.inf
+            hi_kz[i, j] = -math.inf
+    for k in range(rows_kz.shape[0]):
+        a = rows_kz[k, 0]
+        b = rows_kz[k, 1]
+        c = rows_kz[k, 2]
+        for i in range(hs):
+            for j in range(ws):
+                down = -(rx[i, j] * a + ry[i, j] * b + rz[i, j] * c)
+                lo_kz[i, j] = _fmin(lo_kz[i, j], down)
+                hi_kz[i, j] = _fmax(hi_kz[i, j], down)
