@@ -15,9 +15,9 @@ import numpy as np
 
 from depthnav_daemon.config.loader import Config
 from depthnav_daemon.daemon.mount_tracker import MountTracker, TrackerParams
-from depthnav_daemon.daemon.stage_tables import StageTables
+from depthnav_daemon.daemon.stage_tables import SmallChange, StageTables
 from depthnav_daemon.pipeline import MountTrust, Result, StageParams, prepare, process
-from depthnav_daemon.pipeline.geometry import MAX_MOUNT_HEIGHT_M, MAX_ROLL_DEG, MAX_TILT_DEG
+from depthnav_daemon.pipeline.geometry import MAX_MOUNT_HEIGHT_M, MAX_ROLL_DEG, MAX_TILT_DEG, Mount
 from depthnav_daemon.pipeline.pose import (
     PoseEstimate,
     PoseParams,
@@ -84,14 +84,16 @@ class FrameStep:
             )
             timings["pose"] = time.perf_counter() - t0
             _apply_pose(self._tracker, pose, self._daemon.tilt_source)
-        trust = self._tracker.trust()
+        # a new mount serves the frames once its tables exist (built on a worker by StageTables;
+        # a camera's first frame builds them itself); meanwhile frames use the nearest ready mount
+        wanted = self._tracker.mount
+        used = self._tables.mount_for(frame.intrinsics, wanted)
+        trust = _pending(self._tracker.trust(), used, wanted)
         if trust.dropoffs_trusted != self._trusted:
             self._say_trust(trust)
-        # a new floor estimate serves the frame it was made on once its tables exist (built on
-        # a worker by StageTables; a camera's first frame builds them itself)
         result = process(
             frame,
-            self._tables.mount_for(frame.intrinsics, self._tracker.mount),
+            used,
             self.params,
             mount_source=self._tracker.source,
             pose=pose,
@@ -132,6 +134,23 @@ class FrameStep:
             # once and go on with the floor estimate and the last mount
             log.error("%s; going on without the serial tilt source", exc)
             self._tilt_source = None
+
+
+def _pending(trust: MountTrust, used: Mount, wanted: Mount) -> MountTrust:
+    """``trust`` for a frame processed with ``used`` while ``wanted``'s tables are being built:
+    beyond a small change (the tracker's deadband), its drop-offs rest on the old mount and are
+    not trusted."""
+    if used == wanted or _SMALL.holds(used, wanted):
+        return trust
+    note = (
+        f"mount change to {wanted.height_m:.2f} m / tilt {wanted.tilt_deg:.1f} deg pending (its "
+        f"tables are being built): this frame used {used.height_m:.2f} m / "
+        f"{used.tilt_deg:.1f} deg, drop-offs not trusted"
+    )
+    return dataclasses.replace(trust, dropoffs_trusted=False, note=note)
+
+
+_SMALL = SmallChange()
 
 
 def pose_prior(params: PoseParams, tracker: MountTracker) -> PoseParams:

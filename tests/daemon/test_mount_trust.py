@@ -182,14 +182,20 @@ def test_a_moved_sensor_is_contradicted_until_the_jump_is_accepted(caplog) -> No
     # frames 2 and 3 hold the jump back (contradicted); the 3rd agreeing estimate (frame 4) is
     # accepted and confirms the moved mount
     assert floors == ["confirmed"] * 2 + ["contradicted"] * 2 + ["confirmed"] * 2
-    assert [r.mount_trust.dropoffs_trusted for _, r in sink.results] == [
-        f == "confirmed" for f in floors
-    ]
     # the accepted jump is applied from the first frame after its tables exist (built on a
-    # worker, daemon/stage_tables.py: the frames go on with the old mount meanwhile)
+    # worker, daemon/stage_tables.py: the frames go on with the old mount meanwhile, and their
+    # drop-offs, resting on the old mount, are not trusted)
     used = [round(r.mount.height_m, 1) for _, r in sink.results]
     assert used[:4] == [0.5] * 4 and used[4:] in ([0.5, 0.5], [0.5, 0.7], [0.7, 0.7])
-    assert any("trusted again" in r.getMessage() for r in caplog.records)
+    wanted = [0.5] * 4 + [0.7] * 2
+    trusted = [r.mount_trust.dropoffs_trusted for _, r in sink.results]
+    assert trusted == [
+        f == "confirmed" and u == w for f, u, w in zip(floors, used, wanted, strict=True)
+    ]
+    pending = [r.mount_trust.note for _, r in sink.results if r.mount_trust.floor == "confirmed"]
+    assert all(n is None or "pending" in n for n in pending)
+    if trusted[-1]:
+        assert any("trusted again" in r.getMessage() for r in caplog.records)
 
 
 def test_a_merge_is_as_trusted_as_its_least_trusted_sensor() -> None:
@@ -212,3 +218,16 @@ def test_a_merge_is_as_trusted_as_its_least_trusted_sensor() -> None:
     # with the doubtful sensor out of the merge (stale), the merge is trusted again
     states[1] = SensorState("right", "stale", 5.0, bad)
     assert merger.merged(good, states).mount_trust == good.mount_trust
+
+
+def test_a_frame_served_with_the_old_mount_while_tables_build_is_not_trusted() -> None:
+    from depthnav_daemon.daemon.frame_step import _pending
+    from depthnav_daemon.pipeline import MountTrust
+
+    confirmed = MountTrust(source="floor", floor="confirmed")
+    wanted = Mount(0.7, 12.0, 0.0)
+    assert _pending(confirmed, wanted, wanted) is confirmed
+    assert _pending(confirmed, Mount(0.705, 12.2, 0.1), wanted) is confirmed  # within the deadband
+    held = _pending(confirmed, TRUE_MOUNT, wanted)
+    assert not held.dropoffs_trusted and held.floor == "confirmed"
+    assert "pending" in held.note and "0.50 m" in held.note and "0.70 m" in held.note
