@@ -30,6 +30,7 @@ from depthnav_daemon.commands.bench_process import (
     startup_time,
     udp_latency,
 )
+from depthnav_daemon.commands.bench_sinks import BUDGETS_MS, sink_work
 from depthnav_daemon.commands.bench_stages import (
     FIXTURE,
     RESOLUTIONS,
@@ -58,6 +59,7 @@ class BenchReport:
     resolution: str
     mount: dict[str, float]
     timings: list[Timing]
+    sinks: list[Timing] = field(default_factory=list)  # the outputs' per-frame work
     latency: dict[str, float] | None = None
     loop_ms: dict[str, float] | None = None  # the whole loop per frame, by sink set
     cpu_30fps: dict[str, float] | None = None
@@ -118,6 +120,10 @@ def run_bench(
     report = BenchReport(
         machine(), spec, len(frames), f"{intr.width}x{intr.height}", asdict(floor), timings
     )
+    with sink_work(frames, floor) as work:
+        report.sinks = time_work(work, [f.depth_mm for f in frames], rounds, samples, min_batch_s)[
+            1:
+        ]  # np.copy is in the stages' table already
     loop_spec = spec if device else f"replay:{FIXTURE}?rate=max&loop=1"
     if latency_frames:
         report.latency = udp_latency(loop_spec, latency_frames)
@@ -160,6 +166,9 @@ def format_report(r: BenchReport) -> str:
         f"Python {m['python']}, numpy {m['numpy']}, numba {m['numba']}",
         format_timings(r.timings, "per frame, one core (median of interleaved rounds):"),
     ]
+    if r.sinks:
+        budgets = ", ".join(f"{k} {v:g} ms" for k, v in BUDGETS_MS.items())
+        out.append(format_timings(r.sinks, f"outputs per frame, as each sink does it ({budgets}):"))
     if r.latency:
         lt = r.latency
         out.append(

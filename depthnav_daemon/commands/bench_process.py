@@ -84,6 +84,48 @@ class _UdpDrain:
         self.sock.close()
 
 
+_CONSUMER = """
+import os, selectors, socket, sys
+udp = socket.socket(fileno=int(sys.argv[1]))
+sel = selectors.DefaultSelector()
+sel.register(udp, selectors.EVENT_READ)
+sel.register(0, selectors.EVENT_READ)
+while True:
+    for key, _ in sel.select():
+        if key.fileobj is udp:
+            udp.recv(65536)
+        elif not os.read(0, 1 << 20):
+            sys.exit(0)
+"""
+
+
+class _Consumer:
+    """Another process that reads and drops the loop's UDP datagrams and the lines on ``pipe``,
+    as a robot's programs would. (A receiver thread in the bench's own process took the GIL from
+    the frame loop at every datagram: a cost the daemon does not have.)"""
+
+    def __init__(self) -> None:
+        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.sock.bind(("127.0.0.1", 0))
+        self.port = self.sock.getsockname()[1]
+        r, w = os.pipe()
+        fd = self.sock.fileno()
+        self.proc = subprocess.Popen(
+            [sys.executable, "-c", _CONSUMER, str(fd)], stdin=r, pass_fds=(fd,)
+        )
+        os.close(r)
+        self.pipe = os.fdopen(w, "w")
+
+    def close(self) -> None:
+        self.pipe.close()  # the consumer ends at the end of its input
+        try:
+            self.proc.wait(5)
+        except subprocess.TimeoutExpired:
+            self.proc.kill()
+            self.proc.wait()
+        self.sock.close()
+
+
 def udp_latency(spec: str, n_frames: int = 600) -> dict[str, float]:
     """Frame read to UDP datagram sent, through the daemon's own frame loop at full speed.
 
@@ -101,7 +143,7 @@ def udp_latency(spec: str, n_frames: int = 600) -> dict[str, float]:
     from depthnav_daemon.sinks import create_sink
     from drivers import create_driver
 
-    drain = _UdpDrain()
+    drain = _Consumer()
     marks: dict[int, float] = {}
     lat: list[float] = []
     quiet = logging.getLogger("depthnav_daemon")
@@ -137,16 +179,20 @@ def udp_latency(spec: str, n_frames: int = 600) -> dict[str, float]:
     }
 
 
-LOOP_SINKS = {"null": ("null",), "stdout + udp": ("stdout", "udp")}
+LOOP_SINKS = {
+    "null": ("null",),
+    "stdout + udp": ("stdout", "udp"),
+    "stdout to a pipe + udp": ("pipe", "udp"),
+}
 
 
 def loop_cost(spec: str, n_frames: int = 600, rounds: int = 3) -> dict[str, float]:
     """Per-frame wall time of the daemon's whole frame loop (read, stages, sinks), in-process.
 
     For each sink set of LOOP_SINKS the loop runs ``n_frames`` frames of ``spec`` at full speed
-    (stdout goes to /dev/null, UDP to a local receiver); the median over ``rounds`` runs, in ms
-    per frame, keyed by the set's name. ``depthnav bench`` divides them by the in-process
-    pipeline's per-frame time of the same run.
+    (stdout goes to /dev/null, or to a pipe that another process reads; UDP to that process); the
+    median over ``rounds`` runs, in ms per frame, keyed by the set's name. ``depthnav bench``
+    divides them by the in-process pipeline's per-frame time of the same run.
     """
     import logging
 
@@ -155,7 +201,7 @@ def loop_cost(spec: str, n_frames: int = 600, rounds: int = 3) -> dict[str, floa
     from depthnav_daemon.sinks import create_sink
     from depthnav_daemon.sinks.stdout import StdoutSink
 
-    drain = _UdpDrain()
+    consumer = _Consumer()
     quiet = logging.getLogger("depthnav_daemon")
     level = quiet.level
     quiet.setLevel(logging.WARNING)
@@ -166,8 +212,10 @@ def loop_cost(spec: str, n_frames: int = 600, rounds: int = 3) -> dict[str, floa
             def make(name: str) -> Any:
                 if name == "stdout":
                     return StdoutSink("stdout", stream=devnull)
+                if name == "pipe":
+                    return StdoutSink("stdout", stream=consumer.pipe)
                 if name == "udp":
-                    return create_sink(f"udp://127.0.0.1:{drain.port}")
+                    return create_sink(f"udp://127.0.0.1:{consumer.port}")
                 return create_sink(name)
 
             for label, sinks in LOOP_SINKS.items():
@@ -179,7 +227,7 @@ def loop_cost(spec: str, n_frames: int = 600, rounds: int = 3) -> dict[str, floa
                     per_frame.append((time.perf_counter() - t0) / max(report.frames, 1))
                 out[label] = float(np.median(per_frame[1:])) * 1e3
     finally:
-        drain.close()
+        consumer.close()
         quiet.setLevel(level)
     return out
 

@@ -29,14 +29,14 @@ CHARS_PER_VALUE = 24  # '-' + 15 digits + '.' + ',' and a pair's brackets, round
 _NULL = np.frombuffer(b"null", np.uint8).copy()
 _POS_INF = np.frombuffer(b'"Infinity"', np.uint8).copy()
 _NEG_INF = np.frombuffer(b'"-Infinity"', np.uint8).copy()
+_NOTHING = np.zeros(0, np.uint8)
 _OPEN = np.frombuffer(b"[", np.uint8).copy()
 _OPEN_PAIR = np.frombuffer(b"],[", np.uint8).copy()
 _COMMA = np.frombuffer(b",", np.uint8).copy()
-_CLOSE = np.frombuffer(b"]", np.uint8).copy()
 
 
 @njit(cache=True, nogil=True, boundscheck=False)
-def _write_mm(
+def _write_mm(  # noqa: PLR0912, PLR0915 - one function: each one more is a second of compiling
     values: np.ndarray, out: np.ndarray, pairs: bool
 ) -> int:  # pragma: no cover - compiled; tests/sinks/test_json_numbers.py checks its output
     """Write ``values`` (float64, flat) as a JSON list into ``out`` (uint8); ``pairs``: as a list
@@ -50,63 +50,61 @@ def _write_mm(
     n = 1
     for i in range(values.size):
         if pairs and i % 2 == 0:
-            n = _put(out, n, _OPEN_PAIR if i else _OPEN)
+            token = _OPEN_PAIR if i else _OPEN
         elif i:
-            n = _put(out, n, _COMMA)
-        x = values[i]
-        if np.isnan(x):
-            n = _put(out, n, _NULL)
-        elif x == np.inf:
-            n = _put(out, n, _POS_INF)
-        elif x == -np.inf:
-            n = _put(out, n, _NEG_INF)
+            token = _COMMA
         else:
-            n = _put_mm(out, n, np.rint(x * 1000.0))
-            if n < 0:
-                return -1
+            token = _NOTHING
+        for j in range(token.size):
+            out[n + j] = token[j]
+        n += token.size
+        x = values[i]
+        k = np.rint(x * 1000.0)
+        if np.isnan(x):
+            token = _NULL
+        elif x == np.inf:
+            token = _POS_INF
+        elif x == -np.inf:
+            token = _NEG_INF
+        elif not (-MAX_K < k < MAX_K):
+            return -1
+        else:
+            if k < 0.0 or (k == 0.0 and math.copysign(1.0, k) < 0.0):  # -0.0 is written "-0.0"
+                out[n] = 45  # -
+                n += 1
+                k = -k
+            q = np.int64(k)
+            frac = q % 1000
+            q //= 1000
+            d = 1  # the integer part's digit count
+            while q >= 10**d:
+                d += 1
+            for j in range(d - 1, -1, -1):
+                out[n + j] = 48 + q % 10
+                q //= 10
+            n += d
+            out[n] = 46  # .
+            out[n + 1] = 48 + frac // 100
+            n += 2
+            tens, ones = (frac // 10) % 10, frac % 10
+            if tens or ones:  # 2.5, not 2.500
+                out[n] = 48 + tens
+                n += 1
+                if ones:
+                    out[n] = 48 + ones
+                    n += 1
+            continue
+        for j in range(token.size):
+            out[n + j] = token[j]
+        n += token.size
     if pairs and values.size:
-        n = _put(out, n, _CLOSE)
-    return _put(out, n, _CLOSE)
-
-
-@njit(cache=True, nogil=True, boundscheck=False)
-def _put(out: np.ndarray, n: int, token: np.ndarray) -> int:  # pragma: no cover - compiled
-    for j in range(token.size):
-        out[n + j] = token[j]
-    return n + token.size
-
-
-@njit(cache=True, nogil=True, boundscheck=False)
-def _put_mm(out: np.ndarray, n: int, k: float) -> int:  # pragma: no cover - compiled
-    """Write the float ``k / 1000`` (``k`` a whole number) as its shortest text; -1 when
-    ``|k| >= MAX_K``."""
-    if not (-MAX_K < k < MAX_K):
-        return -1
-    if k < 0.0 or (k == 0.0 and math.copysign(1.0, k) < 0.0):  # -0.0 is written "-0.0"
-        out[n] = 45  # -
+        out[n] = 93  # ]
         n += 1
-        k = -k
-    q = np.int64(k)
-    frac = q % 1000
-    q //= 1000
-    d = 1  # the integer part's digit count
-    while q >= 10**d:
-        d += 1
-    for j in range(d - 1, -1, -1):
-        out[n + j] = 48 + q % 10
-        q //= 10
-    n += d
-    out[n] = 46  # .
-    out[n + 1] = 48 + frac // 100
-    n += 2
-    tens, ones = (frac // 10) % 10, frac % 10
-    if tens or ones:
-        out[n] = 48 + tens
-        n += 1
-        if ones:
-            out[n] = 48 + ones
-            n += 1
-    return n
+    out[n] = 93  # ]
+    return n + 1
+
+
+KERNELS = [_write_mm]  # for the first run's "compiling kernels" progress (tools/warmup.py)
 
 
 def mm_json(values: np.ndarray, pairs: bool = False) -> bytes | None:
