@@ -2,18 +2,22 @@
 
 Spec: ``stdout`` (no target, no options). Each line goes to the fd as soon as it is made so a
 consumer (or journald) sees every frame at once. A consumer that stops reading (stalled, not
-closed) must not freeze the frame loop and with it every other output: on a pipe, socket or
-terminal, lines are written by a writer thread from a queue of QUEUE_LINES (the lines waiting
-when it comes round go out in one write); ``write()`` waits for the first line (a reader already
-gone is reported at once), and for room in a full queue at most STALL_S, after which lines are
-skipped while the queue stays full (counted, logged; the consumer sees the gap in ``seq``).
-``close()`` writes every queued line while the reader keeps reading. A regular file or a device
-such as /dev/null cannot stall: ``write()`` writes those itself. When stdout is a regular file and
-the disk fills in the middle of a line, the part written is cut off again (the file ends with the
-last whole line; nothing else wrote to it since). Logs must go to stderr:
-``open()`` refuses to run when a logging handler writes to stdout, since that would corrupt the
-stream. A closed reader (``depthnav run ... | head -1``) ends the sink with a SinkError rather than
-a traceback.
+closed) must not freeze the frame loop and with it every other output:
+
+- a regular file or a device such as /dev/null cannot stall: ``write()`` writes it itself;
+- a pipe with room for the line (asked with FIONREAD) while the writer thread is idle: also
+  written by ``write()``, as such a write cannot block (no thread switch per line);
+- otherwise (a full pipe, a socket, a terminal) the line goes to a queue of QUEUE_LINES that a
+  writer thread empties, the lines waiting when it comes round in one write. ``write()`` waits
+  for the first line (a reader already gone is reported at once), and for room in a full queue at
+  most STALL_S; after that, lines are skipped while the queue stays full (counted, logged; the
+  consumer sees the gap in ``seq``). ``close()`` writes every queued line while the reader reads.
+
+When stdout is a regular file and the disk fills in the middle of a line, the part written is cut
+off again (the file ends with the last whole line; nothing else wrote to it since). Logs must go
+to stderr: ``open()`` refuses to run when a logging handler writes to stdout, since that would
+corrupt the stream. A closed reader (``depthnav run ... | head -1``) ends the sink with a
+SinkError rather than a traceback.
 """
 
 from __future__ import annotations
