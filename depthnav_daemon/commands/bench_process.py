@@ -15,7 +15,7 @@ from typing import Any
 
 import numpy as np
 
-from depthnav_daemon.commands.bench_stages import FIXTURE
+from depthnav_daemon.commands.bench_stages import FIXTURE, Work
 from depthnav_daemon.errors import DepthnavError
 from drivers.base import Frame
 
@@ -186,13 +186,19 @@ LOOP_SINKS = {
 }
 
 
-def loop_cost(spec: str, n_frames: int = 600, rounds: int = 3) -> dict[str, float]:
+def loop_cost(
+    spec: str, n_frames: int = 600, rounds: int = 3, reference: Work | None = None
+) -> tuple[dict[str, float], dict[str, float]]:
     """Per-frame wall time of the daemon's whole frame loop (read, stages, sinks), in-process.
 
     For each sink set of LOOP_SINKS the loop runs ``n_frames`` frames of ``spec`` at full speed
-    (stdout goes to /dev/null, or to a pipe that another process reads; UDP to that process); the
-    median over ``rounds`` runs, in ms per frame, keyed by the set's name. ``depthnav bench``
-    divides them by the in-process pipeline's per-frame time of the same run.
+    (stdout goes to /dev/null, or to a pipe that another process reads; UDP to that process).
+    Right before each run, ``reference`` (the in-process pipeline) runs as many frames: on a busy
+    machine the two then see the same load, and their ratio holds where either time alone moves.
+
+    Returns:
+        (ms per frame, median over ``rounds`` runs; loop / reference, median over the runs'
+        ratios), each keyed by the set's name; the ratios are empty without ``reference``.
     """
     import logging
 
@@ -205,7 +211,8 @@ def loop_cost(spec: str, n_frames: int = 600, rounds: int = 3) -> dict[str, floa
     quiet = logging.getLogger("depthnav_daemon")
     level = quiet.level
     quiet.setLevel(logging.WARNING)
-    out: dict[str, float] = {}
+    ms: dict[str, float] = {}
+    ratio: dict[str, float] = {}
     try:
         with open(os.devnull, "w") as devnull:
 
@@ -220,16 +227,32 @@ def loop_cost(spec: str, n_frames: int = 600, rounds: int = 3) -> dict[str, floa
 
             for label, sinks in LOOP_SINKS.items():
                 cfg = Config(device=spec, sinks=sinks, daemon=DaemonParams(tilt_source="floor"))
-                per_frame = []
-                for _ in range(rounds + 1):  # the first run builds the tables: not counted
+                per_frame, ratios = [], []
+                for i in range(rounds + 1):  # the first run builds the tables: not counted
+                    ref = _per_frame(reference, n_frames) if reference is not None else None
                     t0 = time.perf_counter()
                     report = run(cfg, threading.Event(), n_frames, sink_factory=make)
-                    per_frame.append((time.perf_counter() - t0) / max(report.frames, 1))
-                out[label] = float(np.median(per_frame[1:])) * 1e3
+                    loop = (time.perf_counter() - t0) / max(report.frames, 1)
+                    if i:
+                        per_frame.append(loop)
+                        if ref is not None:
+                            ratios.append(loop / ref)
+                ms[label] = float(np.median(per_frame)) * 1e3
+                if ratios:
+                    ratio[label] = float(np.median(ratios))
     finally:
         consumer.close()
         quiet.setLevel(level)
-    return out
+    return ms, ratio
+
+
+def _per_frame(work: Work, n_frames: int) -> float:
+    """Seconds per frame of ``work`` over about ``n_frames`` frames."""
+    calls = max(1, n_frames // work.frames_per_call)
+    t0 = time.perf_counter()
+    for _ in range(calls):
+        work.fn()
+    return (time.perf_counter() - t0) / (calls * work.frames_per_call)
 
 
 def _cpu_s(pid: int) -> float:

@@ -44,6 +44,8 @@ def test_quick_bench_json_has_every_stage_latency_and_machine(
     # the whole loop, by sink set
     assert set(report["loop_ms"]) == {"null", "stdout + udp", "stdout to a pipe + udp"}
     assert all(v > 0 for v in report["loop_ms"].values())
+    assert set(report["loop_vs_pipeline"]) == set(report["loop_ms"])
+    assert all(v > 0 for v in report["loop_vs_pipeline"].values())
     assert {"cpu", "cores", "loadavg", "numpy", "numba"} <= set(report["machine"])
     sinks = [t["name"] for t in report["sinks"]]  # each output's per-frame work
     for output in ("stdout/udp JSON line", "rosbag sink, ROS 2", "rosbag sink, ROS 1", "ros2 sink"):
