@@ -187,7 +187,7 @@ LOOP_SINKS = {
 
 
 def loop_cost(
-    spec: str, n_frames: int = 600, rounds: int = 3, reference: Work | None = None
+    spec: str, n_frames: int = 600, rounds: int = 5, reference: Work | None = None
 ) -> tuple[dict[str, float], dict[str, float]]:
     """Per-frame wall time of the daemon's whole frame loop (read, stages, sinks), in-process.
 
