@@ -29,13 +29,9 @@ CHARS_PER_VALUE = 24  # '-' + 15 digits + '.' + ',' and a pair's brackets, round
 _NULL = np.frombuffer(b"null", np.uint8).copy()
 _POS_INF = np.frombuffer(b'"Infinity"', np.uint8).copy()
 _NEG_INF = np.frombuffer(b'"-Infinity"', np.uint8).copy()
-_NOTHING = np.zeros(0, np.uint8)
-_OPEN = np.frombuffer(b"[", np.uint8).copy()
-_OPEN_PAIR = np.frombuffer(b"],[", np.uint8).copy()
-_COMMA = np.frombuffer(b",", np.uint8).copy()
 
 
-@njit(cache=True, nogil=True, boundscheck=False)
+@njit(cache=True, nogil=True, boundscheck=False, error_model="numpy")
 def _write_mm(  # noqa: PLR0912, PLR0915 - one function: each one more is a second of compiling
     values: np.ndarray, out: np.ndarray, pairs: bool
 ) -> int:  # pragma: no cover - compiled; tests/sinks/test_json_numbers.py checks its output
@@ -50,53 +46,65 @@ def _write_mm(  # noqa: PLR0912, PLR0915 - one function: each one more is a seco
     n = 1
     for i in range(values.size):
         if pairs and i % 2 == 0:
-            token = _OPEN_PAIR if i else _OPEN
+            if i:
+                out[n] = 93  # ]
+                out[n + 1] = 44  # ,
+                n += 2
+            out[n] = 91
+            n += 1
         elif i:
-            token = _COMMA
-        else:
-            token = _NOTHING
-        for j in range(token.size):
-            out[n + j] = token[j]
-        n += token.size
+            out[n] = 44
+            n += 1
         x = values[i]
-        k = np.rint(x * 1000.0)
         if np.isnan(x):
-            token = _NULL
-        elif x == np.inf:
-            token = _POS_INF
-        elif x == -np.inf:
-            token = _NEG_INF
-        elif not (-MAX_K < k < MAX_K):
-            return -1
-        else:
-            if k < 0.0 or (k == 0.0 and math.copysign(1.0, k) < 0.0):  # -0.0 is written "-0.0"
-                out[n] = 45  # -
-                n += 1
-                k = -k
-            q = np.int64(k)
-            frac = q % 1000
-            q //= 1000
-            d = 1  # the integer part's digit count
-            while q >= 10**d:
-                d += 1
-            for j in range(d - 1, -1, -1):
-                out[n + j] = 48 + q % 10
-                q //= 10
-            n += d
-            out[n] = 46  # .
-            out[n + 1] = 48 + frac // 100
-            n += 2
-            tens, ones = (frac // 10) % 10, frac % 10
-            if tens or ones:  # 2.5, not 2.500
-                out[n] = 48 + tens
-                n += 1
-                if ones:
-                    out[n] = 48 + ones
-                    n += 1
+            for j in range(_NULL.size):
+                out[n + j] = _NULL[j]
+            n += _NULL.size
             continue
-        for j in range(token.size):
-            out[n + j] = token[j]
-        n += token.size
+        if x == np.inf:
+            for j in range(_POS_INF.size):
+                out[n + j] = _POS_INF[j]
+            n += _POS_INF.size
+            continue
+        if x == -np.inf:
+            for j in range(_NEG_INF.size):
+                out[n + j] = _NEG_INF[j]
+            n += _NEG_INF.size
+            continue
+        k = np.rint(x * 1000.0)
+        if not (-MAX_K < k < MAX_K):
+            return -1
+        if k < 0.0 or (k == 0.0 and math.copysign(1.0, k) < 0.0):  # -0.0 is written "-0.0"
+            out[n] = 45  # -
+            n += 1
+            k = -k
+        q = np.int64(k)
+        frac = q % 1000
+        q //= 1000
+        if q < 10:  # noqa: PLR2004 - ranges: one digit of metres, mostly
+            out[n] = 48 + q
+            n += 1
+        else:  # the digits least significant first, then turned round
+            first = n
+            while q:
+                out[n] = 48 + q % 10
+                q //= 10
+                n += 1
+            a, b = first, n - 1
+            while a < b:
+                out[a], out[b] = out[b], out[a]
+                a += 1
+                b -= 1
+        out[n] = 46  # .
+        out[n + 1] = 48 + frac // 100
+        n += 2
+        tens, ones = (frac // 10) % 10, frac % 10
+        if tens or ones:  # 2.5, not 2.500
+            out[n] = 48 + tens
+            n += 1
+            if ones:
+                out[n] = 48 + ones
+                n += 1
     if pairs and values.size:
         out[n] = 93  # ]
         n += 1
