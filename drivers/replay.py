@@ -407,7 +407,9 @@ class ReplayDriver:
         frame = Frame(
             seq=self._seq,
             timestamp_s=t_s,
-            depth_mm=np.array(depth, dtype=np.uint16),
+            # no copy: a recording's frames are never written, and Frame makes this view
+            # read-only (copying an already decoded frame cost 10-19 % of the loop)
+            depth_mm=np.ascontiguousarray(depth, dtype=np.uint16).view(),
             intrinsics=self._intrinsics,
             accel_mps2=accel,
             tilt=tilt,

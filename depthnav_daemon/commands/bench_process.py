@@ -15,7 +15,7 @@ from typing import Any
 
 import numpy as np
 
-from depthnav_daemon.commands.bench_stages import FIXTURE
+from depthnav_daemon.commands.bench_stages import FIXTURE, Work
 from depthnav_daemon.errors import DepthnavError
 from drivers.base import Frame
 
@@ -84,6 +84,48 @@ class _UdpDrain:
         self.sock.close()
 
 
+_CONSUMER = """
+import os, selectors, socket, sys
+udp = socket.socket(fileno=int(sys.argv[1]))
+sel = selectors.DefaultSelector()
+sel.register(udp, selectors.EVENT_READ)
+sel.register(0, selectors.EVENT_READ)
+while True:
+    for key, _ in sel.select():
+        if key.fileobj is udp:
+            udp.recv(65536)
+        elif not os.read(0, 1 << 20):
+            sys.exit(0)
+"""
+
+
+class _Consumer:
+    """Another process that reads and drops the loop's UDP datagrams and the lines on ``pipe``,
+    as a robot's programs would. (A receiver thread in the bench's own process took the GIL from
+    the frame loop at every datagram: a cost the daemon does not have.)"""
+
+    def __init__(self) -> None:
+        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.sock.bind(("127.0.0.1", 0))
+        self.port = self.sock.getsockname()[1]
+        r, w = os.pipe()
+        fd = self.sock.fileno()
+        self.proc = subprocess.Popen(
+            [sys.executable, "-c", _CONSUMER, str(fd)], stdin=r, pass_fds=(fd,)
+        )
+        os.close(r)
+        self.pipe = os.fdopen(w, "w")
+
+    def close(self) -> None:
+        self.pipe.close()  # the consumer ends at the end of its input
+        try:
+            self.proc.wait(5)
+        except subprocess.TimeoutExpired:
+            self.proc.kill()
+            self.proc.wait()
+        self.sock.close()
+
+
 def udp_latency(spec: str, n_frames: int = 600) -> dict[str, float]:
     """Frame read to UDP datagram sent, through the daemon's own frame loop at full speed.
 
@@ -101,7 +143,7 @@ def udp_latency(spec: str, n_frames: int = 600) -> dict[str, float]:
     from depthnav_daemon.sinks import create_sink
     from drivers import create_driver
 
-    drain = _UdpDrain()
+    drain = _Consumer()
     marks: dict[int, float] = {}
     lat: list[float] = []
     quiet = logging.getLogger("depthnav_daemon")
@@ -137,16 +179,27 @@ def udp_latency(spec: str, n_frames: int = 600) -> dict[str, float]:
     }
 
 
-LOOP_SINKS = {"null": ("null",), "stdout + udp": ("stdout", "udp")}
+LOOP_SINKS = {
+    "null": ("null",),
+    "stdout + udp": ("stdout", "udp"),
+    "stdout to a pipe + udp": ("pipe", "udp"),
+}
 
 
-def loop_cost(spec: str, n_frames: int = 600, rounds: int = 3) -> dict[str, float]:
+def loop_cost(
+    spec: str, n_frames: int = 600, rounds: int = 5, reference: Work | None = None
+) -> tuple[dict[str, float], dict[str, float]]:
     """Per-frame wall time of the daemon's whole frame loop (read, stages, sinks), in-process.
 
     For each sink set of LOOP_SINKS the loop runs ``n_frames`` frames of ``spec`` at full speed
-    (stdout goes to /dev/null, UDP to a local receiver); the median over ``rounds`` runs, in ms
-    per frame, keyed by the set's name. ``depthnav bench`` divides them by the in-process
-    pipeline's per-frame time of the same run.
+    (stdout goes to /dev/null, or to a pipe that another process reads; UDP to that process),
+    timed from the first frame's output to the last one's (start-up is timed on its own).
+    Right before each run, ``reference`` (the in-process pipeline) runs as many frames: on a busy
+    machine the two then see the same load, and their ratio holds where either time alone moves.
+
+    Returns:
+        (ms per frame, median over ``rounds`` runs; loop / reference, median over the runs'
+        ratios), each keyed by the set's name; the ratios are empty without ``reference``.
     """
     import logging
 
@@ -155,33 +208,88 @@ def loop_cost(spec: str, n_frames: int = 600, rounds: int = 3) -> dict[str, floa
     from depthnav_daemon.sinks import create_sink
     from depthnav_daemon.sinks.stdout import StdoutSink
 
-    drain = _UdpDrain()
+    consumer = _Consumer()
     quiet = logging.getLogger("depthnav_daemon")
     level = quiet.level
     quiet.setLevel(logging.WARNING)
-    out: dict[str, float] = {}
+    ms: dict[str, float] = {}
+    ratio: dict[str, float] = {}
     try:
         with open(os.devnull, "w") as devnull:
 
             def make(name: str) -> Any:
                 if name == "stdout":
                     return StdoutSink("stdout", stream=devnull)
+                if name == "pipe":
+                    return StdoutSink("stdout", stream=consumer.pipe)
                 if name == "udp":
-                    return create_sink(f"udp://127.0.0.1:{drain.port}")
+                    return create_sink(f"udp://127.0.0.1:{consumer.port}")
                 return create_sink(name)
 
             for label, sinks in LOOP_SINKS.items():
                 cfg = Config(device=spec, sinks=sinks, daemon=DaemonParams(tilt_source="floor"))
-                per_frame = []
-                for _ in range(rounds + 1):  # the first run builds the tables: not counted
-                    t0 = time.perf_counter()
-                    report = run(cfg, threading.Event(), n_frames, sink_factory=make)
-                    per_frame.append((time.perf_counter() - t0) / max(report.frames, 1))
-                out[label] = float(np.median(per_frame[1:])) * 1e3
+                per_frame, ratios = [], []
+                for i in range(rounds + 1):  # the first run builds the tables: not counted
+                    ref = _per_frame(reference, n_frames) if reference is not None else None
+                    clock = _Clock()
+
+                    def timed(name: str, clock: _Clock = clock) -> Any:
+                        sink = make(name)
+                        return clock.wrap(sink) if not clock.wrapped else sink
+
+                    run(cfg, threading.Event(), n_frames, sink_factory=timed)
+                    loop = clock.per_frame_s()
+                    if i:
+                        per_frame.append(loop)
+                        if ref is not None:
+                            ratios.append(loop / ref)
+                ms[label] = float(np.median(per_frame)) * 1e3
+                if ratios:
+                    ratio[label] = float(np.median(ratios))
     finally:
-        drain.close()
+        consumer.close()
         quiet.setLevel(level)
-    return out
+    return ms, ratio
+
+
+class _Clock:
+    """Notes the time of every write to the loop's first sink: from one frame's write to the
+    next one's is a whole cycle of the loop (its other sinks, the next read and stages), so the
+    run's start (opening the recording, the first frame's tables) and end stay out."""
+
+    def __init__(self) -> None:
+        self.times: list[float] = []
+        self.wrapped = False
+
+    def wrap(self, inner: Any) -> Any:
+        self.wrapped = True
+        clock = self
+
+        class Timed:
+            name = inner.name
+
+            def write(self, frame: Frame, result: Any) -> None:
+                clock.times.append(time.perf_counter())
+                inner.write(frame, result)
+
+            def __getattr__(self, attr: str) -> Any:
+                return getattr(inner, attr)
+
+        return Timed()
+
+    def per_frame_s(self) -> float:
+        if len(self.times) < 2:  # noqa: PLR2004 - two writes make one interval
+            raise DepthnavError("the loop delivered fewer than 2 frames to time")
+        return (self.times[-1] - self.times[0]) / (len(self.times) - 1)
+
+
+def _per_frame(work: Work, n_frames: int) -> float:
+    """Seconds per frame of ``work`` over about ``n_frames`` frames."""
+    calls = max(1, n_frames // work.frames_per_call)
+    t0 = time.perf_counter()
+    for _ in range(calls):
+        work.fn()
+    return (time.perf_counter() - t0) / (calls * work.frames_per_call)
 
 
 def _cpu_s(pid: int) -> float:

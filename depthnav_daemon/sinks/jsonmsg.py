@@ -5,10 +5,15 @@ a finite range is a number in metres rounded to 1 mm, NaN (no valid reading) is 
 obstacle within range_max) is the string ``"Infinity"`` and -inf (an obstacle closer than
 range_min) is ``"-Infinity"``. Python's ``float()`` and JavaScript's ``Number()`` both read those
 strings; :func:`decode_ranges` is the reference decoder.
+
+Arrays of metres are written as JSON text at once (json_numbers.py, ``orjson.Fragment`` in the
+message dict): the same bytes as :func:`encode_ranges` + orjson, several times faster. A frame's
+line is made once and shared by the sinks that send the same object (:func:`frame_json`).
 """
 
 from __future__ import annotations
 
+import functools
 import logging
 import math
 from collections.abc import Callable, Sequence
@@ -16,6 +21,8 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import orjson
+
+from depthnav_daemon.sinks.json_numbers import mm_json
 
 if TYPE_CHECKING:
     from depthnav_daemon.pipeline import Result
@@ -54,6 +61,27 @@ def encode_ranges(ranges: np.ndarray) -> list[float | str | None]:
     return result
 
 
+def ranges_json(ranges: np.ndarray) -> orjson.Fragment:
+    """REP 117 ranges (N,) metres as the JSON text of :func:`encode_ranges` (a Fragment for the
+    message dict): written by the compiled loop, the reference path for what it cannot write."""
+    text = mm_json(ranges) if np.ndim(ranges) == 1 else None
+    return orjson.Fragment(text if text is not None else orjson.dumps(encode_ranges(ranges)))
+
+
+def points_json(points: np.ndarray) -> orjson.Fragment:
+    """(N, 2) finite metres as the JSON text of ``np.round(points, 3).tolist()`` (a Fragment)."""
+    text = mm_json(points, pairs=True)
+    return orjson.Fragment(
+        text if text is not None else orjson.dumps(np.round(points, MM).tolist())
+    )
+
+
+def fragment_value(value: Any) -> Any:
+    """A Fragment's JSON value as Python objects (the list :func:`encode_ranges` gives); any other
+    value as it is. For a sink that reshapes the message (udp ``ranges=mm``)."""
+    return orjson.loads(orjson.dumps(value)) if isinstance(value, orjson.Fragment) else value
+
+
 def decode_ranges(values: Sequence[float | str | None]) -> np.ndarray:
     """The inverse of :func:`encode_ranges`: a JSON ranges list -> (N,) float64 with NaN/+inf/-inf.
 
@@ -77,14 +105,32 @@ def decode_ranges(values: Sequence[float | str | None]) -> np.ndarray:
 
 def scan_to_json(scan: LaserScan) -> dict[str, Any]:
     """A LaserScan as a dict with sensor_msgs/LaserScan field names (radians, metres)."""
+    a_min, a_max, a_inc, r_min, r_max = _scan_geometry(
+        scan.angle_min, scan.angle_max, scan.angle_increment, scan.range_min, scan.range_max
+    )
     return {
-        "angle_min": _num(scan.angle_min, RAD),
-        "angle_max": _num(scan.angle_max, RAD),
-        "angle_increment": _num(scan.angle_increment, RAD + 3),
-        "range_min": _num(scan.range_min, MM),
-        "range_max": _num(scan.range_max, MM),
-        "ranges": encode_ranges(scan.ranges),
+        "angle_min": a_min,
+        "angle_max": a_max,
+        "angle_increment": a_inc,
+        "range_min": r_min,
+        "range_max": r_max,
+        "ranges": ranges_json(scan.ranges),
     }
+
+
+@functools.lru_cache(maxsize=64)
+def _scan_geometry(
+    angle_min: float, angle_max: float, angle_increment: float, range_min: float, range_max: float
+) -> tuple[float | None, ...]:
+    """A scan's angles and limits, rounded: the same frame after frame, so rounded once (Python's
+    round() of five numbers was a tenth of the line's cost)."""
+    return (
+        _num(angle_min, RAD),
+        _num(angle_max, RAD),
+        _num(angle_increment, RAD + 3),
+        _num(range_min, MM),
+        _num(range_max, MM),
+    )
 
 
 def _cliff_to_json(cliff: Any, max_points: int | None, trusted: bool = True) -> dict[str, Any]:
@@ -96,9 +142,10 @@ def _cliff_to_json(cliff: Any, max_points: int | None, trusted: bool = True) -> 
         # the nearest drop-offs matter most to a robot that has to stop in time
         keep = np.argsort(np.hypot(pts[:, 0], pts[:, 1]), kind="stable")[:max_points]
         pts = pts[np.sort(keep)]
-    pts = pts[np.isfinite(pts).all(axis=1)]
+    if not np.isfinite(pts).all():  # the row-wise test costs more: only when one is needed
+        pts = pts[np.isfinite(pts).all(axis=1)]
     return {
-        "points_m": np.round(pts, MM).tolist(),
+        "points_m": points_json(pts),
         "points_total": total,
         "points_dropped": total - int(pts.shape[0]),
         "scan": scan_to_json(cliff.scan),
@@ -254,6 +301,25 @@ def dumps(msg: dict[str, Any]) -> str:
     return orjson.dumps(msg).decode()
 
 
+# The last frame's line: (result, version, UTF-8 JSON). Every sink that sends the whole object
+# (stdout, udp with content=all) gets these bytes: made once a frame, not once a sink.
+_last_line: list[tuple[Any, str, bytes]] = []
+
+
+def frame_json(frame: Frame, result: Result, version: str, wall_time_s: float) -> bytes:
+    """:func:`frame_message` of the frame as compact UTF-8 JSON, made once per Result.
+
+    The sinks of one frame share it, so they also share its ``wall_s`` (the time the first one
+    asked). A new Result (the next frame) or another version makes a new line.
+    """
+    for last_result, last_version, last_data in _last_line[-1:]:
+        if last_result is result and last_version == version:
+            return last_data
+    data = orjson.dumps(frame_message(frame, result, version, wall_time_s))
+    _last_line[:] = [(result, version, data)]  # one entry, replaced whole (threads read it)
+    return data
+
+
 def fit_message(
     frame: Frame,
     result: Result,
@@ -265,13 +331,17 @@ def fit_message(
     """The frame's JSON as UTF-8, cliff points dropped (nearest kept) until it fits ``max_bytes``.
 
     Args:
-        shape: applied to each message before it is encoded (a sink's choice of content).
+        shape: applied to each message before it is encoded (a sink's choice of content); None:
+            the whole object (then the line :func:`frame_json` shares when it fits).
 
     Returns:
         The encoded message, or None when even the message without any cliff points is too big.
     """
-    shape = shape or (lambda msg: msg)
-    data = dumps(shape(frame_message(frame, result, version, wall_time_s))).encode()
+    if shape is None:
+        data = frame_json(frame, result, version, wall_time_s)
+        shape = _whole
+    else:
+        data = orjson.dumps(shape(frame_message(frame, result, version, wall_time_s)))
     if len(data) <= max_bytes:
         return data
     if result.cliff is None:
@@ -286,13 +356,17 @@ def fit_message(
             f"cliff points capped to the nearest {cap} of {total} "
             f"to fit one {max_bytes}-byte datagram"
         )
-        data = dumps(
+        data = orjson.dumps(
             shape(
                 frame_message(
                     frame, result, version, wall_time_s, max_cliff_points=cap, message=note
                 )
             )
-        ).encode()
+        )
         if len(data) <= max_bytes:
             return data
     return None
+
+
+def _whole(msg: dict[str, Any]) -> dict[str, Any]:
+    return msg

@@ -1,19 +1,28 @@
 """``stdout``: one JSON object per frame per line on standard output (docs/json_schema.md).
 
-Spec: ``stdout`` (no target, no options). Each line is flushed as soon as it is written so a
+Spec: ``stdout`` (no target, no options). Each line goes to the fd as soon as it is made so a
 consumer (or journald) sees every frame at once. A consumer that stops reading (stalled, not
-closed) must not freeze the frame loop and with it every other output: lines are written by a
-writer thread, ``write()`` waits for each at most STALL_S, and while one is still stuck the next
-ones are skipped (counted, logged; the consumer sees the gap in ``seq``). When stdout is a regular
-file and the disk fills in the middle of a line, the part written is cut off again (the file ends
-with the last whole line; nothing else wrote to it since). Logs must go to stderr:
-``open()`` refuses to run when a logging handler writes to stdout, since that would corrupt the
-stream. A closed reader (``depthnav run ... | head -1``) ends the sink with a SinkError rather than
-a traceback.
+closed) must not freeze the frame loop and with it every other output:
+
+- a regular file or a device such as /dev/null cannot stall: ``write()`` writes it itself;
+- a pipe with room for the line (asked with FIONREAD) while the writer thread is idle: also
+  written by ``write()``, as such a write cannot block (no thread switch per line);
+- otherwise (a full pipe, a socket, a terminal) the line goes to a queue of QUEUE_LINES that a
+  writer thread empties, the lines waiting when it comes round in one write. ``write()`` waits
+  for the first line (a reader already gone is reported at once), and for room in a full queue at
+  most STALL_S; after that, lines are skipped while the queue stays full (counted, logged; the
+  consumer sees the gap in ``seq``). ``close()`` writes every queued line while the reader reads.
+
+When stdout is a regular file and the disk fills in the middle of a line, the part written is cut
+off again (the file ends with the last whole line; nothing else wrote to it since). Logs must go
+to stderr: ``open()`` refuses to run when a logging handler writes to stdout, since that would
+corrupt the stream. A closed reader (``depthnav run ... | head -1``) ends the sink with a
+SinkError rather than a traceback.
 """
 
 from __future__ import annotations
 
+import array
 import contextlib
 import fcntl
 import io
@@ -22,6 +31,7 @@ import os
 import queue
 import stat
 import sys
+import termios
 import threading
 import time
 from typing import TYPE_CHECKING, TextIO
@@ -37,7 +47,10 @@ if TYPE_CHECKING:
 log = logging.getLogger(__name__)
 
 GRAMMAR = "stdout"
-STALL_S = 1.0  # longest write() waits for a line to reach the pipe before going on without it
+STALL_S = 1.0  # longest write() waits for room in the queue before going on without its line
+QUEUE_LINES = 8  # lines waiting for the writer thread (~100 KB); a pipe holds ~5 more
+PAGE_BYTES = 4096
+STALLED = "stdout sink: the reader is not reading (stalled?); lines skipped"
 
 # The process's stdout is one pipe however many sinks write to it: when one sees its reader gone
 # (and points fd 1 at /dev/null), every other one must stop too, or it writes to /dev/null
@@ -60,10 +73,15 @@ class StdoutSink:
         self._version = "unknown"
         self.lines = 0
         self._fd: int | None = None
+        self._direct = False  # the fd never waits (a file, /dev/null): written in write()
+        self._regular = False
         self._queue: queue.Queue[bytes | None] | None = None
         self._thread: threading.Thread | None = None
-        self._done = threading.Event()
-        self._done.set()
+        self._first = threading.Event()  # the writer thread has written (or failed) a batch
+        self._stalled = False  # the queue stayed full for STALL_S: lines are being skipped
+        self._handed = 0  # lines queued for the writer thread
+        self._served = 0  # of those, the ones it has written (all: it is idle)
+        self._pipe_size = 0  # stdout is a pipe of this many bytes (0: a socket, a terminal)
         self._error: BaseException | None = None
         self._skipped = RateLimitedLog(log)
 
@@ -106,39 +124,57 @@ class StdoutSink:
             fd = stream.fileno()
         except (AttributeError, OSError, ValueError, io.UnsupportedOperation):
             return  # an in-memory stream: written directly, it cannot stall
-        stream.flush()  # what was printed before goes first; from now on the thread writes the fd
+        stream.flush()  # what was printed before goes first; from now on the fd is written
         self._fd = fd
-        self._queue = queue.Queue(maxsize=1)
+        if _never_waits(fd):
+            # a file or /dev/null: no reader can stall it, so the frame loop writes it itself
+            # (no thread hand-off per line; an error shows on the line that met it)
+            self._direct = True
+            self._regular = _is_regular(fd)
+            return
+        self._queue = queue.Queue(maxsize=QUEUE_LINES)
         # the thread gets the queue and fd it serves: a close() right after open() (a stop
         # signal at once) may clear the attributes before the thread has run a line
         self._thread = threading.Thread(
             target=self._writer, args=(self._queue, fd), name=f"sink {self.name}", daemon=True
         )
         self._thread.start()
+        if stat.S_ISFIFO(os.fstat(fd).st_mode):
+            with contextlib.suppress(OSError):
+                self._pipe_size = fcntl.fcntl(fd, fcntl.F_GETPIPE_SZ)
 
     def _writer(self, lines: queue.Queue[bytes | None], fd: int) -> None:
-        """Write whole lines to the fd; a stalled reader blocks this thread, not the frame loop."""
+        """Write the queued lines to the fd, those waiting together in one write; a stalled reader
+        blocks this thread, not the frame loop. Ends at None or at the first error."""
         regular = _is_regular(fd)
         while True:
             data = lines.get()
             if data is None:
                 return
-            start = _end_of(fd) if regular else None
-            written = 0
+            batch, last = [data], False
+            while len(batch) < QUEUE_LINES:
+                try:
+                    more = lines.get_nowait()
+                except queue.Empty:
+                    break
+                if more is None:
+                    last = True
+                    break
+                batch.append(more)
             try:
-                view = memoryview(data)
-                while view:
-                    n = os.write(fd, view)
-                    written += n
-                    view = view[n:]
+                _write_whole_lines(fd, b"".join(batch), regular)
             except BaseException as exc:
                 self._error = exc
-                if written and start is not None:
-                    _cut_back(fd, start, written)
-            self._done.set()
+                self._first.set()
+                return  # the frame loop raises it on its next write and drops the sink
+            self.lines += len(batch)
+            self._served += len(batch)
+            self._first.set()
+            if last:
+                return
 
     def write(self, frame: Frame, result: Result) -> None:
-        """Write and flush one line.
+        """Write one line (flushed: a reader sees it at once).
 
         Raises:
             SinkError: the reader went away (broken pipe) or the stream failed.
@@ -152,14 +188,23 @@ class StdoutSink:
                 "stdout was closed by the reader (broken pipe)",
                 hint="keep the consumer of depthnav's stdout running, or drop the stdout sinks",
             )
-        line = self.format(frame, result)
-        if line is None:
+        data = self._line(frame, result)
+        if data is None:
+            return
+        if self._direct:
+            assert self._fd is not None
+            try:
+                _write_whole_lines(self._fd, data, self._regular)
+            except OSError as exc:
+                self._error = exc
+                self._raise_error()
+            self.lines += 1
             return
         if self._queue is not None:
-            self._write_threaded(line)
+            self._write_threaded(data)
             return
         try:
-            print(line, file=self._stream, flush=True)
+            print(data.decode("utf-8"), end="", file=self._stream, flush=True)
         except BrokenPipeError:
             self._detach_broken_stdout()
             raise SinkError(
@@ -171,17 +216,53 @@ class StdoutSink:
             raise SinkError(f"writing to stdout failed: {exc}") from exc
         self.lines += 1
 
-    def _write_threaded(self, line: str) -> None:
-        assert self._queue is not None
-        if not self._done.is_set():  # the last line is still stuck in a pipe nobody reads
-            self._skipped.failed("stdout sink: the reader is not reading (stalled?); lines skipped")
-            return
+    def _write_threaded(self, data: bytes) -> None:
+        """Queue the line for the writer thread. The first line is waited for (a reader that is
+        already gone is reported at once); later ones wait only when QUEUE_LINES are queued."""
+        assert self._queue is not None and self._fd is not None
         self._raise_error()
-        self._done.clear()
-        self._queue.put_nowait((line + "\n").encode("utf-8"))
-        if self._done.wait(STALL_S):
-            self._raise_error()
+        if self._served == self._handed and len(data) <= self._pipe_room():
+            # the writer thread is idle and the pipe has room: this write cannot block, so the
+            # frame loop makes it (waking the thread costs the loop a thread switch a line)
+            try:
+                _write_whole_lines(self._fd, data, False)
+            except OSError as exc:
+                self._error = exc
+                self._raise_error()
+            self._stalled = False
             self.lines += 1
+            return
+        self._handed += 1
+        try:
+            self._queue.put_nowait(data)
+        except queue.Full:
+            if self._stalled:  # still stuck: skip without waiting again
+                self._handed -= 1
+                self._skipped.failed(STALLED)
+                return
+            try:
+                self._queue.put(data, timeout=STALL_S)
+            except queue.Full:
+                self._handed -= 1
+                self._stalled = True
+                self._skipped.failed(STALLED)
+                return
+        self._stalled = False
+        if not self._first.is_set() and self._first.wait(STALL_S):
+            self._raise_error()
+
+    def _pipe_room(self) -> int:
+        """Bytes a write to the pipe takes without blocking (a lower bound); 0 for a socket or
+        terminal, or when it cannot be told."""
+        if not self._pipe_size:
+            return 0
+        unread = array.array("i", [0])
+        try:
+            fcntl.ioctl(self._fd, termios.FIONREAD, unread, True)
+        except OSError:
+            return 0
+        # a pipe holds whole pages: the page being read and the one being filled count as used
+        return self._pipe_size - unread[0] - 2 * PAGE_BYTES
 
     def _raise_error(self) -> None:
         exc, self._error = self._error, None
@@ -201,15 +282,24 @@ class StdoutSink:
     def _stop_thread(self) -> None:
         """Let the writer thread end (it is a daemon thread: one stuck in a write is left)."""
         q, self._queue = self._queue, None
-        if q is not None and self._done.is_set():
-            q.put_nowait(None)
+        if q is not None:
+            with contextlib.suppress(queue.Full):  # full: it is writing, and ends at its error
+                q.put_nowait(None)
+
+    def _line(self, frame: Frame, result: Result) -> bytes | None:
+        """The bytes to write for one frame, newline included (None: nothing for it)."""
+        if type(self).format is StdoutSink.format:
+            # the frame's JSON is made once and shared with the udp sink (jsonmsg.frame_json)
+            return jsonmsg.frame_json(frame, result, self._version, time.time()) + b"\n"
+        line = self.format(frame, result)
+        return None if line is None else (line + "\n").encode("utf-8")
 
     def format(self, frame: Frame, result: Result) -> str | None:
         """The line to write for one frame (None: write nothing for it)."""
-        return jsonmsg.dumps(jsonmsg.frame_message(frame, result, self._version, time.time()))
+        return jsonmsg.frame_json(frame, result, self._version, time.time()).decode()
 
     def close(self) -> None:
-        """Flush what is buffered. Safe to call twice; a broken pipe at this point is ignored."""
+        """Write what is queued and stop. Safe to call twice; a broken pipe now is ignored."""
         if getattr(self, "_counted", False):
             self._counted = False
             _SHARED["users"] -= 1
@@ -217,9 +307,9 @@ class StdoutSink:
         if stream is None:
             return
         if self._queue is not None:
-            if self._done.wait(STALL_S):  # the last line gets its chance; a stalled reader not
-                with contextlib.suppress(SinkError):
-                    self._raise_error()
+            self._drain()
+            with contextlib.suppress(SinkError):
+                self._raise_error()
             self._stop_thread()
             if self._skipped.count:
                 log.warning(
@@ -227,12 +317,35 @@ class StdoutSink:
                     self._skipped.count,
                 )
             return
+        if self._direct:
+            return  # nothing is buffered: every line went to the fd as it came
         try:
             stream.flush()
         except BrokenPipeError:
             self._detach_broken_stdout(stream)
         except (OSError, ValueError):
             log.debug("flushing stdout at close failed", exc_info=True)
+
+    def _drain(self) -> None:
+        """Let the writer thread write every queued line, waiting as long as the reader reads
+        (no line is lost at shutdown), but at most STALL_S for one that has stopped reading."""
+        q, thread = self._queue, self._thread
+        if q is None or thread is None:
+            return
+        self._queue = None
+        while thread.is_alive():
+            before = self.lines
+            try:
+                q.put(None, timeout=STALL_S)
+                break
+            except queue.Full:
+                if self.lines == before:
+                    return  # the reader is stalled: the daemon thread is left in its write
+        while thread.is_alive():
+            before = self.lines
+            thread.join(STALL_S)
+            if self.lines == before:
+                return
 
     def _detach_broken_stdout(self, stream: TextIO | None = None) -> None:
         """After a broken pipe, point fd 1 at /dev/null so Python's exit-time flush cannot raise."""
@@ -266,15 +379,47 @@ def _end_of(fd: int) -> int | None:
         return None
 
 
-def _cut_back(fd: int, start: int, written: int) -> None:
-    """Remove the part of a line a full disk cut short, so the file ends with a whole line.
-
-    Only when the file ends exactly where that part does (nobody else wrote to it since)."""
+def _never_waits(fd: int) -> bool:
+    """Whether writing ``fd`` can never wait for a reader: a regular file, or a device that is
+    not a terminal (/dev/null, /dev/full). Pipes, sockets and terminals can stall."""
     try:
-        if os.fstat(fd).st_size == start + written:
-            os.ftruncate(fd, start)
+        mode = os.fstat(fd).st_mode
+    except OSError:
+        return False
+    return stat.S_ISREG(mode) or (stat.S_ISCHR(mode) and not os.isatty(fd))
+
+
+def _write_whole_lines(fd: int, data: bytes, regular: bool) -> None:
+    """Write ``data`` (whole lines) to ``fd``. When a regular file fills up in the middle, the
+    part of a line that made it is cut off again, so the file ends with a whole line.
+
+    Raises:
+        OSError (BrokenPipeError, ENOSPC, ...): what the write met.
+    """
+    start = _end_of(fd) if regular else None
+    written = 0
+    try:
+        view = memoryview(data)
+        while view:
+            n = os.write(fd, view)
+            written += n
+            view = view[n:]
+    except BaseException:
+        if written and start is not None:
+            _cut_back(fd, start, written, data.rfind(b"\n", 0, written) + 1)
+        raise
+
+
+def _cut_back(fd: int, start: int, written: int, whole: int) -> None:
+    """Remove the part of a line a full disk cut short: keep the ``whole`` bytes of the
+    ``written`` ones that end with a newline.
+
+    Only when the file ends exactly where the write did (nobody else wrote to it since)."""
+    try:
+        if whole < written and os.fstat(fd).st_size == start + written:
+            os.ftruncate(fd, start + whole)
             if not fcntl.fcntl(fd, fcntl.F_GETFL) & os.O_APPEND:
-                os.lseek(fd, start, os.SEEK_SET)
+                os.lseek(fd, start + whole, os.SEEK_SET)
     except OSError:
         log.debug("could not remove a half-written line from stdout", exc_info=True)
 

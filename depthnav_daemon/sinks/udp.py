@@ -144,9 +144,9 @@ class UdpSink:
             raise SinkError(f"sink {self.name!r} is not open")
         if not self._due(result.timestamp_s):
             return
-        data = jsonmsg.fit_message(
-            frame, result, self._version, time.time(), self.max_bytes, self.content.shape
-        )
+        # the whole object: the line the stdout sink sends too, made once (jsonmsg.frame_json)
+        shape = None if self.content.whole else self.content.shape
+        data = jsonmsg.fit_message(frame, result, self._version, time.time(), self.max_bytes, shape)
         if data is None:
             self._oversize.failed(
                 "udp sink: frame %d does not fit one %d-byte datagram; skipped (raise max_bytes, "
@@ -223,6 +223,11 @@ class Content:
     every: int = 1
     rate_hz: float = 0.0
 
+    @property
+    def whole(self) -> bool:
+        """Whether each datagram holds the whole stdout object (``shape`` changes nothing)."""
+        return not self.scan_only and self.cliff_scan and not self.ranges_mm
+
     def shape(self, msg: dict[str, Any]) -> dict[str, Any]:
         """The stdout object cut down to this content (the object is made anew per frame)."""
         if self.scan_only:
@@ -235,7 +240,7 @@ class Content:
         if self.ranges_mm:
             for scan in (msg.get("scan"), (cliff or {}).get("scan") if cliff else None):
                 if isinstance(scan, dict):
-                    scan["ranges"] = [_mm(r) for r in scan["ranges"]]
+                    scan["ranges"] = [_mm(r) for r in jsonmsg.fragment_value(scan["ranges"])]
                     scan["ranges_unit"] = "mm"
         return msg
 

@@ -42,9 +42,17 @@ def test_quick_bench_json_has_every_stage_latency_and_machine(
     lat = report["latency"]
     assert 0 < lat["p50_ms"] <= lat["p99_ms"] <= lat["max_ms"]
     assert lat["frames"] == 40
-    assert set(report["loop_ms"]) == {"null", "stdout + udp"}  # the whole loop, by sink set
+    # the whole loop, by sink set
+    assert set(report["loop_ms"]) == {"null", "stdout + udp", "stdout to a pipe + udp"}
     assert all(v > 0 for v in report["loop_ms"].values())
+    assert set(report["loop_vs_pipeline"]) == set(report["loop_ms"])
+    assert all(v > 0 for v in report["loop_vs_pipeline"].values())
     assert {"cpu", "cores", "loadavg", "numpy", "numba"} <= set(report["machine"])
+    sinks = [t["name"] for t in report["sinks"]]  # each output's per-frame work
+    for output in ("stdout/udp JSON line", "rosbag sink, ROS 2", "rosbag sink, ROS 1", "ros2 sink"):
+        assert any(n.startswith(output) for n in sinks), output
+    assert any(n.startswith("foxglove sink") for n in sinks)
+    assert all(t["median_s"] > 0 for t in report["sinks"])
 
 
 def test_text_report_names_the_copy_reference_and_latency(
@@ -55,6 +63,7 @@ def test_text_report_names_the_copy_reference_and_latency(
     assert "np.copy(frame)" in out and "x np.copy" in out
     assert "UDP datagram sent" in out and "p99" in out
     assert "whole loop per frame" in out and "/ in-process pipeline" in out
+    assert "outputs per frame" in out and "rosbag 1 ms, ros2 0.22 ms" in out
 
 
 def test_bench_options_parse() -> None:

@@ -154,3 +154,80 @@ def test_two_sinks_on_stdout_both_stop_when_the_reader_goes_away() -> None:
     assert "sink stdout failed: stdout was closed by the reader" in err
     assert "sink text failed: stdout was closed by the reader" in err
     assert "Traceback" not in err
+
+
+def _many(pairs, n):
+    from dataclasses import replace
+
+    frame, result = pairs[0]
+    return [(replace(frame, seq=i), replace(result, seq=i)) for i in range(n)]
+
+
+def test_a_slow_reader_gets_every_line_in_order_also_those_queued_at_close(pairs, context):
+    """Lines that wait for the reader (pipe full, queue filling) all arrive, in order, and close()
+    writes the queued ones out while the reader keeps reading."""
+    import threading
+    import time
+
+    r, w = os.pipe()
+    got: list[bytes] = []
+
+    def read_slowly() -> None:
+        time.sleep(0.3)  # the pipe and the queue fill meanwhile
+        while chunk := os.read(r, 4096):
+            got.append(chunk)
+            time.sleep(0.001)
+
+    reader = threading.Thread(target=read_slowly)
+    reader.start()
+    with os.fdopen(w, "w") as writer:
+        sink = StdoutSink(stream=writer)
+        sink.open(context)
+        frames = _many(pairs, 40)
+        for frame, result in frames:
+            sink.write(frame, result)
+        sink.close()
+        assert sink.lines == 40
+    reader.join(60)
+    os.close(r)
+    lines = b"".join(got).splitlines()
+    assert [json.loads(line)["seq"] for line in lines] == list(range(40))
+
+
+def test_a_stalled_reader_costs_one_wait_then_lines_are_skipped(pairs, context, caplog):
+    import time
+
+    r, w = os.pipe()
+    with os.fdopen(w, "w") as writer:
+        sink = StdoutSink(stream=writer)
+        sink.open(context)
+        frames = _many(pairs, 60)
+        t0 = time.monotonic()
+        for frame, result in frames:
+            sink.write(frame, result)
+        waited = time.monotonic() - t0
+        with caplog.at_level(logging.WARNING):
+            sink.close()  # gives up on a reader that does not read
+        written = sink.lines
+    data = b""
+    while chunk := os.read(r, 1 << 20):
+        data += chunk
+    os.close(r)
+    seqs = [json.loads(line)["seq"] for line in data.splitlines()]  # whole lines only
+    # (the line stuck in the pipe at close is finished by the thread once the pipe is read)
+    assert seqs == list(range(len(seqs))) and 0 < written <= len(seqs) < 60
+    assert "lines skipped while the reader was not reading" in caplog.text
+    assert waited < 60  # not a second per line: one wait, then skips
+
+
+def test_a_file_gets_every_line_written_by_the_loop_itself(pairs, context, tmp_path):
+    out = tmp_path / "lines.jsonl"
+    with open(out, "w") as fh:
+        sink = StdoutSink(stream=fh)
+        sink.open(context)
+        for frame, result in _many(pairs, 5):
+            sink.write(frame, result)
+        assert sink._thread is None  # a file cannot stall: no writer thread
+        assert len(out.read_bytes().splitlines()) == 5  # on disk before close
+        sink.close()
+    assert [json.loads(line)["seq"] for line in out.read_text().splitlines()] == list(range(5))

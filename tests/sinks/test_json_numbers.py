@@ -1,0 +1,101 @@
+"""The compiled JSON writer of ranges and points: the same bytes as the reference encoder
+(``jsonmsg.encode_ranges`` + orjson, ``np.round(points, 3).tolist()`` + orjson), one line per
+frame shared by the sinks."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import orjson
+import pytest
+
+from depthnav_daemon.sinks import jsonmsg
+from depthnav_daemon.sinks.json_numbers import mm_json
+from tests.sinks.conftest import with_ranges
+
+
+def reference(values: np.ndarray) -> bytes:
+    return orjson.dumps(jsonmsg.encode_ranges(values))
+
+
+def test_a_pinned_list() -> None:
+    r = np.array([math.nan, math.inf, -math.inf, 1.23456, 0.0004, 2.5, 12.0, -0.0001, 0.1])
+    want = b'[null,"Infinity","-Infinity",1.235,0.0,2.5,12.0,-0.0,0.1]'
+    assert mm_json(r) == want == reference(r)
+    assert mm_json(np.zeros(0)) == b"[]" == reference(np.zeros(0))
+
+
+def test_every_millimetre_up_to_2_km_is_written_as_orjson_writes_it() -> None:
+    v = np.arange(0, 2_000_001) / 1000.0
+    assert mm_json(v) == reference(v)
+    assert mm_json(-v) == reference(-v)
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_random_arrays_with_every_special_value(dtype: type) -> None:
+    rng = np.random.default_rng(7)
+    fallbacks = 0
+    for trial in range(300):
+        n = int(rng.integers(0, 700))
+        top = 13.0 if trial % 4 == 0 else 11.5  # 1e13 m: beyond what the kernel writes
+        v = 10.0 ** rng.uniform(-6, top, n) * rng.choice([-1.0, 1.0], n)
+        kind = rng.random(n)
+        v[kind < 0.1] = math.nan
+        v[(kind >= 0.1) & (kind < 0.2)] = math.inf
+        v[(kind >= 0.2) & (kind < 0.25)] = -math.inf
+        v[(kind >= 0.25) & (kind < 0.28)] = -0.0
+        v[(kind >= 0.28) & (kind < 0.3)] = 0.0
+        v = v.astype(dtype)
+        got = mm_json(v)
+        if got is None:  # a value too large to write exactly: the reference path takes it
+            fallbacks += 1
+            assert np.nanmax(np.abs(np.where(np.isinf(v), 0, v))) * 1000 >= 1e15 * 0.999
+        else:
+            assert got == reference(v), trial
+        # what the message holds either way
+        assert orjson.dumps(jsonmsg.ranges_json(v)) == reference(v)
+    assert 0 < fallbacks < 300
+
+
+def test_points_as_pairs() -> None:
+    rng = np.random.default_rng(3)
+    for n in (0, 1, 2, 111, 500):
+        pts = rng.uniform(-6.0, 6.0, (n, 2))
+        want = orjson.dumps(np.round(pts, 3).tolist())
+        assert mm_json(pts, pairs=True) == want
+        assert orjson.dumps(jsonmsg.points_json(pts)) == want
+
+
+def test_the_line_is_strict_json_and_decodes(pairs) -> None:
+    frame, result = pairs[1]
+    ranges = result.scan.ranges.copy()
+    ranges[:5] = [np.nan, np.inf, -np.inf, 1.23456, 0.0]
+    result = with_ranges(result, ranges)
+    line = jsonmsg.frame_json(frame, result, "9.9", 1.0)
+    msg = json.loads(line)  # strict: no NaN / Infinity literals
+    assert msg["scan"]["ranges"][:5] == [None, "Infinity", "-Infinity", 1.235, 0.0]
+    assert line == orjson.dumps(jsonmsg.frame_message(frame, result, "9.9", 1.0))
+
+
+def test_one_line_per_result_shared_by_the_sinks(pairs) -> None:
+    (f0, r0), (f1, r1) = pairs[0], pairs[1]
+    first = jsonmsg.frame_json(f0, r0, "1", 1.0)
+    assert jsonmsg.frame_json(f0, r0, "1", 2.0) is first  # same frame: the same line (wall_s 1.0)
+    assert json.loads(first)["wall_s"] == 1.0
+    assert jsonmsg.frame_json(f1, r1, "1", 2.0) != first  # the next frame: a new line
+    assert json.loads(jsonmsg.frame_json(f0, r0, "2", 3.0))["version"] == "2"
+    # a datagram of the whole object is that line; a reshaped one is built anew
+    assert jsonmsg.fit_message(f1, r1, "1", 9.0, 60000) is jsonmsg.frame_json(f1, r1, "1", 9.0)
+
+
+def test_udp_mm_ranges_from_the_written_text(pairs) -> None:
+    from depthnav_daemon.sinks.udp import Content
+
+    frame, result = pairs[0]
+    data = jsonmsg.fit_message(frame, result, "1", 1.0, 60000, Content(ranges_mm=True).shape)
+    assert data is not None
+    got = json.loads(data)["scan"]["ranges"]
+    want = jsonmsg.encode_ranges(result.scan.ranges)
+    assert got == [round(v * 1000) if isinstance(v, float) else v for v in want]
