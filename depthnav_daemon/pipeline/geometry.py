@@ -152,6 +152,12 @@ def rot_x(angle_rad: float) -> F64:
     return np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
 
 
+def rot_z(angle_rad: float) -> F64:
+    """Right-hand rotation about z, (3, 3)."""
+    c, s = math.cos(angle_rad), math.sin(angle_rad)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
 def rot_y(angle_rad: float) -> F64:
     """Right-hand rotation about y, (3, 3)."""
     c, s = math.cos(angle_rad), math.sin(angle_rad)

@@ -40,7 +40,13 @@ import numpy as np
 from depthnav_daemon.errors import ConfigError, SinkError
 from depthnav_daemon.sinks.base import SinkContext, SinkSpec, check_options, parse_host_port
 from depthnav_daemon.sinks.jsonmsg import mount_trust_to_json
-from depthnav_daemon.sinks.ros_messages import OPTIONS, RosNames, quaternion, sensor_placement
+from depthnav_daemon.sinks.ros_messages import (
+    OPTIONS,
+    RosNames,
+    quaternion,
+    scan_origin,
+    sensor_placement,
+)
 from depthnav_daemon.sinks.ros_messages import stamp_ns as to_ns
 
 if TYPE_CHECKING:
@@ -228,12 +234,12 @@ class FoxgloveSink:
                     timestamp=stamp,
                     parent_frame_id=n["base_frame"],
                     child_frame_id=child,
-                    translation=m.Vector3(x=t[0], y=t[1], z=t[2]),
+                    translation=m.Vector3(x=o[0], y=o[1], z=o[2]),
                     rotation=self._quat(m, rot),
                 )
-                for child, rot in (
-                    (n["scan_frame"], np.eye(3)),
-                    (n["optical_frame"], body @ M_CAM_TO_FLU),
+                for child, o, rot in (
+                    (n["scan_frame"], scan_origin(result.mount), np.eye(3)),
+                    (n["optical_frame"], t, body @ M_CAM_TO_FLU),
                 )
             ]
         )

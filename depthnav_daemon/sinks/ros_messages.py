@@ -3,12 +3,12 @@
 Messages are the ``rosbags`` library's classes (ROS 1 Noetic or ROS 2 Humble definitions), so one
 builder serves ROS 1 bags, ROS 2 bags and live ROS 2 topics. Frames (names are options):
 
-- ``base_frame`` (``base_link``): the robot, origin on the floor below the sensor, x forward,
-  y left, z up (REP 103). Issue 12 will add the sensor's x, y and yaw on the robot: the
-  placement comes from :func:`sensor_placement` only.
-- ``scan_frame`` (``depthnav_scan``): level frame at the sensor's optical centre (x forward,
-  y left, z up, gravity-aligned); the scans and cliff points are in it, the floor at
-  z = -height.
+- ``base_frame`` (``base_link``): the robot, origin on the floor under its centre, x forward,
+  y left, z up (REP 103); the sensor sits at ``[mount] x_m, y_m, height_m`` turned by ``yaw_deg``
+  (:func:`sensor_placement`).
+- ``scan_frame`` (``depthnav_scan``): the base frame's axes raised to the sensor's height
+  (:func:`scan_origin`); the scans (ranges from the base origin, bearings from the robot's
+  forward axis) and the cliff points are in it, the floor at z = -height.
 - ``optical_frame`` (``depthnav_optical``): the depth camera's optical frame (x right, y down,
   z forward), tilted and rolled as the mount says.
 
@@ -16,9 +16,10 @@ Topics (names are options): ``/scan`` and ``/cliff/scan`` (sensor_msgs/LaserScan
 ranges: NaN no reading, +inf nothing within range_max, -inf closer than range_min),
 ``/cliff/points`` (sensor_msgs/PointCloud2, x y z float32 in the scan frame: cliff floor
 points), ``/tf`` (tf2_msgs/TFMessage: base -> scan frame and base -> optical frame), and
-``/depth_sensor_pose`` (geometry_msgs/PoseStamped in the base frame: position z = mount height;
+``/depth_sensor_pose`` (geometry_msgs/PoseStamped in the base frame: the sensor on the robot;
 orientation = the sensor body (x along the optical axis) as roll about x = roll_deg (positive
-left side up), pitch about y = tilt_deg (positive nose down), yaw 0, ROS fixed-axis RPY).
+left side up), pitch about y = tilt_deg (positive nose down), yaw = yaw_deg, ROS fixed-axis RPY;
+position = (x_m, y_m, height_m)).
 With ``image=1`` also the depth image (sensor_msgs/Image 16UC1, optical frame) and its
 CameraInfo, so ``replay:`` reads the bag back.
 """
@@ -32,7 +33,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import numpy.typing as npt
 
-from depthnav_daemon.pipeline.geometry import M_CAM_TO_FLU, rot_x, rot_y
+from depthnav_daemon.pipeline.geometry import M_CAM_TO_FLU, rot_x, rot_y, rot_z
 from depthnav_daemon.sinks.base import SinkSpec, bool_option
 
 if TYPE_CHECKING:
@@ -91,9 +92,17 @@ class RosNames:
 def sensor_placement(mount: Mount) -> tuple[F64, F64]:
     """Where the sensor sits on the robot: (translation (3,) metres, rotation (3, 3)) in the base
     frame, the rotation taking sensor-body (x forward along the optical axis, y left, z up)
-    vectors to the base frame. Today: straight above the base origin, pitched and rolled."""
-    translation = np.array([0.0, 0.0, mount.height_m])
-    return translation, rot_y(mount.tilt_rad) @ rot_x(mount.roll_rad)
+    vectors to the base frame: at (x_m, y_m, height_m), turned by yaw, pitched and rolled (ROS
+    roll-pitch-yaw)."""
+    translation = np.array([mount.x_m, mount.y_m, mount.height_m])
+    return translation, rot_z(mount.yaw_rad) @ rot_y(mount.tilt_rad) @ rot_x(mount.roll_rad)
+
+
+def scan_origin(mount: Mount) -> F64:
+    """Origin of the scan frame in the base frame, (3,) metres: above the base origin at the
+    sensor's height. The scans and cliff points are in the base frame's axes, ranges from the
+    base origin (pipeline/placement.py), so only the height separates the two frames."""
+    return np.array([0.0, 0.0, mount.height_m])
 
 
 def quaternion(rot: F64) -> tuple[float, float, float, float]:
@@ -195,16 +204,16 @@ class MessageBuilder:
         level = np.eye(3)  # the scan frame keeps the base frame's axes
         optical = body @ M_CAM_TO_FLU
         out = []
-        for child, rot in (
-            (self.names["scan_frame"], level),
-            (self.names["optical_frame"], optical),
+        for child, origin, rot in (
+            (self.names["scan_frame"], scan_origin(mount), level),
+            (self.names["optical_frame"], translation, optical),
         ):
             out.append(
                 self.t["geometry_msgs/msg/TransformStamped"](
                     header=self.header(t_ns, self.names["base_frame"]),
                     child_frame_id=child,
                     transform=self.t["geometry_msgs/msg/Transform"](
-                        translation=self._vector(translation), rotation=self._quat(rot)
+                        translation=self._vector(origin), rotation=self._quat(rot)
                     ),
                 )
             )

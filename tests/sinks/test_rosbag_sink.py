@@ -4,6 +4,7 @@ we can find (rosbags, mcap-ros2-support, Debian's own ROS 1 rosbag) gets the sam
 from __future__ import annotations
 
 import json
+import math
 import shutil
 import subprocess
 from pathlib import Path
@@ -12,6 +13,7 @@ import numpy as np
 import pytest
 
 from depthnav_daemon.errors import ConfigError, SinkError
+from depthnav_daemon.pipeline.geometry import Mount
 from depthnav_daemon.sinks import create_sink
 from tests.drivers.driverkit import skip_without
 from tests.faults.kit import depthnav, json_lines
@@ -244,3 +246,31 @@ def test_bad_specs_say_one_line(tmp_path: Path) -> None:
     (line,) = [x for x in p.stderr.splitlines() if "ERROR" in x]
     assert "exists; not overwriting" in line and "Traceback" not in p.stderr
     assert (tmp_path / "there.mcap").read_bytes() == b"mine"
+
+
+@pytest.mark.parametrize("ros1", [True, False])
+def test_tf_and_pose_place_the_sensor_on_the_robot(ros1: bool) -> None:
+    # asymmetric placement: 0.2 m forward, 0.1 m right, turned 30 deg left, 20 deg down, 5 deg
+    # roll. The optical frame sits where the sensor is; the scan frame (whose ranges are from
+    # the base origin) stays above the base origin with the base's axes
+    from depthnav_daemon.sinks.ros_messages import NAME_OPTIONS, MessageBuilder, RosNames, typestore
+
+    mount = Mount(0.6, 20.0, 5.0, x_m=0.2, y_m=-0.1, yaw_deg=30.0)
+    builder = MessageBuilder(typestore(ros1=ros1), RosNames(dict(NAME_OPTIONS)))
+    level, optical = builder.transforms(mount, 0).transforms
+    lt, ot = level.transform, optical.transform
+    assert (lt.translation.x, lt.translation.y, lt.translation.z) == (0.0, 0.0, 0.6)
+    assert (lt.rotation.x, lt.rotation.y, lt.rotation.z, lt.rotation.w) == (0.0, 0.0, 0.0, 1.0)
+    assert (ot.translation.x, ot.translation.y, ot.translation.z) == (0.2, -0.1, 0.6)
+    r = ot.rotation
+    axis = rotate((r.x, r.y, r.z, r.w), (0.0, 0.0, 1.0))  # the optical axis, in base_link
+    yaw, tilt = math.radians(30.0), math.radians(20.0)
+    expected = [math.cos(tilt) * math.cos(yaw), math.cos(tilt) * math.sin(yaw), -math.sin(tilt)]
+    np.testing.assert_allclose(axis, expected, atol=1e-9)
+    # the image's right (optical x) tips down on the right with positive roll (left side up)
+    right = rotate((r.x, r.y, r.z, r.w), (1.0, 0.0, 0.0))
+    assert right[2] < 0 and right[1] < 0
+    pose = builder.pose(mount, 0).pose
+    assert (pose.position.x, pose.position.y, pose.position.z) == (0.2, -0.1, 0.6)
+    q = pose.orientation
+    np.testing.assert_allclose(rotate((q.x, q.y, q.z, q.w), (1.0, 0.0, 0.0)), expected, atol=1e-9)
