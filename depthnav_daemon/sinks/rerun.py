@@ -9,11 +9,11 @@ Options: ``every=N`` logs every Nth frame (default 1; depth images are ~0.6 MB e
 ``image=0`` leaves out the depth image and its overlays, ``robot_length_m`` and ``robot_width_m``
 size the robot drawn behind the sensor (default 0.45 x 0.40 m).
 
-Entities (the world is the level frame at the sensor's foot, x forward, y left, z up, floor z=0):
+Entities (the world is the robot's base frame, x forward, y left, z up, floor z=0):
     /world                        ViewCoordinates RIGHT_HAND_Z_UP (static)
     /world/floor                  a 1 m grid on the floor (static)
     /world/robot                  Boxes3D: the robot up to the configured sensor height (static)
-    /world/sensor                 Transform3D: mount height, tilt (nose down) and roll
+    /world/sensor                 Transform3D: the mount (x, y, height; yaw, tilt nose down, roll)
     /world/sensor/fov             LineStrips3D: the sensor's frustum, 0.5 m deep (static)
     /world/sensor/depth           Pinhole (camera_xyz=FLU) + DepthImage (mm, meter=1000, grey)
     /world/sensor/depth/band      Boxes2D: the rows the scan uses (none when it reads every row)

@@ -15,7 +15,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from depthnav_daemon.pipeline.geometry import rot_x, rot_y
+from depthnav_daemon.pipeline.geometry import rot_x, rot_y, rot_z
 from depthnav_daemon.sinks import rerun_topdown as topdown
 from depthnav_daemon.sinks.rerun_depth import CLASS_CLIFF, CLASS_OBSTACLE, CLIFF_RGBA, log_depth
 
@@ -256,8 +256,10 @@ def log_frame(
 ) -> None:
     """Everything of one frame (the timelines are set by the caller)."""
     m = result.mount
-    rot = rot_y(m.tilt_rad) @ rot_x(m.roll_rad)  # sensor body (FLU) -> level, geometry.py's order
-    rec.log("/world/sensor", rr.Transform3D(translation=[0.0, 0.0, m.height_m], mat3x3=rot))
+    # sensor body (FLU) -> base frame, geometry.py's order; the sensor sits where [mount] puts it
+    # on the robot, as the base-frame scan and cliff points drawn beside it assume
+    rot = rot_z(m.yaw_rad) @ rot_y(m.tilt_rad) @ rot_x(m.roll_rad)
+    rec.log("/world/sensor", rr.Transform3D(translation=[m.x_m, m.y_m, m.height_m], mat3x3=rot))
     if image:
         if frame.intrinsics != state.intrinsics:
             log_intrinsics(rr, rec, frame.intrinsics)

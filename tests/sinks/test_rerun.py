@@ -162,6 +162,28 @@ def test_sensor_pose_transform_pins_tilt_sign(tmp_path, pairs, context):
     assert left[2] > 0  # roll 1.5 deg = left side up
 
 
+def test_sensor_transform_places_the_sensor_on_the_robot(tmp_path, pairs, context):
+    # the scan and cliff points are drawn in the base frame: the sensor (its depth image and
+    # frustum) must sit where [mount] puts it, turned by its yaw
+    from dataclasses import replace
+
+    from depthnav_daemon.pipeline.geometry import rot_z
+
+    frame, result = pairs[0]
+    m = result.mount
+    placed = replace(m, x_m=0.2, y_m=-0.1, yaw_deg=30.0)
+    path = tmp_path / "placed.rrd"
+    record(path, [(frame, replace(result, mount=placed))], context)
+    ent = temporal(path)
+    t = column(ent["/world/sensor"], "Transform3D:translation")[0][0]
+    assert t == pytest.approx([0.2, -0.1, m.height_m])
+    mat = np.asarray(column(ent["/world/sensor"], "Transform3D:mat3x3")[0][0]).reshape(3, 3).T
+    want = rot_z(placed.yaw_rad) @ rot_y(m.tilt_rad) @ rot_x(m.roll_rad)
+    assert np.allclose(mat, want, atol=1e-6)
+    forward = mat @ [1.0, 0.0, 0.0]
+    assert forward[1] > 0 and forward[2] < 0  # turned left (yaw 30 deg), nose down
+
+
 def test_static_scene_logged_once(tmp_path, pairs, context):
     path = tmp_path / "run.rrd"
     record(path, pairs, context)
