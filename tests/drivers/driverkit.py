@@ -160,13 +160,14 @@ def contract_report_isolated(spec: str, max_frames: int = 8) -> dict:
     return json.loads(proc.stdout.strip().splitlines()[-1])
 
 
-def skip_without(missing: bool, package: str) -> None:
-    """Skip when a native package is missing, or fail if DEPTHNAV_REQUIRE_NATIVE=1 (CI sets it)."""
+def skip_without(missing: bool, package: str, install: str | None = None) -> None:
+    """Skip when a native package (or other outside part: ``install`` says how to get it) is
+    missing, or fail if DEPTHNAV_REQUIRE_NATIVE=1 (CI sets it: there it must be present)."""
     if not missing:
         return
     import pytest
 
-    message = f"{package} not installed (apt-get install {package})"
+    message = f"{package} not installed ({install or f'apt-get install {package}'})"
     if os.environ.get("DEPTHNAV_REQUIRE_NATIVE") == "1":
         pytest.fail(message + "; DEPTHNAV_REQUIRE_NATIVE=1 forbids skipping", pytrace=False)
     pytest.skip(message)

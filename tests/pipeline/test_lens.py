@@ -21,6 +21,7 @@ from depthnav_daemon.sim.synthetic import (
     truth_obstacle_interval,
 )
 from drivers.base import Intrinsics
+from tests.drivers.driverkit import skip_without
 from tests.pipeline.scenes import ASYM_640
 from tests.pipeline.test_scan import PARAMS, seen_bins
 
@@ -245,8 +246,7 @@ def test_cmu_views_agree_better_with_their_lens_model() -> None:
     """Ten real Kinect v2 views (CMU Panoptic, non-commercial licence: read in place, never
     copied) with the calibration's distCoeffs_depth. Measured: RMS height error 9.6 -> 7.6 mm,
     worst angle 0.45 -> 0.34 deg (worst |dh| 18.1 -> 14.2 mm)."""
-    if not CMU.is_dir():
-        pytest.skip(f"{CMU} is absent: the real CMU Panoptic frames live there")
+    skip_without(not CMU.is_dir(), "the CMU Panoptic frames", f"../shared beside the clone: {CMU}")
     pin_rms, pin_angle = cmu_floor_agreement(lens_on=False)
     lens_rms, lens_angle = cmu_floor_agreement(lens_on=True)
     assert lens_rms < pin_rms - 1.0 and lens_angle < pin_angle, (

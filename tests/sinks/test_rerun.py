@@ -19,6 +19,7 @@ from depthnav_daemon.pipeline.geometry import rot_x, rot_y
 from depthnav_daemon.pipeline.scan import obstacle_pixels
 from depthnav_daemon.sinks import create_sink
 from depthnav_daemon.sinks.rerun import RerunSink
+from tests.drivers.driverkit import skip_without
 
 rrchunk = pytest.importorskip("rerun.chunk")
 
@@ -273,27 +274,35 @@ def scan_rows(path: Path) -> int:
     return sum(c.num_rows for c in chunks if c.entity_path == "/world/scan" and not c.is_static)
 
 
-def test_connect_to_a_real_grpc_server(tmp_path, pairs, context):
-    """rerun+grpc:// against the real rerun binary, which saves what it receives to an .rrd."""
+def _rerun_server(tmp_path: Path, save: str) -> tuple[subprocess.Popen, int]:
+    """The real rerun binary (not the Python shim) serving gRPC on a free loopback port and
+    saving what it receives to ``save``; (process, port) once it listens."""
     import rerun_cli
 
-    binary = Path(rerun_cli.__file__).with_name("rerun")  # the real binary, not the Python shim
-    if not binary.exists():
-        pytest.skip("rerun_cli binary not installed")
-    port, out = free_port(), tmp_path / "received.rrd"
-    log_path = tmp_path / "server.log"
+    binary = Path(rerun_cli.__file__).with_name("rerun")
+    skip_without(not binary.exists(), "rerun_cli's rerun binary", "pip install rerun-sdk")
+    port, log_path = free_port(), tmp_path / "server.log"
     with open(log_path, "wb") as log_file:
         server = subprocess.Popen(
-            [str(binary), "--bind", "127.0.0.1", "--port", str(port), "--save", str(out)],
+            [str(binary), "--bind", "127.0.0.1", "--port", str(port), "--save", save],
             stdout=log_file,
             stderr=subprocess.STDOUT,
             start_new_session=True,
         )
+    deadline = time.monotonic() + 30
+    while b"Listening for gRPC" not in log_path.read_bytes():
+        if server.poll() is not None or time.monotonic() > deadline:
+            os.killpg(server.pid, signal.SIGKILL)
+            raise AssertionError(log_path.read_text())
+        time.sleep(0.1)
+    return server, port
+
+
+def test_connect_to_a_real_grpc_server(tmp_path, pairs, context):
+    """rerun+grpc:// against the real rerun binary, which saves what it receives to an .rrd."""
+    out = tmp_path / "received.rrd"
+    server, port = _rerun_server(tmp_path, str(out))
     try:
-        deadline = time.monotonic() + 30
-        while b"Listening for gRPC" not in log_path.read_bytes():
-            assert server.poll() is None and time.monotonic() < deadline, log_path.read_text()
-            time.sleep(0.1)
         sink = create_sink(f"rerun+grpc://127.0.0.1:{port}")
         sink.open(context)
         for frame, result in pairs[:3]:
@@ -400,24 +409,8 @@ def test_untrusted_dropoffs_are_amber_and_the_trust_is_logged(tmp_path, pairs, c
 
 def test_a_viewer_that_goes_away_is_not_claimed_delivered(tmp_path, pairs, context, caplog):
     """The viewer dies mid-run: the summary says the frames were not confirmed delivered."""
-    import rerun_cli
-
-    binary = Path(rerun_cli.__file__).with_name("rerun")
-    if not binary.exists():
-        pytest.skip("rerun_cli binary not installed")
-    port, log_path = free_port(), tmp_path / "server.log"
-    with open(log_path, "wb") as log_file:
-        server = subprocess.Popen(
-            [str(binary), "--bind", "127.0.0.1", "--port", str(port), "--save", "/dev/null"],
-            stdout=log_file,
-            stderr=subprocess.STDOUT,
-            start_new_session=True,
-        )
+    server, port = _rerun_server(tmp_path, "/dev/null")
     try:
-        deadline = time.monotonic() + 30
-        while b"Listening for gRPC" not in log_path.read_bytes():
-            assert server.poll() is None and time.monotonic() < deadline, log_path.read_text()
-            time.sleep(0.1)
         sink = create_sink(f"rerun+grpc://127.0.0.1:{port}")
         sink.open(context)  # the viewer is there: the probe lets it through
         sink.write(*pairs[0])
