@@ -39,4 +39,11 @@ def helper(fn: Callable[..., Any]) -> Any:
     return _njit(fn)
 
 
-__all__ = ["KERNELS", "helper", "kernel"]
+def inlined(fn: Callable[..., Any]) -> Any:
+    """A helper that numba inlines into every caller before LLVM sees it: for small functions
+    called per block of a row, where a call (its arrays passed field by field on the stack)
+    costs as much as the work, and where the caller's loops vectorise better with it inline."""
+    return njit(cache=True, nogil=True, boundscheck=False, error_model="numpy", inline="always")(fn)
+
+
+__all__ = ["KERNELS", "helper", "inlined", "kernel"]

@@ -198,8 +198,11 @@ def _exact_scan(
         t.k_mid,
         t.k_hi,
         t.kr_m_per_mm,
-        t.fl_start,
+        t.blk,
+        t.fl_blk,
         t.fl_code,
+        t.probe_start,
+        t.probe,
         acc,
         out,
     )

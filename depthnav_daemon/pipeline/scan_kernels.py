@@ -9,10 +9,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
-from depthnav_daemon.pipeline._jit import kernel
-
-SEEN = np.float32(1e30)  # "valid readings, no obstacle": sorts between ranges and no-data (+inf)
-
+from depthnav_daemon.pipeline._jit import inlined, kernel
 
 I32 = NDArray[np.int32]
 
@@ -23,6 +20,9 @@ I32 = NDArray[np.int32]
 CODE_BITS = 15
 CODE_MASK = (1 << CODE_BITS) - 1
 MAX_CODE_INDEX = CODE_MASK
+# columns per block of the exact scan kernel (scan_blocks): 4 AVX2 vectors of uint16; smaller
+# blocks skip the floor more finely but cost more per block
+BLOCK = 64
 
 
 def run_flush_codes(
@@ -90,15 +90,112 @@ def flush_codes_kernel(cb_lo, cb_hi, n_bins, row_block):
     return fl_start, fl_code
 
 
+# The helpers below take whole rows and an unsigned column offset rather than slices: a slice
+# costs numba two atomic reference-count updates (~40 ns a block), and an unsigned index needs
+# no wrap-around check, so LLVM vectorises the loops.
+
+
+@inlined
+def _lowest_above(drow, j0, n, lo):
+    """min over drow[j0:j0 + n] of d - lo in uint16 arithmetic: some d lies in [lo, hi] iff it
+    is <= hi - lo (a depth below lo wraps around to a large value)."""
+    m = np.uint16(65535)
+    if n == BLOCK:  # a fixed trip count: no remainder loop, fully unrolled
+        for jj in range(BLOCK):
+            m = min(m, np.uint16(drow[j0 + np.uint64(jj)] - lo))
+        return m
+    for jj in range(n):
+        m = min(m, np.uint16(drow[j0 + np.uint64(jj)] - lo))
+    return m
+
+
+@inlined
+def _min_max(drow, j0, n):
+    """(min, max) of drow[j0:j0 + n]."""
+    mn = np.uint16(65535)
+    mx = np.uint16(0)
+    for jj in range(n):
+        d = drow[j0 + np.uint64(jj)]
+        mn = min(mn, d)
+        mx = max(mx, d)
+    return mn, mx
+
+
+@inlined
+def _any_reading(drow):
+    """True if some depth of the row is non-zero."""
+    m = np.uint16(0)
+    for j in range(drow.shape[0]):
+        m |= drow[j]
+    return m != 0
+
+
+@inlined
+def _classify(drow, blk, i, n_cols, kind):
+    """What each block of row i needs (kind[k]): 0 nothing (no depth is an obstacle or too
+    close), 1 ranges only (every depth is an obstacle for every pixel), 2 every threshold."""
+    for k in range(kind.shape[0]):
+        j0 = np.uint64(k * BLOCK)
+        n = min(BLOCK, n_cols - k * BLOCK)
+        lo = blk[0, i, k]
+        hi = blk[1, i, k]
+        kind[k] = 0
+        # one horizontal reduction a block on the common path (most blocks hold no obstacle)
+        if hi >= lo and _lowest_above(drow, j0, n, lo) <= np.uint16(hi - lo):
+            mn, mx = _min_max(drow, j0, n)
+            kind[k] = 1 if mn > blk[2, i, k] and mx <= blk[3, i, k] else 2
+
+
+@inlined
+def _pixels(drow, near_lo, near_hi, obst_hi, kr, acc, j0, n):
+    """acc = min(acc, what each pixel of columns j0:j0 + n says): its range if an obstacle, -inf
+    if too close, else +inf. Branch-free with unconditional stores, so LLVM vectorises it."""
+    inf = np.float32(np.inf)
+    for jj in range(n):
+        j = j0 + np.uint64(jj)
+        d = drow[j]
+        obstacle = (near_hi[j] < d) & (d <= obst_hi[j])
+        close = (near_lo[j] <= d) & (d <= near_hi[j])
+        v = np.float32(d) * kr[j] if obstacle else inf
+        v = -inf if close else v
+        acc[j] = min(acc[j], v)
+
+
+@inlined
+def _obstacles(drow, kr, acc, j0, n):
+    """_pixels where every depth is an obstacle for every pixel (no thresholds to read)."""
+    zero = np.float32(0.0)
+    for jj in range(n):
+        j = j0 + np.uint64(jj)
+        # "+ 0" (exact here: no value is -0) keeps the store unconditional; LLVM otherwise
+        # stores only where the minimum changed, a masked store microcoded on AMD Zen (~4x)
+        acc[j] = min(acc[j], np.float32(drow[j]) * kr[j]) + zero
+
+
+@inlined
+def _all_inf(acc, j0, n):
+    """True if nothing is pending in columns j0:j0 + n (every run minimum is +inf)."""
+    m = np.float32(np.inf)
+    for jj in range(n):
+        m = min(m, acc[j0 + np.uint64(jj)])
+    return m == np.float32(np.inf)
+
+
 @kernel
-def exact_scan_kernel(depth, rows, near_lo, near_hi, obst_hi, kr, fl_start, fl_code, acc, out):
+def exact_scan_kernel(
+    depth, rows, near_lo, near_hi, obst_hi, kr, blk, fl_blk, fl_code, probe_start, probe, acc, out
+):
     """Exact scan of one frame into ``out[:n]`` (float32, REP 117 values).
 
     One row-major pass keeps a running minimum per column (``acc``) for as long as the column
     feeds the same bins; where a column's bins change from one row to the next (a "run" ends),
     the run's minimum is flushed into those bins and the column starts again. A column's bins
-    change only a few times over the image (tens of thousands of flushes per 640x480 frame,
-    against one gather per row and bin), and min is exact, so this equals the per-row binning.
+    change only a few times over the image, and min is exact, so this equals the per-row binning.
+
+    Each row is looked at in blocks of BLOCK columns (scan_blocks): a block none of whose
+    depths can be an obstacle or too close is not read further, and its flushes are skipped while
+    its columns hold nothing (+inf). A bin left at +inf is NaN if none of its pixels has a
+    reading, found by looking its pixels up (usually the first has one).
 
     Args:
         depth: (H, Ws) uint16 mm, already reduced to the used columns (a strided view is fine).
@@ -107,48 +204,90 @@ def exact_scan_kernel(depth, rows, near_lo, near_hi, obst_hi, kr, fl_start, fl_c
             near_lo <= d <= near_hi; an obstacle in range iff near_hi < d <= obst_hi (three
             thresholds, not four: the two intervals always adjoin, see scan._exact_table).
         kr: (Hs, Ws) float32 horizontal range per mm of depth.
-        fl_start: (Hs + 1,) int32: flushes after row i are fl_start[i]:fl_start[i + 1].
+        blk: (4, Hs, nb) uint16 block bounds (scan_blocks.block_tables): nb = ceil(Ws / BLOCK).
+        fl_blk: (Hs * nb + 1,) int32: the flushes after row i in block k are
+            fl_blk[i * nb + k]:fl_blk[i * nb + k + 1].
         fl_code: (F,) int32 ``col | last << 15 | bin << 16``: a flush takes column col's run
             minimum into bin; ``last``: the run ends here, the column starts again.
+        probe_start, probe: the runs (column, first row, last row) feeding each bin.
         acc: (Ws,) float32 work space.
         out: (n + 1,) float32, overwritten: the scan in out[:n]; out[n] is scratch (runs that
             feed no bin are flushed there).
     """
     n_rows, n_cols = near_lo.shape
+    nb = blk.shape[2]
+    block = BLOCK
     inf = np.float32(np.inf)
-    seen = SEEN
     for b in range(out.shape[0]):
         out[b] = inf
     for j in range(n_cols):
         acc[j] = inf
+    dirty = np.zeros(nb, np.bool_)  # some column of the block holds a run minimum below +inf
+    seen = np.zeros(n_rows, np.bool_)  # the row has a reading (d > 0)
+    kind = np.zeros(nb, np.uint8)
     for i in range(n_rows):
         drow = depth[rows[i]]
-        nl = near_lo[i]
-        nh = near_hi[i]
-        oh = obst_hi[i]
-        k = kr[i]
-        for j in range(n_cols):  # branch-free and an unconditional store, so LLVM vectorises it
-            d = drow[j]
-            obstacle = (nh[j] < d) & (d <= oh[j])
-            close = (nl[j] <= d) & (d <= nh[j])
-            # obstacle range < SEEN (a reading, no obstacle) < inf (no reading); -inf too close
-            v = np.float32(d) * k[j] if obstacle else (seen if d != 0 else inf)
-            v = -inf if close else v
-            acc[j] = min(acc[j], v)
-        for e in range(fl_start[i], fl_start[i + 1]):
-            # unsigned: the indices below need no wrap-around check for negative values
-            x = np.uint32(fl_code[e])
-            c = x & np.uint32(CODE_MASK)
-            b = x >> np.uint32(CODE_BITS + 1)
-            a = acc[c]
-            o = out[b]
-            out[b] = a if a < o else o
-            if x & np.uint32(1 << CODE_BITS):  # the run ends here
-                acc[c] = inf
+        seen[i] = _any_reading(drow)
+        _classify(drow, blk, i, n_cols, kind)
+        k = 0
+        while k < nb:  # one call per stretch of blocks of one kind: long loops vectorise well
+            kk = kind[k]
+            k2 = k + 1
+            while k2 < nb and kind[k2] == kk:
+                k2 += 1
+            if kk != 0:
+                j0 = np.uint64(k * block)
+                n = min(k2 * block, n_cols) - k * block
+                if kk == 1:
+                    _obstacles(drow, kr[i], acc, j0, n)
+                else:
+                    _pixels(drow, near_lo[i], near_hi[i], obst_hi[i], kr[i], acc, j0, n)
+                for q in range(k, k2):
+                    dirty[q] = True
+            k = k2
+        k = 0
+        while k < nb:  # the flushes of a stretch of pending blocks are one loop
+            if not dirty[k]:
+                k += 1  # every flush would be min(out, +inf) and every reset a no-op
+                continue
+            k2 = k + 1
+            while k2 < nb and dirty[k2]:
+                k2 += 1
+            for e in range(fl_blk[i * nb + k], fl_blk[i * nb + k2]):
+                # unsigned: the indices below need no wrap-around check for negative values
+                x = np.uint32(fl_code[e])
+                c = x & np.uint32(CODE_MASK)
+                b = x >> np.uint32(CODE_BITS + 1)
+                a = acc[c]
+                o = out[b]
+                out[b] = a if a < o else o
+                acc[c] = inf if x & np.uint32(1 << CODE_BITS) else a  # the run ends here
+            for q in range(k, k2):
+                if kind[q] == 0:  # (a block with obstacles in this row is pending anyway)
+                    dirty[q] = not _all_inf(
+                        acc, np.uint64(q * block), min(block, n_cols - q * block)
+                    )
+            k = k2
+    n = out.shape[0] - 1
     nan = np.float32(np.nan)
-    for b in range(out.shape[0]):
-        v = out[b]
-        out[b] = inf if v == seen else (nan if v == inf else v)
+    any_seen = seen.any()
+    for b in range(n):
+        if out[b] != inf:
+            continue
+        found = False
+        if any_seen:
+            # bottom rows first: they see the floor, where the top rows may see nothing (sky,
+            # or beyond the sensor's reach) and the first pixel looked at usually has a reading
+            for e in range(probe_start[b + 1] - 1, probe_start[b] - 1, -1):
+                c = probe[0, e]
+                for r in range(probe[2, e], probe[1, e] - 1, -1):
+                    if seen[r] and depth[rows[r], c] != 0:
+                        found = True
+                        break
+                if found:
+                    break
+        if not found:
+            out[b] = nan
 
 
 @kernel

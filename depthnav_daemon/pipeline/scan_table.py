@@ -20,6 +20,7 @@ from depthnav_daemon.pipeline.geometry import (
     frozen_table,
     normalized_coords,
 )
+from depthnav_daemon.pipeline.scan_blocks import block_tables
 from depthnav_daemon.pipeline.scan_kernels import (
     MAX_CODE_INDEX,
     bin_map_kernel,
@@ -45,7 +46,8 @@ class ExactTable:
     binning.
 
     The kernel walks the image row by row and keeps a minimum per column while the column feeds the
-    same bins (a "run"); the flush codes say where each run's minimum goes when it ends.
+    same bins (a "run"); the flush codes say where each run's minimum goes when it ends. The block
+    tables let it skip the blocks of a row that cannot hold an obstacle (scan_blocks).
     """
 
     rows: npt.NDArray[np.int32]  # (Hs,) image rows
@@ -61,6 +63,10 @@ class ExactTable:
     kr_m_per_mm: F32  # (Hs, Ws) horizontal range per millimetre of depth
     fl_start: npt.NDArray[np.int32]  # (Hs + 1,) flushes after row i: fl_start[i]:fl_start[i + 1]
     fl_code: npt.NDArray[np.int32]  # (F,) column | run ends << 15 | bin << 16 (run_flush_codes)
+    blk: npt.NDArray[np.uint16]  # (4, Hs, nb) block bounds (scan_blocks.block_tables)
+    fl_blk: npt.NDArray[np.int32]  # (Hs * nb + 1,) where each block's flushes of a row start
+    probe_start: npt.NDArray[np.int32]  # (n + 1,) the runs feeding each bin: probe[:, s[b]:s[b+1]]
+    probe: npt.NDArray[np.int32]  # (3, P) column, first and last row of each run
     n_bins: int
     angle_min: float
     angle_increment: float
@@ -250,6 +256,7 @@ def exact_table(intr: Intrinsics, mount: Mount, params: ScanParams) -> ExactTabl
     angle_min = float(edge_min) + inc / 2.0
     _, _, cb_lo, cb_hi = _bin_map(centre, lo_b, hi_b, sane, angle_min, inc, n)
     fl_start, fl_code = run_flush_codes(cb_lo, cb_hi, n)
+    blk, fl_blk, probe_start, probe = block_tables(k_lo, k_mid, k_hi, fl_start, fl_code, n)
     row_idx = np.arange(intr.height, dtype=np.int32)[rows]
     table = ExactTable(
         rows=row_idx,
@@ -265,6 +272,10 @@ def exact_table(intr: Intrinsics, mount: Mount, params: ScanParams) -> ExactTabl
         kr_m_per_mm=kr32,
         fl_start=fl_start,
         fl_code=fl_code,
+        blk=blk,
+        fl_blk=fl_blk,
+        probe_start=probe_start,
+        probe=probe,
         n_bins=n,
         angle_min=angle_min,
         angle_increment=inc,
