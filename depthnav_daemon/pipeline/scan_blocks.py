@@ -38,7 +38,7 @@ def block_tables(
     Returns:
         blk: (4, Hs, nb) uint16 per block: [0] lo and [1] hi: a depth d is close or an obstacle
             for some pixel only if lo <= d <= hi (none: lo > hi); [2] the largest k_mid and [3]
-            the smallest k_hi: depths all in (blk[2], blk[3]] are obstacles for every pixel;
+            the smallest k_hi: readings all in (blk[2], blk[3]] are obstacles for every pixel;
         fl_blk: (Hs * nb + 1,) the flushes after row i in block k are
             fl_code[fl_blk[i * nb + k]:fl_blk[i * nb + k + 1]];
         probe_start: (n + 1,) the runs feeding bin b are

@@ -23,6 +23,7 @@ MAX_CODE_INDEX = CODE_MASK
 # columns per block of the exact scan kernel (scan_blocks): 4 AVX2 vectors of uint16; smaller
 # blocks skip the floor more finely but cost more per block
 BLOCK = 64
+UNKNOWN = 2  # a row's "has a reading" flag before it is looked at
 
 
 def run_flush_codes(
@@ -90,50 +91,52 @@ def flush_codes_kernel(cb_lo, cb_hi, n_bins, row_block):
     return fl_start, fl_code
 
 
-# The helpers below take whole rows and an unsigned column offset rather than slices: a slice
-# costs numba two atomic reference-count updates (~40 ns a block), and an unsigned index needs
-# no wrap-around check, so LLVM vectorises the loops.
+# The helpers below index the 2-D arrays with an unsigned row and column offset rather than take
+# row views or slices: a view costs numba two atomic reference-count updates (~40 ns, as much as
+# a block's work), and an unsigned index needs no wrap-around check, so LLVM vectorises the loops.
 
 
 @inlined
-def _lowest_above(drow, j0, n, lo):
-    """min over drow[j0:j0 + n] of d - lo in uint16 arithmetic: some d lies in [lo, hi] iff it
-    is <= hi - lo (a depth below lo wraps around to a large value)."""
+def _lowest_above(depth, r, j0, n, lo):
+    """min over depth[r, j0:j0 + n] of d - lo in uint16 arithmetic: some d lies in [lo, hi] iff
+    it is <= hi - lo (a depth below lo wraps around to a large value)."""
     m = np.uint16(65535)
     if n == BLOCK:  # a fixed trip count: no remainder loop, fully unrolled
         for jj in range(BLOCK):
-            m = min(m, np.uint16(drow[j0 + np.uint64(jj)] - lo))
+            m = min(m, np.uint16(depth[r, j0 + np.uint64(jj)] - lo))
         return m
     for jj in range(n):
-        m = min(m, np.uint16(drow[j0 + np.uint64(jj)] - lo))
+        m = min(m, np.uint16(depth[r, j0 + np.uint64(jj)] - lo))
     return m
 
 
 @inlined
-def _min_max(drow, j0, n):
-    """(min, max) of drow[j0:j0 + n]."""
+def _min_max(depth, r, j0, n):
+    """(lowest reading, highest depth) of depth[r, j0:j0 + n]: the lowest non-zero depth (a
+    reading) less one, zeros wrapping around to 65535, and the highest depth."""
     mn = np.uint16(65535)
     mx = np.uint16(0)
     for jj in range(n):
-        d = drow[j0 + np.uint64(jj)]
-        mn = min(mn, d)
+        d = depth[r, j0 + np.uint64(jj)]
+        mn = min(mn, np.uint16(d - np.uint16(1)))
         mx = max(mx, d)
     return mn, mx
 
 
 @inlined
-def _any_reading(drow):
-    """True if some depth of the row is non-zero."""
-    m = np.uint16(0)
-    for j in range(drow.shape[0]):
-        m |= drow[j]
-    return m != 0
+def _any_reading(depth, r, n):
+    """True if some depth of depth[r, :n] is non-zero."""
+    mx = np.uint16(0)
+    for jj in range(n):
+        mx = max(mx, depth[r, np.uint64(jj)])
+    return mx != 0
 
 
 @inlined
-def _classify(drow, blk, i, n_cols, kind):
-    """What each block of row i needs (kind[k]): 0 nothing (no depth is an obstacle or too
-    close), 1 ranges only (every depth is an obstacle for every pixel), 2 every threshold."""
+def _classify(depth, r, blk, i, n_cols, kind):
+    """What each block of row i (image row r) needs (kind[k]): 0 nothing (no depth is an obstacle
+    or too close), 1 ranges only (every depth is an obstacle for every pixel), 2 every
+    threshold."""
     for k in range(kind.shape[0]):
         j0 = np.uint64(k * BLOCK)
         n = min(BLOCK, n_cols - k * BLOCK)
@@ -141,35 +144,41 @@ def _classify(drow, blk, i, n_cols, kind):
         hi = blk[1, i, k]
         kind[k] = 0
         # one horizontal reduction a block on the common path (most blocks hold no obstacle)
-        if hi >= lo and _lowest_above(drow, j0, n, lo) <= np.uint16(hi - lo):
-            mn, mx = _min_max(drow, j0, n)
-            kind[k] = 1 if mn > blk[2, i, k] and mx <= blk[3, i, k] else 2
+        if hi >= lo and _lowest_above(depth, r, j0, n, lo) <= np.uint16(hi - lo):
+            mn1, mx = _min_max(depth, r, j0, n)
+            # every reading of the block an obstacle for every pixel (zeros allowed: a wall
+            # with a few holes in it is common)
+            kind[k] = 1 if mn1 >= blk[2, i, k] and mx <= blk[3, i, k] else 2
 
 
 @inlined
-def _pixels(drow, near_lo, near_hi, obst_hi, kr, acc, j0, n):
+def _pixels(depth, r, near_lo, near_hi, obst_hi, kr, i, acc, j0, n):
     """acc = min(acc, what each pixel of columns j0:j0 + n says): its range if an obstacle, -inf
     if too close, else +inf. Branch-free with unconditional stores, so LLVM vectorises it."""
     inf = np.float32(np.inf)
     for jj in range(n):
         j = j0 + np.uint64(jj)
-        d = drow[j]
-        obstacle = (near_hi[j] < d) & (d <= obst_hi[j])
-        close = (near_lo[j] <= d) & (d <= near_hi[j])
-        v = np.float32(d) * kr[j] if obstacle else inf
+        d = depth[r, j]
+        nh = near_hi[i, j]
+        obstacle = (nh < d) & (d <= obst_hi[i, j])
+        close = (near_lo[i, j] <= d) & (d <= nh)
+        v = np.float32(d) * kr[i, j] if obstacle else inf
         v = -inf if close else v
         acc[j] = min(acc[j], v)
 
 
 @inlined
-def _obstacles(drow, kr, acc, j0, n):
-    """_pixels where every depth is an obstacle for every pixel (no thresholds to read)."""
+def _obstacles(depth, r, kr, i, acc, j0, n):
+    """_pixels where every reading (d > 0) is an obstacle for every pixel: no thresholds."""
     zero = np.float32(0.0)
+    inf = np.float32(np.inf)
     for jj in range(n):
         j = j0 + np.uint64(jj)
+        d = depth[r, j]
+        v = np.float32(d) * kr[i, j] if d != 0 else inf
         # "+ 0" (exact here: no value is -0) keeps the store unconditional; LLVM otherwise
         # stores only where the minimum changed, a masked store microcoded on AMD Zen (~4x)
-        acc[j] = min(acc[j], np.float32(drow[j]) * kr[j]) + zero
+        acc[j] = min(acc[j], v) + zero
 
 
 @inlined
@@ -223,12 +232,14 @@ def exact_scan_kernel(
     for j in range(n_cols):
         acc[j] = inf
     dirty = np.zeros(nb, np.bool_)  # some column of the block holds a run minimum below +inf
-    seen = np.zeros(n_rows, np.bool_)  # the row has a reading (d > 0)
+    # per row: UNKNOWN not looked at yet, else whether some d > 0; only the rows a bin's
+    # +inf/NaN question reaches are looked at
+    seen = np.full(n_rows, UNKNOWN, np.uint8)
     kind = np.zeros(nb, np.uint8)
-    for i in range(n_rows):
-        drow = depth[rows[i]]
-        seen[i] = _any_reading(drow)
-        _classify(drow, blk, i, n_cols, kind)
+    for ii in range(n_rows):
+        i = np.uint64(ii)
+        r = np.uint64(rows[ii])
+        _classify(depth, r, blk, i, n_cols, kind)
         k = 0
         while k < nb:  # one call per stretch of blocks of one kind: long loops vectorise well
             kk = kind[k]
@@ -239,9 +250,9 @@ def exact_scan_kernel(
                 j0 = np.uint64(k * block)
                 n = min(k2 * block, n_cols) - k * block
                 if kk == 1:
-                    _obstacles(drow, kr[i], acc, j0, n)
+                    _obstacles(depth, r, kr, i, acc, j0, n)
                 else:
-                    _pixels(drow, near_lo[i], near_hi[i], obst_hi[i], kr[i], acc, j0, n)
+                    _pixels(depth, r, near_lo, near_hi, obst_hi, kr, i, acc, j0, n)
                 for q in range(k, k2):
                     dirty[q] = True
             k = k2
@@ -253,7 +264,7 @@ def exact_scan_kernel(
             k2 = k + 1
             while k2 < nb and dirty[k2]:
                 k2 += 1
-            for e in range(fl_blk[i * nb + k], fl_blk[i * nb + k2]):
+            for e in range(fl_blk[ii * nb + k], fl_blk[ii * nb + k2]):
                 # unsigned: the indices below need no wrap-around check for negative values
                 x = np.uint32(fl_code[e])
                 c = x & np.uint32(CODE_MASK)
@@ -270,22 +281,23 @@ def exact_scan_kernel(
             k = k2
     n = out.shape[0] - 1
     nan = np.float32(np.nan)
-    any_seen = seen.any()
     for b in range(n):
         if out[b] != inf:
             continue
         found = False
-        if any_seen:
-            # bottom rows first: they see the floor, where the top rows may see nothing (sky,
-            # or beyond the sensor's reach) and the first pixel looked at usually has a reading
-            for e in range(probe_start[b + 1] - 1, probe_start[b] - 1, -1):
-                c = probe[0, e]
-                for r in range(probe[2, e], probe[1, e] - 1, -1):
-                    if seen[r] and depth[rows[r], c] != 0:
-                        found = True
-                        break
-                if found:
+        # bottom rows first: they see the floor, where the top rows may see nothing (sky, or
+        # beyond the sensor's reach), so the first pixel looked at usually has a reading
+        for e in range(probe_start[b + 1] - 1, probe_start[b] - 1, -1):
+            c = probe[0, e]
+            for ri in range(probe[2, e], probe[1, e] - 1, -1):
+                r = np.uint64(rows[ri])
+                if seen[ri] == UNKNOWN:  # once a row: a frame of zeros costs a pass, not one a bin
+                    seen[ri] = _any_reading(depth, r, n_cols)
+                if seen[ri] and depth[r, c] != 0:
+                    found = True
                     break
+            if found:
+                break
         if not found:
             out[b] = nan
 
