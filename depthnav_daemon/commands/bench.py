@@ -34,10 +34,12 @@ from depthnav_daemon.commands.bench_sinks import BUDGETS_MS, sink_work
 from depthnav_daemon.commands.bench_stages import (
     FIXTURE,
     RESOLUTIONS,
+    SCAN_TARGET,
     Timing,
     floor_mount,
     format_timings,
     load_frames,
+    scan_across_mounts,
     stage_work,
     synthetic_frames,
     time_work,
@@ -67,6 +69,7 @@ class BenchReport:
     cpu_30fps: dict[str, float] | None = None
     startup: dict[str, float] | None = None
     resolutions: dict[str, list[Timing]] = field(default_factory=dict)
+    scan_mounts: list[Timing] = field(default_factory=list)  # the exact scan at SCAN_MOUNTS
 
 
 # --- the command ---------------------------------------------------------------------------------
@@ -122,6 +125,9 @@ def run_bench(
     report = BenchReport(
         machine(), spec, len(frames), f"{intr.width}x{intr.height}", asdict(floor), timings
     )
+    report.scan_mounts = scan_across_mounts(
+        rounds, samples, min_batch_s, n_frames=1 if rounds == 1 else 4
+    )
     with sink_work(frames, floor) as work:
         report.sinks = time_work(work, [f.depth_mm for f in frames], rounds, samples, min_batch_s)[
             1:
@@ -171,6 +177,14 @@ def format_report(r: BenchReport) -> str:
         f"Python {m['python']}, numpy {m['numpy']}, numba {m['numba']}",
         format_timings(r.timings, "per frame, one core (median of interleaved rounds):"),
     ]
+    if r.scan_mounts:
+        out.append(
+            format_timings(
+                r.scan_mounts,
+                f"exact scan, synthetic corridor from the mounts its target holds at "
+                f"(<= {SCAN_TARGET:g}x np.copy of the same frames):",
+            )
+        )
     if r.sinks:
         budgets = ", ".join(f"{k} {v:g} ms" for k, v in BUDGETS_MS.items())
         out.append(format_timings(r.sinks, f"outputs per frame, as each sink does it ({budgets}):"))

@@ -207,6 +207,35 @@ def floor_mount(frames: Sequence[Frame], fallback: Mount) -> Mount:
     return Mount(round(est.height_m, 3), round(est.tilt_deg, 2), round(est.roll_deg, 2))
 
 
+# the exact scan's cost grows with tilt and roll: the mounts and resolutions its target (at most
+# 6x np.copy) holds at, timed by every bench run
+SCAN_MOUNTS = (Mount(0.55, 15.0, 0.0), Mount(0.8, 40.0, 5.0), Mount(1.2, 50.0, -8.0))
+SCAN_RESOLUTIONS = ("640x480 (Kinect v1)", "1280x720 (RealSense D435)")
+SCAN_TARGET = 6.0  # x np.copy of the same frame
+
+
+def scan_across_mounts(
+    rounds: int, samples: int, min_batch_s: float, n_frames: int = 4
+) -> list[Timing]:
+    """The exact scan over synthetic corridor frames from each of SCAN_MOUNTS at each of
+    SCAN_RESOLUTIONS, each against np.copy of its own frames (interleaved rounds as time_work)."""
+    out: list[Timing] = []
+    params = ScanParams()
+    for res in SCAN_RESOLUTIONS:
+        intr = RESOLUTIONS[res]
+        for mount in SCAN_MOUNTS:
+            frames, used = synthetic_frames(intr, n=n_frames, mount=mount)
+            depths = [f.depth_mm for f in frames]
+            nxt = itertools.cycle(depths).__next__
+            name = (
+                f"scan exact, {intr.width}x{intr.height}, {used.height_m:g} m, "
+                f"{used.tilt_deg:g} deg tilt, {used.roll_deg:g} deg roll"
+            )
+            work = [Work(name, lambda i=intr, m=used: depth_to_scan(nxt(), i, m, params))]
+            out.append(time_work(work, depths, rounds, samples, min_batch_s)[1])
+    return out
+
+
 def stage_work(frames: Sequence[Frame], mount: Mount, pipeline: bool = True) -> list[Work]:
     """Every stage (and the whole per-frame pipeline) over the frames in turn."""
     intr = frames[0].intrinsics

@@ -39,6 +39,13 @@ def test_quick_bench_json_has_every_stage_latency_and_machine(
         assert 0 < t["best_s"] <= t["median_s"] <= t["p90_s"]
         assert t["ratio_to_copy"] > 0 and t["fps"] > 0
     assert report["resolution"] == "640x480" and report["frames"] == 12
+    # the exact scan at the mounts and resolutions its target holds at, each against its own copy
+    scans = [t["name"] for t in report["scan_mounts"]]
+    for res in ("640x480", "1280x720"):
+        for mount in ("0.55 m, 15 deg tilt, 0 deg roll", "0.8 m, 40 deg tilt, 5 deg roll"):
+            assert f"scan exact, {res}, {mount}" in scans
+        assert f"scan exact, {res}, 1.2 m, 50 deg tilt, -8 deg roll" in scans
+    assert all(t["ratio_to_copy"] > 0 for t in report["scan_mounts"])
     lat = report["latency"]
     assert 0 < lat["p50_ms"] <= lat["p99_ms"] <= lat["max_ms"]
     assert lat["frames"] == 40
@@ -64,6 +71,7 @@ def test_text_report_names_the_copy_reference_and_latency(
     assert "UDP datagram sent" in out and "p99" in out
     assert "whole loop per frame" in out and "/ in-process pipeline" in out
     assert "outputs per frame" in out and "rosbag 1 ms, ros2 0.22 ms" in out
+    assert "exact scan, synthetic corridor from the mounts" in out and "<= 6x np.copy" in out
 
 
 def test_bench_options_parse() -> None:
