@@ -231,7 +231,7 @@ def scan_across_mounts(
                 f"scan exact, {intr.width}x{intr.height}, {used.height_m:g} m, "
                 f"{used.tilt_deg:g} deg tilt, {used.roll_deg:g} deg roll"
             )
-            work = [Work(name, lambda i=intr, m=used: depth_to_scan(nxt(), i, m, params))]
+            work = [Work(name, lambda n=nxt, i=intr, m=used: depth_to_scan(n(), i, m, params))]
             out.append(time_work(work, depths, rounds, samples, min_batch_s)[1])
     return out
 
