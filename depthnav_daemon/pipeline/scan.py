@@ -203,6 +203,7 @@ def _exact_scan(
         t.fl_code,
         t.probe_start,
         t.probe,
+        t.spans,
         acc,
         out,
     )

@@ -22,11 +22,12 @@ from depthnav_daemon.pipeline.scan_kernels import BLOCK, CODE_BITS, CODE_MASK
 
 U16 = npt.NDArray[np.uint16]
 I32 = npt.NDArray[np.int32]
+I16 = npt.NDArray[np.int16]
 
 
 def block_tables(
     k_lo: U16, k_mid: U16, k_hi: U16, fl_start: I32, fl_code: I32, n_bins: int
-) -> tuple[U16, I32, I32, I32]:
+) -> tuple[U16, I32, I32, I16, I16]:
     """The block tables of one mount (see the module docstring).
 
     Args:
@@ -43,11 +44,12 @@ def block_tables(
             fl_code[fl_blk[i * nb + k]:fl_blk[i * nb + k + 1]];
         probe_start: (n + 1,) the runs feeding bin b are
             probe[:, probe_start[b]:probe_start[b + 1]];
-        probe: (3, P) int32 column, first and last row (kernel rows) of each run.
+        probe: (3, P) int16 column, first and last row (kernel rows) of each run;
+        spans: (2, n) int16 first and last row of each bin's runs (last < first: no run).
     """
     blk, fl_blk = block_bounds_kernel(k_lo, k_mid, k_hi, fl_start, fl_code, BLOCK)
-    probe_start, probe = probes_kernel(fl_start, fl_code, int(n_bins), k_lo.shape[1])
-    return blk, fl_blk, probe_start, probe
+    probe_start, probe, spans = probes_kernel(fl_start, fl_code, int(n_bins), k_lo.shape[1])
+    return blk, fl_blk, probe_start, probe, spans
 
 
 @kernel
@@ -85,8 +87,9 @@ def block_bounds_kernel(k_lo, k_mid, k_hi, fl_start, fl_code, block):
 
 @kernel
 def probes_kernel(fl_start, fl_code, n_bins, ws):
-    """block_tables' probe_start and probe: every (run, bin) flush as (column, first row, last
-    row), grouped by bin (a counting sort); flushes into the scratch bin n_bins are left out."""
+    """block_tables' probe_start, probe and spans: every (run, bin) flush as (column, first row,
+    last row), grouped by bin (a counting sort); flushes into the scratch bin n_bins are left
+    out."""
     hs = fl_start.shape[0] - 1
     start = np.zeros(n_bins + 2, np.int32)
     for e in range(fl_code.shape[0]):
@@ -95,7 +98,7 @@ def probes_kernel(fl_start, fl_code, n_bins, ws):
             start[b + 2] += 1
     for b in range(n_bins + 1):
         start[b + 1] += start[b]
-    probe = np.empty((3, start[n_bins + 1]), np.int32)
+    probe = np.empty((3, start[n_bins + 1]), np.int16)  # columns and rows < 32768
     first = np.zeros(ws, np.int32)  # the row each column's current run began at
     for i in range(hs):
         for e in range(fl_start[i], fl_start[i + 1]):
@@ -104,10 +107,21 @@ def probes_kernel(fl_start, fl_code, n_bins, ws):
             b = x >> (CODE_BITS + 1)
             if b < n_bins:
                 p = start[b + 1]
-                probe[0, p] = c
-                probe[1, p] = first[c]
-                probe[2, p] = i
+                probe[0, p] = np.int16(c)
+                probe[1, p] = np.int16(first[c])
+                probe[2, p] = np.int16(i)
                 start[b + 1] = p + 1
             if x & (1 << CODE_BITS):
                 first[c] = i + 1
-    return start[: n_bins + 1].copy(), probe
+    # each bin's span of rows (first, last; none: last < first), so that a bin over rows
+    # without a reading is answered at once
+    spans = np.empty((2, n_bins), np.int16)
+    for b in range(n_bins):
+        lo = np.int16(32767)
+        hi = np.int16(-1)
+        for p in range(start[b], start[b + 1]):
+            lo = min(lo, probe[1, p])
+            hi = max(hi, probe[2, p])
+        spans[0, b] = lo
+        spans[1, b] = hi
+    return start[: n_bins + 1].copy(), probe, spans

@@ -192,7 +192,20 @@ def _all_inf(acc, j0, n):
 
 @kernel
 def exact_scan_kernel(
-    depth, rows, near_lo, near_hi, obst_hi, kr, blk, fl_blk, fl_code, probe_start, probe, acc, out
+    depth,
+    rows,
+    near_lo,
+    near_hi,
+    obst_hi,
+    kr,
+    blk,
+    fl_blk,
+    fl_code,
+    probe_start,
+    probe,
+    spans,
+    acc,
+    out,
 ):
     """Exact scan of one frame into ``out[:n]`` (float32, REP 117 values).
 
@@ -219,6 +232,7 @@ def exact_scan_kernel(
         fl_code: (F,) int32 ``col | last << 15 | bin << 16``: a flush takes column col's run
             minimum into bin; ``last``: the run ends here, the column starts again.
         probe_start, probe: the runs (column, first row, last row) feeding each bin.
+        spans: (2, n) int16 the first and last row of each bin's runs.
         acc: (Ws,) float32 work space.
         out: (n + 1,) float32, overwritten: the scan in out[:n]; out[n] is scratch (runs that
             feed no bin are flushed there).
@@ -281,15 +295,28 @@ def exact_scan_kernel(
             k = k2
     n = out.shape[0] - 1
     nan = np.float32(np.nan)
+    walked = 0  # pixels looked at so far
+    with_reading = np.zeros(n_rows + 1, np.int32)  # rows with a reading before row ri (late)
+    counted = False
     for b in range(n):
         if out[b] != inf:
+            continue
+        r0 = spans[0, b]
+        r1 = spans[1, b]
+        if r1 < r0 or (counted and with_reading[r1 + 1] == with_reading[r0]):
+            out[b] = nan  # no pixel, or no reading in any row of its pixels
             continue
         found = False
         # bottom rows first: they see the floor, where the top rows may see nothing (sky, or
         # beyond the sensor's reach), so the first pixel looked at usually has a reading
         for e in range(probe_start[b + 1] - 1, probe_start[b] - 1, -1):
             c = probe[0, e]
-            for ri in range(probe[2, e], probe[1, e] - 1, -1):
+            r0 = probe[1, e]
+            r1 = probe[2, e]
+            if counted and with_reading[r1 + 1] == with_reading[r0]:
+                continue  # every row of this run is all zeros
+            for ri in range(r1, r0 - 1, -1):
+                walked += 1
                 r = np.uint64(rows[ri])
                 if seen[ri] == UNKNOWN:  # once a row: a frame of zeros costs a pass, not one a bin
                     seen[ri] = _any_reading(depth, r, n_cols)
@@ -300,6 +327,15 @@ def exact_scan_kernel(
                 break
         if not found:
             out[b] = nan
+        if not counted and walked > 4 * n_rows:
+            # many pixels without a reading (a blind or covered sensor): count the rows with a
+            # reading once, so that a run over rows of zeros is skipped whole (~5 ms -> ~0.2 ms
+            # for a frame of zeros at 1280x720)
+            for ri in range(n_rows):
+                if seen[ri] == UNKNOWN:
+                    seen[ri] = _any_reading(depth, np.uint64(rows[ri]), n_cols)
+                with_reading[ri + 1] = with_reading[ri] + np.int32(seen[ri])
+            counted = True
 
 
 @kernel

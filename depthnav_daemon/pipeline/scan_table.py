@@ -66,7 +66,8 @@ class ExactTable:
     blk: npt.NDArray[np.uint16]  # (4, Hs, nb) block bounds (scan_blocks.block_tables)
     fl_blk: npt.NDArray[np.int32]  # (Hs * nb + 1,) where each block's flushes of a row start
     probe_start: npt.NDArray[np.int32]  # (n + 1,) the runs feeding each bin: probe[:, s[b]:s[b+1]]
-    probe: npt.NDArray[np.int32]  # (3, P) column, first and last row of each run
+    probe: npt.NDArray[np.int16]  # (3, P) column, first and last row of each run
+    spans: npt.NDArray[np.int16]  # (2, n) first and last row of each bin's runs
     n_bins: int
     angle_min: float
     angle_increment: float
@@ -256,7 +257,7 @@ def exact_table(intr: Intrinsics, mount: Mount, params: ScanParams) -> ExactTabl
     angle_min = float(edge_min) + inc / 2.0
     _, _, cb_lo, cb_hi = _bin_map(centre, lo_b, hi_b, sane, angle_min, inc, n)
     fl_start, fl_code = run_flush_codes(cb_lo, cb_hi, n)
-    blk, fl_blk, probe_start, probe = block_tables(k_lo, k_mid, k_hi, fl_start, fl_code, n)
+    blk, fl_blk, probe_start, probe, spans = block_tables(k_lo, k_mid, k_hi, fl_start, fl_code, n)
     row_idx = np.arange(intr.height, dtype=np.int32)[rows]
     table = ExactTable(
         rows=row_idx,
@@ -276,6 +277,7 @@ def exact_table(intr: Intrinsics, mount: Mount, params: ScanParams) -> ExactTabl
         fl_blk=fl_blk,
         probe_start=probe_start,
         probe=probe,
+        spans=spans,
         n_bins=n,
         angle_min=angle_min,
         angle_increment=inc,

@@ -33,7 +33,15 @@ def _frames(intr: Intrinsics, mount: Mount, seed: int) -> dict[str, np.ndarray]:
     sparse[rng.random(base.shape) < 0.98] = 0  # most bins' first pixels have no reading
     lone = np.zeros_like(base)
     lone[0, ::7] = 9000  # beyond range_max, top row only: bins walk all their pixels to +inf
-    return {"noisy": base, "holes": holes, "sky": sky, "sparse": sparse, "lone": lone}
+    blind = np.zeros_like(base)  # a covered sensor: every bin NaN, without a walk each
+    return {
+        "noisy": base,
+        "holes": holes,
+        "sky": sky,
+        "sparse": sparse,
+        "lone": lone,
+        "blind": blind,
+    }
 
 
 @pytest.mark.parametrize("intr", [QVGA, ODD], ids=["qvga", "odd_width"])
@@ -46,12 +54,14 @@ def test_block_skipping_equals_the_definition(intr: Intrinsics, mount: Mount) ->
         assert np.array_equal(got, want, equal_nan=True), name
         if name == "lone":
             assert np.isnan(got).any() and np.isposinf(got).any()  # both answers are reached
+        if name == "blind":
+            assert np.isnan(got).all()
 
 
 @pytest.mark.parametrize("mount", MOUNTS, ids=lambda m: f"t{m.tilt_deg:g}_r{m.roll_deg:g}")
 def test_block_tables_bound_every_pixel_and_partition_the_flushes(mount: Mount) -> None:
     t = scan_table.exact_table(QVGA, mount, ScanParams())
-    blk, fl_blk, probe_start, probe = block_tables(
+    blk, fl_blk, probe_start, probe, spans = block_tables(
         t.k_lo, t.k_mid, t.k_hi, t.fl_start, t.fl_code, t.n_bins
     )
     hs, ws = t.k_lo.shape
@@ -80,3 +90,9 @@ def test_block_tables_bound_every_pixel_and_partition_the_flushes(mount: Mount) 
     counts = np.bincount(t.fl_code[real] >> (CODE_BITS + 1), minlength=t.n_bins)
     assert np.array_equal(np.diff(probe_start), counts)
     assert (probe[1] <= probe[2]).all() and (probe[2] < hs).all()
+    for b in range(t.n_bins):  # a bin's span of rows covers its runs
+        runs = probe[:, probe_start[b] : probe_start[b + 1]]
+        if runs.shape[1]:
+            assert spans[0, b] == runs[1].min() and spans[1, b] == runs[2].max()
+        else:
+            assert spans[1, b] < spans[0, b]
