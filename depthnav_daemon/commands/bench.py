@@ -125,8 +125,9 @@ def run_bench(
     report = BenchReport(
         machine(), spec, len(frames), f"{intr.width}x{intr.height}", asdict(floor), timings
     )
+    quick = rounds == 1
     report.scan_mounts = scan_across_mounts(
-        rounds, samples, min_batch_s, n_frames=1 if rounds == 1 else 4
+        rounds, samples, min_batch_s, n_frames=1 if quick else 4, n_buffers=1 if quick else 12
     )
     with sink_work(frames, floor) as work:
         report.sinks = time_work(work, [f.depth_mm for f in frames], rounds, samples, min_batch_s)[

@@ -215,17 +215,22 @@ SCAN_TARGET = 6.0  # x np.copy of the same frame
 
 
 def scan_across_mounts(
-    rounds: int, samples: int, min_batch_s: float, n_frames: int = 4
+    rounds: int, samples: int, min_batch_s: float, n_frames: int = 4, n_buffers: int = 12
 ) -> list[Timing]:
     """The exact scan over synthetic corridor frames from each of SCAN_MOUNTS at each of
-    SCAN_RESOLUTIONS, each against np.copy of its own frames (interleaved rounds as time_work)."""
+    SCAN_RESOLUTIONS, each against np.copy of its own frames (interleaved rounds as time_work).
+
+    ``n_frames`` are rendered (rendering 1280x720 takes about a second a frame) and cycled through
+    ``n_buffers`` separate arrays, as the other synthetic views cycle through 12 frames: a new
+    frame is not in the cache, for np.copy as for the scan.
+    """
     out: list[Timing] = []
     params = ScanParams()
     for res in SCAN_RESOLUTIONS:
         intr = RESOLUTIONS[res]
         for mount in SCAN_MOUNTS:
             frames, used = synthetic_frames(intr, n=n_frames, mount=mount)
-            depths = [f.depth_mm for f in frames]
+            depths = [frames[k % len(frames)].depth_mm.copy() for k in range(n_buffers)]
             nxt = itertools.cycle(depths).__next__
             name = (
                 f"scan exact, {intr.width}x{intr.height}, {used.height_m:g} m, "
