@@ -17,7 +17,7 @@ from __future__ import annotations
 import numpy as np
 import numpy.typing as npt
 
-from depthnav_daemon.pipeline._jit import kernel
+from depthnav_daemon.pipeline._jit import inlined, kernel
 from depthnav_daemon.pipeline.scan_kernels import BLOCK, CODE_BITS, CODE_MASK
 
 U16 = npt.NDArray[np.uint16]
@@ -47,13 +47,19 @@ def block_tables(
         probe: (3, P) int16 column, first and last row (kernel rows) of each run;
         spans: (2, n) int16 first and last row of each bin's runs (last < first: no run).
     """
-    blk, fl_blk = block_bounds_kernel(k_lo, k_mid, k_hi, fl_start, fl_code, BLOCK)
-    probe_start, probe, spans = probes_kernel(fl_start, fl_code, int(n_bins), k_lo.shape[1])
-    return blk, fl_blk, probe_start, probe, spans
+    return block_tables_kernel(k_lo, k_mid, k_hi, fl_start, fl_code, BLOCK, int(n_bins))
 
 
 @kernel
-def block_bounds_kernel(k_lo, k_mid, k_hi, fl_start, fl_code, block):
+def block_tables_kernel(k_lo, k_mid, k_hi, fl_start, fl_code, block, n_bins):
+    """block_tables (one kernel: each compiled kernel costs about a second on a first run)."""
+    blk, fl_blk = _block_bounds(k_lo, k_mid, k_hi, fl_start, fl_code, block)
+    probe_start, probe, spans = _probes(fl_start, fl_code, n_bins, k_lo.shape[1])
+    return blk, fl_blk, probe_start, probe, spans
+
+
+@inlined
+def _block_bounds(k_lo, k_mid, k_hi, fl_start, fl_code, block):
     """block_tables' blk and fl_blk."""
     hs, ws = k_lo.shape
     nb = (ws + block - 1) // block
@@ -85,8 +91,8 @@ def block_bounds_kernel(k_lo, k_mid, k_hi, fl_start, fl_code, block):
     return blk, fl_blk
 
 
-@kernel
-def probes_kernel(fl_start, fl_code, n_bins, ws):
+@inlined
+def _probes(fl_start, fl_code, n_bins, ws):
     """block_tables' probe_start, probe and spans: every (run, bin) flush as (column, first row,
     last row), grouped by bin (a counting sort); flushes into the scratch bin n_bins are left
     out."""

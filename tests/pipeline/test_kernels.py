@@ -417,6 +417,7 @@ def test_warm_up_compiles_every_kernel_the_daemon_path_calls() -> None:
         StageParams,
         cliff_kernels,
         process,
+        scan_blocks,
         scan_kernels,
         table_kernels,
     )
@@ -434,6 +435,7 @@ def test_warm_up_compiles_every_kernel_the_daemon_path_calls() -> None:
         pose_kernels.ransac_count_kernel,
         pose_kernels.plane_moments_kernel,
         scan_kernels.flush_codes_kernel,
+        scan_blocks.block_tables_kernel,
         table_kernels.exact_table_kernel,
         table_kernels.pose_envelope_kernel,
     ]
