@@ -8,6 +8,12 @@ built on a worker thread while the frames go on with the nearest mount of the sa
 tables exist; the new mount is used from the first frame after they are ready (one to a few
 frames later). Only a camera's first frame, with no tables at all to go on with, builds them on
 the frame itself.
+
+The floor pose stage's table for its prior window (``pose.prepare_pose``, 4-14 ms) is built the
+same way: the job of a new mount also builds the window the pose stage will search around it,
+and an estimate whose window has no table yet waits (its frame skips it, the next frames try
+again) while the worker builds it. Only a camera's first estimate builds its window's table on
+the frame.
 """
 
 from __future__ import annotations
@@ -16,7 +22,7 @@ import contextlib
 import logging
 import os
 import threading
-from collections.abc import Callable
+from collections.abc import Callable, Hashable
 from dataclasses import dataclass
 
 from depthnav_daemon.pipeline.geometry import Mount
@@ -31,6 +37,7 @@ BUILD_NICE = 10  # niceness added to the building thread
 MAX_NICE = 19
 
 Key = tuple[Intrinsics, Mount]
+PriorKey = tuple[Intrinsics, Hashable]  # (camera, the pose stage's prior window)
 
 
 @dataclass(frozen=True, slots=True)
@@ -68,23 +75,39 @@ class StageTables:
     Args:
         prepare: builds (and caches) the stages' tables for (intrinsics, mount); may raise.
         small: the unit of mount distance (and what counts as a large change in the log).
+        prepare_prior: builds (and caches) the pose stage's table for (intrinsics, prior
+            window); may raise. None: no pose stage (:meth:`prior_ready` is always True).
     """
 
     def __init__(
-        self, prepare: Callable[[Intrinsics, Mount], None], small: SmallChange | None = None
+        self,
+        prepare: Callable[[Intrinsics, Mount], None],
+        small: SmallChange | None = None,
+        prepare_prior: Callable[[Intrinsics, Hashable], None] | None = None,
     ) -> None:
         self._prepare = prepare
+        self._prepare_prior = prepare_prior
         self._small = small or SmallChange()
         self._ready: list[Key] = []  # latest last
-        self._job: tuple[Key, threading.Thread] | None = None
+        self._priors: list[PriorKey] = []  # prior windows whose tables exist, latest last
+        # the running build: the mount (or None) and the prior (or None) it builds
+        self._job: tuple[Key | None, PriorKey | None, threading.Thread] | None = None
         self._failed: set[Key] = set()  # a worker's build raised
+        self._failed_priors: set[PriorKey] = set()
         self._said = False  # the log has told once how a large change is applied
         self._lock = threading.Lock()
 
-    def mount_for(self, intr: Intrinsics, wanted: Mount) -> Mount:
+    def mount_for(
+        self, intr: Intrinsics, wanted: Mount, prior: Callable[[], Hashable | None] | None = None
+    ) -> Mount:
         """The mount to process a frame of camera ``intr`` with, given the tracker's ``wanted``:
         ``wanted`` if its tables exist (or nothing else can serve), else the nearest mount of
-        this camera and placement whose tables exist, while ``wanted``'s are built."""
+        this camera and placement whose tables exist, while ``wanted``'s are built.
+
+        ``prior``: gives the pose stage's prior window around ``wanted`` (called on this thread
+        when a build starts; None: no pose stage); the build makes its table too, so the next
+        estimate finds it ready.
+        """
         self._collect()
         key = (intr, wanted)
         if key in self._ready or key in self._failed:  # failed: the frame loop meets the error
@@ -97,7 +120,9 @@ class StageTables:
         # the latest of equally near mounts (min keeps the first: search latest first)
         nearest = min(reversed(usable), key=lambda k: self._small.distance(k[1], wanted))
         if self._job is None:
-            self._start(key)
+            window = prior() if prior is not None and self._prepare_prior is not None else None
+            pkey = None if window is None or (intr, window) in self._priors else (intr, window)
+            self._start(key, pkey)
         if not self._small.holds(nearest[1], wanted) and not self._said:
             self._said = True
             log.info(
@@ -109,12 +134,33 @@ class StageTables:
         self._mark_ready(nearest)
         return nearest[1]
 
+    def prior_ready(self, intr: Intrinsics, prior: Hashable) -> bool:
+        """True if the pose stage may search ``prior`` on this frame: its table exists (or a
+        build of it failed: the estimate meets the error), or this camera has no prior table
+        yet (its first estimate builds it on the frame). Else False: the table is being built
+        on the worker and the estimate waits for it."""
+        if self._prepare_prior is None:
+            return True
+        self._collect()
+        key = (intr, prior)
+        if key in self._priors or key in self._failed_priors:
+            self._mark_prior(key)
+            return True
+        if not any(k[0] == intr for k in self._priors):
+            self._mark_prior(key)
+            return True
+        if self._job is None:
+            self._start(None, key)
+        return False
+
     def close(self, timeout_s: float = 5.0) -> None:
         """Wait for a running build (it holds no resource; this only keeps shutdown tidy)."""
         if self._job is not None:
-            self._job[1].join(timeout_s)
+            self._job[2].join(timeout_s)
 
-    def _start(self, key: Key) -> None:
+    def _start(self, key: Key | None, pkey: PriorKey | None) -> None:
+        prepare_prior = self._prepare_prior
+
         def build() -> None:
             # a lower priority for this thread only (Linux: nice is per thread): on a loaded
             # 2-core machine the frame loop keeps its core while the tables are built
@@ -122,32 +168,48 @@ class StageTables:
                 tid = threading.get_native_id()
                 nice = os.getpriority(os.PRIO_PROCESS, tid)
                 os.setpriority(os.PRIO_PROCESS, tid, min(MAX_NICE, nice + BUILD_NICE))
-            try:
-                self._prepare(*key)
-            except Exception as exc:
-                log.debug("building the tables for %s failed: %s", key[1], exc)
-                with self._lock:
-                    self._failed.add(key)
+            if key is not None:
+                try:
+                    self._prepare(*key)
+                except Exception as exc:
+                    log.debug("building the tables for %s failed: %s", key[1], exc)
+                    with self._lock:
+                        self._failed.add(key)
+            if pkey is not None and prepare_prior is not None:
+                try:
+                    prepare_prior(*pkey)
+                except Exception as exc:
+                    log.debug("building the pose table for %s failed: %s", pkey[1], exc)
+                    with self._lock:
+                        self._failed_priors.add(pkey)
 
         thread = threading.Thread(target=build, name="depthnav-tables", daemon=True)
-        self._job = (key, thread)
+        self._job = (key, pkey, thread)
         thread.start()
 
     def _collect(self) -> None:
         """Note a finished build."""
-        if self._job is None or self._job[1].is_alive():
+        if self._job is None or self._job[2].is_alive():
             return
-        key = self._job[0]
+        key, pkey, _ = self._job
         self._job = None
         with self._lock:
-            if key not in self._failed:
+            if key is not None and key not in self._failed:
                 self._mark_ready(key)
+            if pkey is not None and pkey not in self._failed_priors:
+                self._mark_prior(pkey)
 
     def _mark_ready(self, key: Key) -> None:
         if key in self._ready:
             self._ready.remove(key)
         self._ready.append(key)
         del self._ready[:-KEEP_READY]
+
+    def _mark_prior(self, key: PriorKey) -> None:
+        if key in self._priors:
+            self._priors.remove(key)
+        self._priors.append(key)
+        del self._priors[:-KEEP_READY]
 
 
 def _short(m: Mount) -> str:
