@@ -6,12 +6,13 @@ from __future__ import annotations
 import dataclasses
 import logging
 import os
+import sys
 import threading
 
 import numpy as np
 import pytest
 
-from depthnav_daemon.daemon.stage_tables import KEEP_READY, MAX_NICE, StageTables
+from depthnav_daemon.daemon.stage_tables import BUILD_SWITCH_S, KEEP_READY, MAX_NICE, StageTables
 from depthnav_daemon.pipeline import StageParams, prepare, scan_table
 from depthnav_daemon.pipeline.cliff import CliffParams, detect_cliffs
 from depthnav_daemon.pipeline.geometry import Mount
@@ -32,12 +33,16 @@ class Gate:
         self.calls: list[tuple[Intrinsics, Mount]] = []
         self.threads: list[int] = []
         self.nice: list[int] = []
+        self.switch: list[float] = []  # the interpreter's switch interval during the build
+        self.called = threading.Event()
         self.release = threading.Event()
         self.fail = False
 
     def __call__(self, intr: Intrinsics, mount: Mount) -> None:
         self.calls.append((intr, mount))
         self.threads.append(threading.get_ident())
+        self.switch.append(sys.getswitchinterval())
+        self.called.set()
         if hasattr(os, "getpriority"):
             self.nice.append(os.getpriority(os.PRIO_PROCESS, threading.get_native_id()))
         assert self.release.wait(10.0)
@@ -314,3 +319,24 @@ def test_the_frame_loop_builds_no_table_after_a_cameras_first_frame(monkeypatch)
     assert np.array_equal(served.scan.ranges, again.scan.ranges, equal_nan=True)
     assert served.cliff is not None and again.cliff is not None
     assert np.array_equal(served.cliff.scan.ranges, again.cliff.scan.ranges, equal_nan=True)
+
+
+def test_the_switch_interval_is_short_while_a_build_runs_and_restored_after() -> None:
+    # a frame loop waiting for the interpreter lock while the worker runs Python code waits
+    # the switch interval before it asks for it
+    before = sys.getswitchinterval()
+    assert before > BUILD_SWITCH_S  # Python's default, 5 ms
+    a, b = Gate(), Gate()
+    one, two = StageTables(a), StageTables(b)  # two sensors build at once
+    one.mount_for(INTR, M0)
+    two.mount_for(OTHER, M0)
+    one.mount_for(INTR, LARGE)
+    two.mount_for(OTHER, LARGE)
+    assert a.called.wait(10.0) and b.called.wait(10.0)  # both builds under way
+    a.release.set()
+    one.close()
+    assert sys.getswitchinterval() == BUILD_SWITCH_S  # the other build still runs
+    b.release.set()
+    two.close()
+    assert a.switch == b.switch == [BUILD_SWITCH_S]
+    assert sys.getswitchinterval() == before
