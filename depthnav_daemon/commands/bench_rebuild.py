@@ -54,6 +54,9 @@ class RebuildTiming:
         extra_worst_ms: the worst extra time of a frame during a change (see the module
             docstring), over all changes.
         extra_p90_ms: the 90th percentile of those extra times.
+        noise_worst_ms, noise_p90_ms: the same for the frames before each change, against
+            their own medians: what the machine's load alone does (a figure above it is the
+            change's).
         build_ms: median time to build a new mount's tables (scan, cliff, memory view, pose
             window) on one thread, with no frames running.
         switch_frames: median frames from a change until the new mount served a frame.
@@ -65,6 +68,8 @@ class RebuildTiming:
     frame_ms: float
     extra_worst_ms: float
     extra_p90_ms: float
+    noise_worst_ms: float
+    noise_p90_ms: float
     build_ms: float
     switch_frames: float
     pace_hz: float
@@ -152,6 +157,7 @@ def rebuild_timing(
     path.run(frames[0], mount)  # a camera's first frame: builds its tables on the frame
     _paced(frames, 2 * n_frames, pace_s, lambda f: path.run(f, mount))  # warm-up
     extra: list[float] = []
+    noise: list[float] = []
     base: list[float] = []
     switch: list[int] = []
     try:
@@ -173,17 +179,21 @@ def rebuild_timing(
             for i, (ti, ui) in enumerate(zip(during, used, strict=True)):
                 ref = ref_new if ui == new else ref_old
                 extra.append(ti - ref[i % n_frames])
+            noise += [ti - ref_old[i % n_frames] for i, ti in enumerate(before)]
             base += before
             mount = new
     finally:
         path.tables.close()
     ex = np.array(extra) * 1e3
+    quiet = np.array(noise) * 1e3
     return RebuildTiming(
         resolution=name,
         changes=changes,
         frame_ms=statistics.median(base) * 1e3,
         extra_worst_ms=float(ex.max()),
         extra_p90_ms=float(np.percentile(ex, 90)),
+        noise_worst_ms=float(quiet.max()),
+        noise_p90_ms=float(np.percentile(quiet, 90)),
         build_ms=build_ms,
         switch_frames=float(statistics.median(switch)),
         pace_hz=pace_hz,
@@ -207,7 +217,8 @@ def format_rebuild(timings: Sequence[RebuildTiming]) -> str:
         out.append(
             f"  {t.resolution}: {t.changes} changes, frames {t.frame_ms:.2f} ms at "
             f"{t.pace_hz:g} frames/s; extra worst {t.extra_worst_ms:.2f} ms, p90 "
-            f"{t.extra_p90_ms:.2f} ms; build {t.build_ms:.0f} ms (one thread, no frames), "
+            f"{t.extra_p90_ms:.2f} ms (without a change: worst {t.noise_worst_ms:.2f}, p90 "
+            f"{t.noise_p90_ms:.2f} ms); build {t.build_ms:.0f} ms (one thread, no frames), "
             f"new mount served after {t.switch_frames:g} frames"
         )
     return "\n".join(out)

@@ -21,8 +21,10 @@ from __future__ import annotations
 import contextlib
 import logging
 import os
+import queue
 import sys
 import threading
+import weakref
 from collections.abc import Callable, Hashable
 from dataclasses import dataclass
 
@@ -45,6 +47,7 @@ BUILD_SWITCH_S = 0.0005
 
 Key = tuple[Intrinsics, Mount]
 PriorKey = tuple[Intrinsics, Hashable]  # (camera, the pose stage's prior window)
+_Job = tuple[Key | None, PriorKey | None, threading.Event]  # what to build; set when built
 
 
 @dataclass(frozen=True, slots=True)
@@ -98,6 +101,28 @@ class _SwitchWhileBuilding:
 _SWITCH = _SwitchWhileBuilding()
 
 
+def _serve(tables: weakref.ref[StageTables], jobs: queue.SimpleQueue[_Job | None]) -> None:
+    """The worker: builds the queued jobs until told to stop (None)."""
+    # a lower priority for this thread only (Linux: nice is per thread): on a loaded 2-core
+    # machine the frame loop keeps its core while the tables are built
+    with contextlib.suppress(AttributeError, OSError):
+        tid = threading.get_native_id()
+        nice = os.getpriority(os.PRIO_PROCESS, tid)
+        os.setpriority(os.PRIO_PROCESS, tid, min(MAX_NICE, nice + BUILD_NICE))
+    while (job := jobs.get()) is not None:
+        key, pkey, done = job
+        owner = tables()
+        if owner is None:
+            return
+        _SWITCH.enter()
+        try:
+            owner._build(key, pkey)
+        finally:
+            _SWITCH.exit()
+            done.set()
+        del owner
+
+
 def _same_placement(a: Mount, b: Mount) -> bool:
     return a.x_m == b.x_m and a.y_m == b.y_m and a.yaw_deg == b.yaw_deg
 
@@ -123,12 +148,17 @@ class StageTables:
         self._small = small or SmallChange()
         self._ready: list[Key] = []  # latest last
         self._priors: list[PriorKey] = []  # prior windows whose tables exist, latest last
-        # the running build: the mount (or None) and the prior (or None) it builds
-        self._job: tuple[Key | None, PriorKey | None, threading.Thread] | None = None
+        # the running build: the mount (or None) and the prior (or None) it builds, and its end
+        self._job: tuple[Key | None, PriorKey | None, threading.Event] | None = None
+        # one worker thread, started here: Thread.start() waits until the new thread runs,
+        # which on a loaded machine took milliseconds of the frame that started a build
+        self._jobs: queue.SimpleQueue[_Job | None] = queue.SimpleQueue()
+        self._worker: threading.Thread | None = None
         self._failed: set[Key] = set()  # a worker's build raised
         self._failed_priors: set[PriorKey] = set()
         self._said = False  # the log has told once how a large change is applied
         self._lock = threading.Lock()
+        self._run_worker()
 
     def mount_for(
         self, intr: Intrinsics, wanted: Mount, prior: Callable[[], Hashable | None] | None = None
@@ -187,49 +217,50 @@ class StageTables:
         return False
 
     def close(self, timeout_s: float = 5.0) -> None:
-        """Wait for a running build (it holds no resource; this only keeps shutdown tidy)."""
+        """Wait for a running build and stop the worker (a later build starts it again)."""
         if self._job is not None:
-            self._job[2].join(timeout_s)
+            self._job[2].wait(timeout_s)
+        if self._worker is not None:
+            self._jobs.put(None)
+            self._worker.join(timeout_s)
+            self._worker = None
+
+    def _run_worker(self) -> None:
+        jobs: queue.SimpleQueue[_Job | None] = queue.SimpleQueue()
+        self._jobs = jobs
+        # the worker holds only a weak reference: tables nobody closed stop it when collected
+        self._worker = threading.Thread(
+            target=_serve, args=(weakref.ref(self), jobs), name="depthnav-tables", daemon=True
+        )
+        weakref.finalize(self, jobs.put, None)
+        self._worker.start()
+
+    def _build(self, key: Key | None, pkey: PriorKey | None) -> None:
+        if key is not None:
+            try:
+                self._prepare(*key)
+            except Exception as exc:
+                log.debug("building the tables for %s failed: %s", key[1], exc)
+                with self._lock:
+                    self._failed.add(key)
+        if pkey is not None and self._prepare_prior is not None:
+            try:
+                self._prepare_prior(*pkey)
+            except Exception as exc:
+                log.debug("building the pose table for %s failed: %s", pkey[1], exc)
+                with self._lock:
+                    self._failed_priors.add(pkey)
 
     def _start(self, key: Key | None, pkey: PriorKey | None) -> None:
-        prepare_prior = self._prepare_prior
-
-        def build() -> None:
-            # a lower priority for this thread only (Linux: nice is per thread): on a loaded
-            # 2-core machine the frame loop keeps its core while the tables are built
-            with contextlib.suppress(AttributeError, OSError):
-                tid = threading.get_native_id()
-                nice = os.getpriority(os.PRIO_PROCESS, tid)
-                os.setpriority(os.PRIO_PROCESS, tid, min(MAX_NICE, nice + BUILD_NICE))
-            if key is not None:
-                try:
-                    self._prepare(*key)
-                except Exception as exc:
-                    log.debug("building the tables for %s failed: %s", key[1], exc)
-                    with self._lock:
-                        self._failed.add(key)
-            if pkey is not None and prepare_prior is not None:
-                try:
-                    prepare_prior(*pkey)
-                except Exception as exc:
-                    log.debug("building the pose table for %s failed: %s", pkey[1], exc)
-                    with self._lock:
-                        self._failed_priors.add(pkey)
-
-        def run() -> None:
-            _SWITCH.enter()
-            try:
-                build()
-            finally:
-                _SWITCH.exit()
-
-        thread = threading.Thread(target=run, name="depthnav-tables", daemon=True)
-        self._job = (key, pkey, thread)
-        thread.start()
+        done = threading.Event()
+        self._job = (key, pkey, done)
+        if self._worker is None:  # stopped by close()
+            self._run_worker()
+        self._jobs.put((key, pkey, done))
 
     def _collect(self) -> None:
         """Note a finished build."""
-        if self._job is None or self._job[2].is_alive():
+        if self._job is None or not self._job[2].is_set():
             return
         key, pkey, _ = self._job
         self._job = None

@@ -31,7 +31,10 @@ def test_every_change_is_built_off_the_frame_thread_and_then_served(
     assert isinstance(t, RebuildTiming) and t.changes == 3 and t.resolution == "160x120"
     # every change served within the bench's bound (it would report MAX_CHANGE_FRAMES)
     assert 1 <= t.switch_frames < bench_rebuild.MAX_CHANGE_FRAMES
-    assert all(math.isfinite(v) for v in (t.frame_ms, t.extra_worst_ms, t.extra_p90_ms))
+    assert all(
+        math.isfinite(v)
+        for v in (t.frame_ms, t.extra_worst_ms, t.extra_p90_ms, t.noise_worst_ms, t.noise_p90_ms)
+    )
     assert t.frame_ms > 0 and t.build_ms > 0 and t.extra_worst_ms >= t.extra_p90_ms
     me = threading.get_ident()
     # on this thread: the build timed alone (3 mounts) and the camera's first frame; the three
@@ -40,8 +43,9 @@ def test_every_change_is_built_off_the_frame_thread_and_then_served(
 
 
 def test_the_report_names_the_goal_and_every_figure() -> None:
-    t = RebuildTiming("640x480", 5, 1.3, 0.7, 0.5, 80.0, 4.0, 30.0)
+    t = RebuildTiming("640x480", 5, 1.3, 0.7, 0.5, 0.6, 0.3, 80.0, 4.0, 30.0)
     text = format_rebuild([t])
     assert "no frame > 2 ms late" in text
     assert "640x480: 5 changes" in text and "extra worst 0.70 ms, p90 0.50 ms" in text
+    assert "without a change: worst 0.60, p90 0.30 ms" in text
     assert "build 80 ms" in text and "served after 4 frames" in text

@@ -340,3 +340,32 @@ def test_the_switch_interval_is_short_while_a_build_runs_and_restored_after() ->
     two.close()
     assert a.switch == b.switch == [BUILD_SWITCH_S]
     assert sys.getswitchinterval() == before
+
+
+def test_a_build_goes_to_the_worker_started_with_the_tables_and_ends_with_them() -> None:
+    import gc
+
+    gate = Gate()
+    gate.release.set()
+    tables = StageTables(gate)
+    worker = tables._worker
+    assert worker is not None and worker.is_alive()  # started before any frame
+    tables.mount_for(INTR, M0)
+    tables.mount_for(INTR, LARGE)
+    assert gate.called.wait(10.0)
+    assert gate.threads == [worker.ident]  # no thread started by the frame that changed mount
+    tables.close()
+    assert not worker.is_alive()  # close() stops it ...
+    assert tables.mount_for(INTR, LARGE) == LARGE
+    far = Mount(0.9, 30.0, 5.0)
+    assert tables.mount_for(INTR, far) == LARGE  # ... and a later build starts one again
+    tables.close()
+    assert tables.mount_for(INTR, far) == far
+    assert len(gate.threads) == 2 and threading.get_ident() not in gate.threads
+    left = StageTables(gate)  # never closed: its worker ends when the tables are collected
+    lone = left._worker
+    assert lone is not None
+    del left
+    gc.collect()
+    lone.join(10.0)
+    assert not lone.is_alive()
