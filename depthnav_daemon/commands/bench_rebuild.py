@@ -81,7 +81,9 @@ class _FramePath:
 
     def __init__(self, params: StageParams) -> None:
         self.params = params
-        self.tables = StageTables(lambda i, m: prepare(i, m, params), prepare_prior=prepare_pose)
+        self.tables = StageTables(
+            lambda i, m: prepare(i, m, params), prepare_prior=prepare_pose, defer_start=True
+        )
 
     def run(self, frame: Frame, wanted: Mount) -> Mount:
         """Process ``frame`` for mount ``wanted``; returns the mount that served it."""
@@ -91,6 +93,7 @@ class _FramePath:
 
         used = self.tables.mount_for(frame.intrinsics, wanted, window)
         process(frame, used, self.params, clock=time.perf_counter)
+        self.tables.start_queued()
         return used
 
 

@@ -57,7 +57,9 @@ class FrameStep:
         )
         self._trusted: bool | None = None  # drop-offs trusted on the last frame (None: no frame)
         self._tables = StageTables(
-            lambda intr, mount: prepare(intr, mount, self.params), prepare_prior=prepare_pose
+            lambda intr, mount: prepare(intr, mount, self.params),
+            prepare_prior=prepare_pose,
+            defer_start=True,
         )
         self._rng = np.random.default_rng(d.seed)
         self._since_pose = d.pose_every_frames  # estimate on the first frame
@@ -110,6 +112,7 @@ class FrameStep:
         if want_pose:
             self._since_pose, self._last_pose_t = 0, frame.timestamp_s
         self._since_pose += 1
+        self._tables.start_queued()  # a build decided on this frame starts after its stages
         return result
 
     def _prior_for_wanted(self) -> PoseParams | None:

@@ -112,14 +112,14 @@ def _serve(tables: weakref.ref[StageTables], jobs: queue.SimpleQueue[_Job | None
     while (job := jobs.get()) is not None:
         key, pkey, done = job
         owner = tables()
+        try:
+            if owner is not None:
+                owner._build(key, pkey)
+        finally:
+            _SWITCH.exit()  # entered by the frame loop when it queued the job
+            done.set()
         if owner is None:
             return
-        _SWITCH.enter()
-        try:
-            owner._build(key, pkey)
-        finally:
-            _SWITCH.exit()
-            done.set()
         del owner
 
 
@@ -135,6 +135,9 @@ class StageTables:
         small: the unit of mount distance (and what counts as a large change in the log).
         prepare_prior: builds (and caches) the pose stage's table for (intrinsics, prior
             window); may raise. None: no pose stage (:meth:`prior_ready` is always True).
+        defer_start: a build decided on a frame starts when the frame loop calls
+            :meth:`start_queued` after the frame's stages (the worker, woken mid-frame, took
+            the frame's core and its interpreter lock for 4-5 ms on a loaded machine).
     """
 
     def __init__(
@@ -142,8 +145,11 @@ class StageTables:
         prepare: Callable[[Intrinsics, Mount], None],
         small: SmallChange | None = None,
         prepare_prior: Callable[[Intrinsics, Hashable], None] | None = None,
+        defer_start: bool = False,
     ) -> None:
         self._prepare = prepare
+        self._defer_start = defer_start
+        self._queued: _Job | None = None  # decided, not yet handed to the worker
         self._prepare_prior = prepare_prior
         self._small = small or SmallChange()
         self._ready: list[Key] = []  # latest last
@@ -218,6 +224,7 @@ class StageTables:
 
     def close(self, timeout_s: float = 5.0) -> None:
         """Wait for a running build and stop the worker (a later build starts it again)."""
+        self.start_queued()
         if self._job is not None:
             self._job[2].wait(timeout_s)
         if self._worker is not None:
@@ -251,12 +258,24 @@ class StageTables:
                 with self._lock:
                     self._failed_priors.add(pkey)
 
+    def start_queued(self) -> None:
+        """Hand the build decided on this frame to the worker (with ``defer_start``: the frame
+        loop calls this once the frame's stages are done)."""
+        if self._queued is None:
+            return
+        job, self._queued = self._queued, None
+        if self._worker is None:  # stopped by close()
+            self._run_worker()
+        # from now on: the worker's first steps are Python code too
+        _SWITCH.enter()
+        self._jobs.put(job)
+
     def _start(self, key: Key | None, pkey: PriorKey | None) -> None:
         done = threading.Event()
         self._job = (key, pkey, done)
-        if self._worker is None:  # stopped by close()
-            self._run_worker()
-        self._jobs.put((key, pkey, done))
+        self._queued = self._job
+        if not self._defer_start:
+            self.start_queued()
 
     def _collect(self) -> None:
         """Note a finished build."""
