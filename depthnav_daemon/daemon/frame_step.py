@@ -82,11 +82,11 @@ class FrameStep:
         pose = None
         timings: dict[str, float] = {}
         if want_pose:
-            prior = pose_prior(self._pose_params, self._tracker)
-            # a new prior window's table is built on the worker: the estimate waits for it (it
-            # stays due) rather than this frame building it
-            want_pose = self._tables.prior_ready(frame.intrinsics, prior)
-        if want_pose:
+            # a new prior window's table is built on the worker: meanwhile the estimate searches
+            # the last window (whose table exists) rather than this frame building it
+            prior = self._tables.prior_for(
+                frame.intrinsics, pose_prior(self._pose_params, self._tracker)
+            )
             t0 = time.perf_counter()
             pose = estimate_pose(frame.depth_mm, frame.intrinsics, prior, self._rng)
             timings["pose"] = time.perf_counter() - t0

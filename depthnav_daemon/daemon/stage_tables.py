@@ -11,9 +11,14 @@ the frame itself.
 
 The floor pose stage's table for its prior window (``pose.prepare_pose``, 4-14 ms) is built the
 same way: the job of a new mount also builds the window the pose stage will search around it,
-and an estimate whose window has no table yet waits (its frame skips it, the next frames try
-again) while the worker builds it. Only a camera's first estimate builds its window's table on
-the frame.
+and an estimate whose window has no table yet searches the window of the camera's last
+estimate while the worker builds it. Only a camera's first estimate builds its window's table
+on the frame.
+
+The frame loop must not wait for the worker: one worker thread (started with the tables, at a
+lower priority) gets each build after the frame that decided it; while it builds, the
+interpreter's switch interval is 0.5 ms, so the frame loop waits at most that long for the
+interpreter lock whenever the worker runs Python code between its compiled kernels.
 """
 
 from __future__ import annotations
@@ -27,6 +32,7 @@ import threading
 import weakref
 from collections.abc import Callable, Hashable
 from dataclasses import dataclass
+from typing import TypeVar, cast
 
 from depthnav_daemon.pipeline.geometry import Mount
 from drivers.base import Intrinsics
@@ -47,6 +53,7 @@ BUILD_SWITCH_S = 0.0005
 
 Key = tuple[Intrinsics, Mount]
 PriorKey = tuple[Intrinsics, Hashable]  # (camera, the pose stage's prior window)
+P = TypeVar("P", bound=Hashable)  # the pose stage's prior window (PoseParams)
 _Job = tuple[Key | None, PriorKey | None, threading.Event]  # what to build; set when built
 
 
@@ -134,10 +141,10 @@ class StageTables:
         prepare: builds (and caches) the stages' tables for (intrinsics, mount); may raise.
         small: the unit of mount distance (and what counts as a large change in the log).
         prepare_prior: builds (and caches) the pose stage's table for (intrinsics, prior
-            window); may raise. None: no pose stage (:meth:`prior_ready` is always True).
+            window); may raise. None: :meth:`prior_for` gives the wanted window.
         defer_start: a build decided on a frame starts when the frame loop calls
-            :meth:`start_queued` after the frame's stages (the worker, woken mid-frame, took
-            the frame's core and its interpreter lock for 4-5 ms on a loaded machine).
+            :meth:`start_queued` after the frame's stages (woken mid-frame, the worker made
+            that frame 4-5 ms slower in ``depthnav bench`` on a loaded machine).
     """
 
     def __init__(
@@ -158,7 +165,7 @@ class StageTables:
         self._job: tuple[Key | None, PriorKey | None, threading.Event] | None = None
         # one worker thread, started here: Thread.start() waits until the new thread runs,
         # which on a loaded machine took milliseconds of the frame that started a build
-        self._jobs: queue.SimpleQueue[_Job | None] = queue.SimpleQueue()
+        self._jobs: queue.SimpleQueue[_Job | None]
         self._worker: threading.Thread | None = None
         self._failed: set[Key] = set()  # a worker's build raised
         self._failed_priors: set[PriorKey] = set()
@@ -203,24 +210,26 @@ class StageTables:
         self._mark_ready(nearest)
         return nearest[1]
 
-    def prior_ready(self, intr: Intrinsics, prior: Hashable) -> bool:
-        """True if the pose stage may search ``prior`` on this frame: its table exists (or a
-        build of it failed: the estimate meets the error), or this camera has no prior table
-        yet (its first estimate builds it on the frame). Else False: the table is being built
-        on the worker and the estimate waits for it."""
+    def prior_for(self, intr: Intrinsics, wanted: P) -> P:
+        """The prior window the pose stage searches on this frame of camera ``intr``, given the
+        one it wants: ``wanted`` if its table exists (or a build of it failed: the estimate
+        meets the error) or this camera has none yet (its first estimate builds it on the
+        frame); else the window this camera searched last, while ``wanted``'s table is built on
+        the worker."""
         if self._prepare_prior is None:
-            return True
+            return wanted
         self._collect()
-        key = (intr, prior)
+        key = (intr, wanted)
         if key in self._priors or key in self._failed_priors:
             self._mark_prior(key)
-            return True
-        if not any(k[0] == intr for k in self._priors):
+            return wanted
+        mine = [k for k in self._priors if k[0] == intr]
+        if not mine:
             self._mark_prior(key)
-            return True
+            return wanted
         if self._job is None:
             self._start(None, key)
-        return False
+        return cast(P, mine[-1][1])  # the windows of one FrameStep are of one type
 
     def close(self, timeout_s: float = 5.0) -> None:
         """Wait for a running build and stop the worker (a later build starts it again)."""

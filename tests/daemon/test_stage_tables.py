@@ -175,16 +175,17 @@ PRIOR_A = ("window", 1)  # stand-ins for the pose stage's PoseParams (anything h
 PRIOR_B = ("window", 2)
 
 
-def test_a_new_prior_window_is_built_on_the_worker_while_the_estimate_waits() -> None:
+def test_a_new_prior_window_is_built_on_the_worker_while_the_estimate_searches_the_last() -> None:
     gate, priors = Gate(), Gate()
     tables = StageTables(gate, prepare_prior=priors)
-    assert tables.prior_ready(INTR, PRIOR_A)  # a camera's first estimate builds it on the frame
-    assert not tables.prior_ready(INTR, PRIOR_B)  # a new window: the estimate waits ...
-    assert not tables.prior_ready(INTR, PRIOR_B)
+    assert tables.prior_for(INTR, PRIOR_A) == PRIOR_A  # a camera's first: built on the frame
+    assert tables.prior_for(OTHER, PRIOR_B) == PRIOR_B  # another camera's first too
+    assert tables.prior_for(INTR, PRIOR_B) == PRIOR_A  # a new window: the last one meanwhile
+    assert tables.prior_for(INTR, PRIOR_B) == PRIOR_A
     priors.release.set()
     tables.close()
-    assert tables.prior_ready(INTR, PRIOR_B)  # ... until the worker has built it
-    assert tables.prior_ready(INTR, PRIOR_A)  # a window whose table exists: at once
+    assert tables.prior_for(INTR, PRIOR_B) == PRIOR_B  # once the worker has built it
+    assert tables.prior_for(INTR, PRIOR_A) == PRIOR_A  # a window whose table exists: at once
     assert priors.calls == [(INTR, PRIOR_B)]  # one build, however many frames asked
     assert gate.calls == []
     assert threading.get_ident() not in priors.threads
@@ -194,7 +195,7 @@ def test_a_mount_change_builds_the_pose_window_around_the_new_mount_too() -> Non
     gate, priors = Gate(), Gate()
     tables = StageTables(gate, prepare_prior=priors)
     tables.mount_for(INTR, M0)
-    assert tables.prior_ready(INTR, PRIOR_A)
+    assert tables.prior_for(INTR, PRIOR_A) == PRIOR_A
     asked: list[Mount] = []
 
     def window() -> tuple[str, int]:
@@ -203,11 +204,11 @@ def test_a_mount_change_builds_the_pose_window_around_the_new_mount_too() -> Non
 
     assert tables.mount_for(INTR, LARGE, window) == M0
     assert tables.mount_for(INTR, LARGE, window) == M0
-    assert not tables.prior_ready(INTR, PRIOR_B)  # the job under way makes it
+    assert tables.prior_for(INTR, PRIOR_B) == PRIOR_A  # the job under way makes it
     gate.release.set()
     priors.release.set()
     tables.close()
-    assert tables.prior_ready(INTR, PRIOR_B)
+    assert tables.prior_for(INTR, PRIOR_B) == PRIOR_B
     assert tables.mount_for(INTR, LARGE, window) == LARGE
     assert gate.calls == [(INTR, LARGE)] and priors.calls == [(INTR, PRIOR_B)]
     assert len(asked) == 1  # asked once, when the build started
@@ -220,7 +221,7 @@ def test_a_window_whose_table_exists_is_not_built_again_with_a_mount() -> None:
     gate.release.set()
     tables = StageTables(gate, prepare_prior=priors)
     tables.mount_for(INTR, M0)
-    tables.prior_ready(INTR, PRIOR_A)
+    tables.prior_for(INTR, PRIOR_A)
     tables.mount_for(INTR, LARGE, lambda: PRIOR_A)
     tables.close()
     tables.mount_for(INTR, SMALL, lambda: None)  # no pose stage: nothing to build
@@ -234,10 +235,10 @@ def test_a_failed_window_build_leaves_the_error_to_the_estimate() -> None:
     priors.fail = True
     priors.release.set()
     tables = StageTables(Gate(), prepare_prior=priors)
-    assert tables.prior_ready(INTR, PRIOR_A)
-    assert not tables.prior_ready(INTR, PRIOR_B)
+    assert tables.prior_for(INTR, PRIOR_A) == PRIOR_A
+    assert tables.prior_for(INTR, PRIOR_B) == PRIOR_A
     tables.close()
-    assert tables.prior_ready(INTR, PRIOR_B)  # estimate_pose then raises the error itself
+    assert tables.prior_for(INTR, PRIOR_B) == PRIOR_B  # estimate_pose then raises the error
 
 
 def test_the_frame_loop_builds_no_table_after_a_cameras_first_frame(monkeypatch) -> None:
