@@ -218,7 +218,8 @@ def format_rebuild(timings: Sequence[RebuildTiming]) -> str:
     ]
     for t in timings:
         out.append(
-            f"  {t.resolution}: {t.changes} changes, frames {t.frame_ms:.2f} ms at "
+            f"  {t.resolution}: {t.changes} change{'s' if t.changes != 1 else ''}, frames "
+            f"{t.frame_ms:.2f} ms at "
             f"{t.pace_hz:g} frames/s; extra worst {t.extra_worst_ms:.2f} ms, p90 "
             f"{t.extra_p90_ms:.2f} ms (without a change: worst {t.noise_worst_ms:.2f}, p90 "
             f"{t.noise_p90_ms:.2f} ms); build {t.build_ms:.0f} ms (one thread, no frames), "
