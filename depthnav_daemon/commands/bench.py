@@ -30,6 +30,7 @@ from depthnav_daemon.commands.bench_process import (
     startup_time,
     udp_latency,
 )
+from depthnav_daemon.commands.bench_rebuild import RebuildTiming, format_rebuild, rebuild_timings
 from depthnav_daemon.commands.bench_sinks import BUDGETS_MS, sink_work
 from depthnav_daemon.commands.bench_stages import (
     FIXTURE,
@@ -70,6 +71,7 @@ class BenchReport:
     startup: dict[str, float] | None = None
     resolutions: dict[str, list[Timing]] = field(default_factory=dict)
     scan_mounts: list[Timing] = field(default_factory=list)  # the exact scan at SCAN_MOUNTS
+    rebuild: list[RebuildTiming] = field(default_factory=list)  # large mount changes (frames on)
 
 
 # --- the command ---------------------------------------------------------------------------------
@@ -161,6 +163,7 @@ def run_bench(
             samples,
             min_batch_s,
         )
+    report.rebuild = rebuild_timings(changes=5 if rounds > 1 else 1)
     if cpu_seconds:
         report.cpu_30fps = cpu_at_30fps(cpu_seconds)
     if startup:
@@ -207,6 +210,8 @@ def format_report(r: BenchReport) -> str:
         )
     for name, ts in r.resolutions.items():
         out.append(format_timings(ts, f"synthetic corridor, {name}:"))
+    if r.rebuild:
+        out.append(format_rebuild(r.rebuild))
     if r.cpu_30fps:
         c = r.cpu_30fps
         out.append(

@@ -23,6 +23,7 @@ from depthnav_daemon.pipeline.pose import (
     PoseEstimate,
     PoseParams,
     estimate_pose,
+    prepare_pose,
     tilt_roll_from_accel,
 )
 from drivers.base import Frame
@@ -55,7 +56,11 @@ class FrameStep:
             cfg.mount, TrackerParams.from_daemon(d), pinned=d.tilt_source == "config"
         )
         self._trusted: bool | None = None  # drop-offs trusted on the last frame (None: no frame)
-        self._tables = StageTables(lambda intr, mount: prepare(intr, mount, self.params))
+        self._tables = StageTables(
+            lambda intr, mount: prepare(intr, mount, self.params),
+            prepare_prior=prepare_pose,
+            defer_start=True,
+        )
         self._rng = np.random.default_rng(d.seed)
         self._since_pose = d.pose_every_frames  # estimate on the first frame
         self._last_pose_t: float | None = None
@@ -77,19 +82,20 @@ class FrameStep:
         pose = None
         timings: dict[str, float] = {}
         if want_pose:
-            t0 = time.perf_counter()
-            pose = estimate_pose(
-                frame.depth_mm,
-                frame.intrinsics,
-                pose_prior(self._pose_params, self._tracker),
-                self._rng,
+            # a new prior window's table is built on the worker: meanwhile the estimate searches
+            # the last window (whose table exists) rather than this frame building it
+            prior = self._tables.prior_for(
+                frame.intrinsics, pose_prior(self._pose_params, self._tracker)
             )
+            t0 = time.perf_counter()
+            pose = estimate_pose(frame.depth_mm, frame.intrinsics, prior, self._rng)
             timings["pose"] = time.perf_counter() - t0
             _apply_pose(self._tracker, pose, self._daemon.tilt_source)
-        # a new mount serves the frames once its tables exist (built on a worker by StageTables;
-        # a camera's first frame builds them itself); meanwhile frames use the nearest ready mount
+        # a new mount serves the frames once its tables exist (built on a worker by StageTables,
+        # with the pose stage's window around it; a camera's first frame builds them itself);
+        # meanwhile frames use the nearest ready mount
         wanted = self._tracker.mount
-        used = self._tables.mount_for(frame.intrinsics, wanted)
+        used = self._tables.mount_for(frame.intrinsics, wanted, self._prior_for_wanted)
         trust = _pending(self._tracker.trust(), used, wanted)
         if trust.dropoffs_trusted != self._trusted:
             self._say_trust(trust)
@@ -106,7 +112,16 @@ class FrameStep:
         if want_pose:
             self._since_pose, self._last_pose_t = 0, frame.timestamp_s
         self._since_pose += 1
+        self._tables.start_queued()  # a build decided on this frame starts after its stages
         return result
+
+    def _prior_for_wanted(self) -> PoseParams | None:
+        """The pose stage's window around the tracker's mount (for a build to make ahead), or
+        None when the pose stage never runs."""
+        d = self._daemon
+        if d.pose_every_frames <= 0 and d.pose_every_s <= 0:
+            return None
+        return pose_prior(self._pose_params, self._tracker)
 
     def _say_trust(self, trust: MountTrust) -> None:
         """Log when drop-offs stop (warning) or start again (info) being trusted."""

@@ -34,8 +34,9 @@ import numpy.typing as npt
 from depthnav_daemon.pipeline.geometry import (
     F32,
     Mount,
+    cam_to_level,
     check_range,
-    level_rays,
+    pixel_rays,
 )
 from depthnav_daemon.pipeline.memory_kernels import (
     CLIFF,
@@ -45,6 +46,7 @@ from depthnav_daemon.pipeline.memory_kernels import (
     memory_scan,
     update_view,
 )
+from depthnav_daemon.pipeline.near_kernels import near_limits_kernel
 from depthnav_daemon.pipeline.scan import LaserScan
 from drivers.base import Intrinsics
 
@@ -175,20 +177,21 @@ def near_limits(
     eq. 15 generalised to every bearing, tilt and roll), +inf where no pixel sees the floor."""
     start, stop, step = rows
     stop = intr.height if stop < 0 else min(stop, intr.height)
-    d = level_rays(intr, mount.tilt_rad, mount.roll_rad)[
-        start : stop : max(1, step), :: max(1, NEAR_STRIDE)
-    ].reshape(-1, 3)
-    down = d[:, 2] < 0
-    d = d[down]
-    t = mount.height_m / -d[:, 2]
-    r = t * np.hypot(d[:, 0], d[:, 1])
-    b = np.floor((np.arctan2(d[:, 1], d[:, 0]) - angle_min) / inc + 0.5).astype(np.int64)
-    ok = (b >= 0) & (b < n)
-    out = np.full(n, np.inf)
-    np.minimum.at(out, b[ok], r[ok])
-    # a bin between two sampled pixels takes its neighbours' limit (the sampling stride)
-    for shift in (1, -1):
-        out = np.minimum(out, np.roll(out, shift) if n > 1 else out)
+    out = np.empty(n)
+    # compiled, releases the interpreter lock: built on the worker of a mount change while the
+    # frame loop runs (numpy held the lock for parts of 30-45 ms at 1280x720)
+    near_limits_kernel(
+        pixel_rays(intr),
+        cam_to_level(mount.tilt_rad, mount.roll_rad),
+        float(mount.height_m),
+        int(start),
+        int(stop),
+        max(1, int(step)),
+        max(1, NEAR_STRIDE),
+        float(angle_min),
+        float(inc),
+        out,
+    )
     res = out.astype(np.float32)
     res.setflags(write=False)
     return res

@@ -51,7 +51,9 @@ class _PoseTable:
     rays: F32  # (Hs, Ws, 3) camera ray per metre of depth (eq. 12)
 
 
-@functools.lru_cache(maxsize=8)
+# 16: each sensor's StageTables keeps 8 prior windows ready (daemon.stage_tables.KEEP_READY); two
+# sensors' windows fit without evicting a window the frame loop counts on
+@functools.lru_cache(maxsize=16)
 def _pose_table(intr: Intrinsics, params: PoseParams) -> _PoseTable:
     used = min(params.used_depth_height, intr.height)
     # bottom-up from the last row, as the original, so the bottom row is always used

@@ -3,14 +3,16 @@ nearest mount whose tables exist; only a camera's first frame builds them on the
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import os
+import sys
 import threading
 
 import numpy as np
 import pytest
 
-from depthnav_daemon.daemon.stage_tables import KEEP_READY, MAX_NICE, StageTables
+from depthnav_daemon.daemon.stage_tables import BUILD_SWITCH_S, KEEP_READY, MAX_NICE, StageTables
 from depthnav_daemon.pipeline import StageParams, prepare, scan_table
 from depthnav_daemon.pipeline.cliff import CliffParams, detect_cliffs
 from depthnav_daemon.pipeline.geometry import Mount
@@ -31,12 +33,16 @@ class Gate:
         self.calls: list[tuple[Intrinsics, Mount]] = []
         self.threads: list[int] = []
         self.nice: list[int] = []
+        self.switch: list[float] = []  # the interpreter's switch interval during the build
+        self.called = threading.Event()
         self.release = threading.Event()
         self.fail = False
 
     def __call__(self, intr: Intrinsics, mount: Mount) -> None:
         self.calls.append((intr, mount))
         self.threads.append(threading.get_ident())
+        self.switch.append(sys.getswitchinterval())
+        self.called.set()
         if hasattr(os, "getpriority"):
             self.nice.append(os.getpriority(os.PRIO_PROCESS, threading.get_native_id()))
         assert self.release.wait(10.0)
@@ -163,3 +169,204 @@ def test_real_tables_built_on_the_worker_serve_the_next_frames(method: str, chan
     depth_to_scan(np.full((INTR.height, INTR.width), 900, np.uint16), INTR, change, params.scan)
     if method == "exact":  # the frame finds the worker's tables
         assert scan_table.exact_table.cache_info().misses == before.misses
+
+
+PRIOR_A = ("window", 1)  # stand-ins for the pose stage's PoseParams (anything hashable)
+PRIOR_B = ("window", 2)
+
+
+def test_a_new_prior_window_is_built_on_the_worker_while_the_estimate_searches_the_last() -> None:
+    gate, priors = Gate(), Gate()
+    tables = StageTables(gate, prepare_prior=priors)
+    assert tables.prior_for(INTR, PRIOR_A) == PRIOR_A  # a camera's first: built on the frame
+    assert tables.prior_for(OTHER, PRIOR_B) == PRIOR_B  # another camera's first too
+    assert tables.prior_for(INTR, PRIOR_B) == PRIOR_A  # a new window: the last one meanwhile
+    assert tables.prior_for(INTR, PRIOR_B) == PRIOR_A
+    priors.release.set()
+    tables.close()
+    assert tables.prior_for(INTR, PRIOR_B) == PRIOR_B  # once the worker has built it
+    assert tables.prior_for(INTR, PRIOR_A) == PRIOR_A  # a window whose table exists: at once
+    assert priors.calls == [(INTR, PRIOR_B)]  # one build, however many frames asked
+    assert gate.calls == []
+    assert threading.get_ident() not in priors.threads
+
+
+def test_a_mount_change_builds_the_pose_window_around_the_new_mount_too() -> None:
+    gate, priors = Gate(), Gate()
+    tables = StageTables(gate, prepare_prior=priors)
+    tables.mount_for(INTR, M0)
+    assert tables.prior_for(INTR, PRIOR_A) == PRIOR_A
+    asked: list[Mount] = []
+
+    def window() -> tuple[str, int]:
+        asked.append(LARGE)
+        return PRIOR_B
+
+    assert tables.mount_for(INTR, LARGE, window) == M0
+    assert tables.mount_for(INTR, LARGE, window) == M0
+    assert tables.prior_for(INTR, PRIOR_B) == PRIOR_A  # the job under way makes it
+    gate.release.set()
+    priors.release.set()
+    tables.close()
+    assert tables.prior_for(INTR, PRIOR_B) == PRIOR_B
+    assert tables.mount_for(INTR, LARGE, window) == LARGE
+    assert gate.calls == [(INTR, LARGE)] and priors.calls == [(INTR, PRIOR_B)]
+    assert len(asked) == 1  # asked once, when the build started
+    assert threading.get_ident() not in gate.threads + priors.threads
+    assert gate.threads == priors.threads  # one job: the mount's tables, then its window
+
+
+def test_a_window_whose_table_exists_is_not_built_again_with_a_mount() -> None:
+    gate, priors = Gate(), Gate()
+    gate.release.set()
+    tables = StageTables(gate, prepare_prior=priors)
+    tables.mount_for(INTR, M0)
+    tables.prior_for(INTR, PRIOR_A)
+    tables.mount_for(INTR, LARGE, lambda: PRIOR_A)
+    tables.close()
+    tables.mount_for(INTR, SMALL, lambda: None)  # no pose stage: nothing to build
+    tables.close()
+    assert gate.calls == [(INTR, LARGE), (INTR, SMALL)]
+    assert priors.calls == []
+
+
+def test_a_failed_window_build_leaves_the_error_to_the_estimate() -> None:
+    priors = Gate()
+    priors.fail = True
+    priors.release.set()
+    tables = StageTables(Gate(), prepare_prior=priors)
+    assert tables.prior_for(INTR, PRIOR_A) == PRIOR_A
+    assert tables.prior_for(INTR, PRIOR_B) == PRIOR_A
+    tables.close()
+    assert tables.prior_for(INTR, PRIOR_B) == PRIOR_B  # estimate_pose then raises the error
+
+
+def test_the_frame_loop_builds_no_table_after_a_cameras_first_frame(monkeypatch) -> None:
+    """Through FrameStep (as the daemon runs it): a camera configured on a mast, outside the pose
+    window, finds its floor elsewhere; the new mount's scan tables and the pose window around it
+    are built on the worker, and what it serves equals a fresh build."""
+    from depthnav_daemon.config.loader import build_config
+    from depthnav_daemon.daemon.frame_step import FrameStep
+    from depthnav_daemon.pipeline import pose_fit, process
+    from depthnav_daemon.sim.synthetic import Scene, render
+    from drivers.base import Frame
+    from tests.pipeline.scenes import ASYM_640
+
+    builds: dict[str, list[int]] = {"scan": [], "pose": []}
+
+    def spy(name: str, kernel):  # the real kernel, noting the thread that runs it
+        def run(*args):
+            builds[name].append(threading.get_ident())
+            return kernel(*args)
+
+        return run
+
+    monkeypatch.setattr(
+        scan_table, "exact_table_kernel", spy("scan", scan_table.exact_table_kernel)
+    )
+    monkeypatch.setattr(
+        pose_fit, "pose_envelope_kernel", spy("pose", pose_fit.pose_envelope_kernel)
+    )
+    cfg = build_config(
+        [],
+        [
+            "mount.height_m=0.9",  # configured; the pose window below does not contain it
+            "mount.tilt_deg=20.0",
+            "pose.height_max_m=0.6",
+            "pose.min_inlier_ratio=0.2113",  # a window no other test builds
+            "daemon.pose_every_frames=1",
+        ],
+        {"device": "synthetic"},
+    )
+    true_mount = Mount(1.1, 24.0, 0.0)
+    step = FrameStep(cfg, StageParams(scan=cfg.scan, cliff=cfg.cliff), None)
+    view = render(Scene(), ASYM_640, true_mount)
+    results = []
+    try:
+        for seq in range(8):
+            # the first frame sees no floor: the configured mount serves it, the floor found on
+            # the second frame is a large change
+            depth = view.depth_mm if seq else np.zeros_like(view.depth_mm)
+            results.append(step.run(Frame(seq, seq / 30.0, depth, ASYM_640)))
+            if seq == 2:
+                step.close()  # the worker's build done: the next frames use it
+    finally:
+        step.close()
+    me = threading.get_ident()
+    # the first frame builds the configured mount's tables and its pose window; nothing else
+    # is built on the frame loop's thread
+    assert builds["scan"][0] == me and builds["pose"][0] == me
+    assert builds["scan"][1:] and all(t != me for t in builds["scan"][1:])
+    assert builds["pose"][1:] and all(t != me for t in builds["pose"][1:])
+    first, last = results[1], results[-1]
+    assert results[0].mount.height_m == 0.9 and first.mount.height_m == 0.9
+    assert first.pose is not None and first.pose.ok
+    assert last.pose is not None and last.pose.ok  # the estimate searched the new window
+    assert last.mount.height_m == pytest.approx(1.1, abs=0.02)
+    assert last.mount.tilt_deg == pytest.approx(24.0, abs=0.5)
+    # what the worker built serves exactly what a fresh build gives
+    window = dataclasses.replace(
+        cfg.pose, height_min_m=0.8, height_max_m=1.4, tilt_min_deg=14.0, tilt_max_deg=34.0
+    )
+    cached = pose_fit._pose_table(ASYM_640, window)
+    fresh = pose_fit._pose_table.__wrapped__(ASYM_640, window)
+    for f in dataclasses.fields(cached):
+        a, b = getattr(cached, f.name), getattr(fresh, f.name)
+        assert np.array_equal(a, b) if isinstance(a, np.ndarray) else a == b
+    frame = Frame(99, 0.0, view.depth_mm, ASYM_640)
+    served = process(frame, last.mount, step.params)
+    scan_table.exact_table.cache_clear()  # a fresh build of every table of this mount
+    again = process(frame, last.mount, step.params)
+    assert np.array_equal(served.scan.ranges, again.scan.ranges, equal_nan=True)
+    assert served.cliff is not None and again.cliff is not None
+    assert np.array_equal(served.cliff.scan.ranges, again.cliff.scan.ranges, equal_nan=True)
+
+
+def test_the_switch_interval_is_short_while_a_build_runs_and_restored_after() -> None:
+    # a frame loop waiting for the interpreter lock while the worker runs Python code waits
+    # the switch interval before it asks for it
+    before = sys.getswitchinterval()
+    assert before > BUILD_SWITCH_S  # Python's default, 5 ms
+    a, b = Gate(), Gate()
+    one, two = StageTables(a), StageTables(b)  # two sensors build at once
+    one.mount_for(INTR, M0)
+    two.mount_for(OTHER, M0)
+    one.mount_for(INTR, LARGE)
+    two.mount_for(OTHER, LARGE)
+    assert a.called.wait(10.0) and b.called.wait(10.0)  # both builds under way
+    a.release.set()
+    one.close()
+    assert sys.getswitchinterval() == BUILD_SWITCH_S  # the other build still runs
+    b.release.set()
+    two.close()
+    assert a.switch == b.switch == [BUILD_SWITCH_S]
+    assert sys.getswitchinterval() == before
+
+
+def test_a_build_goes_to_the_worker_started_with_the_tables_and_ends_with_them() -> None:
+    import gc
+
+    gate = Gate()
+    gate.release.set()
+    tables = StageTables(gate)
+    worker = tables._worker
+    assert worker is not None and worker.is_alive()  # started before any frame
+    tables.mount_for(INTR, M0)
+    tables.mount_for(INTR, LARGE)
+    assert gate.called.wait(10.0)
+    assert gate.threads == [worker.ident]  # no thread started by the frame that changed mount
+    tables.close()
+    assert not worker.is_alive()  # close() stops it ...
+    assert tables.mount_for(INTR, LARGE) == LARGE
+    far = Mount(0.9, 30.0, 5.0)
+    assert tables.mount_for(INTR, far) == LARGE  # ... and a later build starts one again
+    tables.close()
+    assert tables.mount_for(INTR, far) == far
+    assert len(gate.threads) == 2 and threading.get_ident() not in gate.threads
+    left = StageTables(gate)  # never closed: its worker ends when the tables are collected
+    lone = left._worker
+    assert lone is not None
+    del left
+    gc.collect()
+    lone.join(10.0)
+    assert not lone.is_alive()
