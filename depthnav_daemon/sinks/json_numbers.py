@@ -53,22 +53,27 @@ _FRACTIONS = _fractions()
 
 @njit(cache=True, nogil=True, boundscheck=False, error_model="numpy")
 def _write_lists(  # noqa: PLR0912, PLR0915 - one function: each one more is a second of compiling
-    values: np.ndarray, segments: np.ndarray, out: np.ndarray, ends: np.ndarray
+    first: np.ndarray,
+    second: np.ndarray,
+    third: np.ndarray,
+    pairs_second: bool,
+    out: np.ndarray,
+    ends: np.ndarray,
 ) -> int:  # pragma: no cover - compiled; tests/sinks/test_json_numbers.py checks its output
-    """Write ``values`` (float64, flat) as JSON lists into ``out`` (uint8), one after the other:
-    list ``s`` holds values[segments[s - 1, 0]:segments[s, 0]], as [x, y] pairs when
-    segments[s, 1] is 1. ``ends[s]`` gets the offset where list ``s`` ends. Non-finite values
-    are written as ``null``/``"Infinity"``/``"-Infinity"`` (in a flat list; pairs: see Returns).
+    """Write three flat arrays (float32 or float64, the same type) as JSON lists into ``out``
+    (uint8), one after the other, the second as [x, y] pairs when ``pairs_second``; ``ends[s]``
+    gets the offset where list ``s`` ends. Non-finite values are written as
+    ``null``/``"Infinity"``/``"-Infinity"`` (in a flat list; pairs: see Returns).
 
     Returns:
         The number of bytes written, -1 for a value it cannot write exactly (see the module
         docstring), or NOT_FINITE for a non-finite value in a list of pairs.
     """
     n = 0
-    start = 0
-    for s in range(segments.shape[0]):
-        stop = segments[s, 0]
-        pairs = segments[s, 1] == 1
+    for s in range(3):
+        values = first if s == 0 else (second if s == 1 else third)
+        pairs = pairs_second and s == 1
+        start, stop = 0, values.size
         out[n] = 91  # [
         n += 1
         for i in range(start, stop):
@@ -83,7 +88,7 @@ def _write_lists(  # noqa: PLR0912, PLR0915 - one function: each one more is a s
             elif j:
                 out[n] = 44
                 n += 1
-            x = values[i]
+            x = np.float64(values[i])  # exact for float32
             if not np.isfinite(x):
                 if pairs:
                     return NOT_FINITE
@@ -114,12 +119,12 @@ def _write_lists(  # noqa: PLR0912, PLR0915 - one function: each one more is a s
                 out[n] = 48 + q
                 n += 1
             else:  # the digits least significant first, then turned round
-                first = n
+                lo = n
                 while q:
                     out[n] = 48 + q % 10
                     q //= 10
                     n += 1
-                a, b = first, n - 1
+                a, b = lo, n - 1
                 while a < b:
                     out[a], out[b] = out[b], out[a]
                     a += 1
@@ -135,50 +140,51 @@ def _write_lists(  # noqa: PLR0912, PLR0915 - one function: each one more is a s
         out[n] = 93  # ]
         n += 1
         ends[s] = n
-        start = stop
     return n
 
 
-MAX_LAYOUTS = 64  # cached list layouts (sizes of the lists written together)
-_SEGMENTS: dict[tuple[tuple[int, bool], ...], np.ndarray] = {}
 KERNELS = [_write_lists]  # for the first run's "compiling kernels" progress (tools/warmup.py)
+_EMPTY = {np.dtype(np.float32): np.zeros(0, np.float32), np.dtype(np.float64): np.zeros(0)}
 
 
-def lists_json(parts: list[tuple[np.ndarray, bool]]) -> list[bytes] | None:
-    """Each array rounded to 1 mm as JSON list text, all written by one kernel call (a call
-    costs microseconds of its own).
+def _flat(values: np.ndarray, dtype: np.dtype) -> np.ndarray:
+    """``values`` as a flat, C-ordered, writable array of ``dtype`` (float32 or float64): the one
+    array type the kernel is compiled for, each (a read-only one would compile anew)."""
+    if values.dtype == dtype and values.flags.c_contiguous and values.flags.writeable:
+        return values.reshape(-1)
+    return np.array(values, dtype=dtype, order="C").reshape(-1)
+
+
+def lists_json(
+    first: np.ndarray, second: np.ndarray | None = None, third: np.ndarray | None = None
+) -> tuple[bytes, bytes, bytes] | None:
+    """Up to three arrays rounded to 1 mm as JSON list text, written by one kernel call (a call
+    costs microseconds of its own: a frame's lists are written by one).
 
     Args:
-        parts: (values, pairs): (N,) metres for a flat list (NaN -> null, +-inf ->
-            "+-Infinity"), or (N, 2) with ``pairs`` for a list of [x, y] pairs, all finite.
+        first, third: (N,) metres for flat lists (NaN -> null, +-inf -> "+-Infinity").
+        second: (N, 2) metres for a list of [x, y] pairs, all finite.
 
     Returns:
-        The lists' texts, or None when a value lies outside what the kernel writes exactly or a
-        list of pairs holds a non-finite value (then use the reference path).
+        The lists' texts (``[]`` for one not given), or None when a value lies outside what the
+        kernel writes exactly or a pair is not finite (then use the reference path).
     """
-    # few numpy calls: on 1500 values each call's own cost is a good part of the kernel's
-    if len(parts) == 1:
-        values = np.ascontiguousarray(parts[0][0], dtype=np.float64).reshape(-1)
-    else:
-        values = np.concatenate([np.ravel(v) for v, _ in parts], dtype=np.float64)
-    key = tuple((v.size, pairs) for v, pairs in parts)
-    segments = _SEGMENTS.get(key)
-    if segments is None:  # the same few layouts frame after frame
-        segments = np.array([(0, 1 if pairs else 0) for _, pairs in key], np.int64)
-        segments[:, 0] = np.cumsum([size for size, _ in key])
-        if len(_SEGMENTS) >= MAX_LAYOUTS:
-            _SEGMENTS.clear()
-        _SEGMENTS[key] = segments
-    out = np.empty(CHARS_PER_VALUE * values.size + 4 * len(parts), np.uint8)
-    ends = np.empty(len(parts), np.int64)
-    n = _write_lists(values, segments, out, ends)
+    arrays = [np.asarray(a) for a in (first, second, third) if a is not None]
+    # float32 arrays (the stages' ranges and points) as they are, anything else as float64
+    dtype = np.dtype(np.float32)
+    if any(a.dtype != dtype for a in arrays):
+        dtype = np.dtype(np.float64)
+    empty = _EMPTY[dtype]
+    flat = [empty if a is None else _flat(np.asarray(a), dtype) for a in (first, second, third)]
+    size = flat[0].size + flat[1].size + flat[2].size
+    out = np.empty(CHARS_PER_VALUE * size + 12, np.uint8)
+    ends = np.empty(3, np.int64)
+    n = _write_lists(flat[0], flat[1], flat[2], True, out, ends)
     if n < 0:
         return None
     text = out[:n].tobytes()
-    if len(parts) == 1:
-        return [text]
-    cuts = ends.tolist()
-    return [text[a:b] for a, b in zip([0, *cuts[:-1]], cuts, strict=True)]
+    a, b = int(ends[0]), int(ends[1])
+    return text[:a], text[a:b], text[b:]
 
 
 def mm_json(values: np.ndarray, pairs: bool = False) -> bytes | None:
@@ -188,14 +194,18 @@ def mm_json(values: np.ndarray, pairs: bool = False) -> bytes | None:
     Args:
         values: (N,) for a flat list, or (N, 2) with ``pairs`` for a list of [x, y] pairs; metres.
     """
-    if pairs and not np.isfinite(values).all():
+    if not pairs:
+        texts = lists_json(values)
+        return None if texts is None else texts[0]
+    if not np.isfinite(values).all():
         return _pairs_with_specials(values)
-    texts = lists_json([(values, pairs)])
-    return None if texts is None else texts[0]
+    texts = lists_json(np.zeros(0), values)
+    return None if texts is None else texts[1]
 
 
 def _pairs_with_specials(values: np.ndarray) -> bytes | None:
     """Pairs holding non-finite values: each pair a list of its own (null, "Infinity", ...)."""
-    pts = np.asarray(values, dtype=np.float64).reshape(-1, 2)
-    texts = lists_json([(p, False) for p in pts]) if len(pts) else [b""]
-    return None if texts is None else b"[" + b",".join(texts) + b"]"
+    texts = [mm_json(p) for p in np.asarray(values).reshape(-1, 2)]
+    if any(t is None for t in texts):
+        return None
+    return b"[" + b",".join(t for t in texts if t is not None) + b"]"

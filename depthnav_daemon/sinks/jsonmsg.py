@@ -144,12 +144,11 @@ def _frame_lists(result: Result) -> tuple[orjson.Fragment, ...] | None:
     if np.ndim(scan.ranges) != 1:
         return None
     if cliff is None:
-        texts = lists_json([(scan.ranges, False)])
-    else:
-        if np.ndim(cliff.scan.ranges) != 1:
-            return None
-        pts = np.asarray(cliff.points_m).reshape(-1, 2)
-        texts = lists_json([(scan.ranges, False), (pts, True), (cliff.scan.ranges, False)])
+        texts = lists_json(scan.ranges)
+        return None if texts is None else (orjson.Fragment(texts[0]),)
+    if np.ndim(cliff.scan.ranges) != 1:
+        return None
+    texts = lists_json(scan.ranges, np.asarray(cliff.points_m).reshape(-1, 2), cliff.scan.ranges)
     return None if texts is None else tuple(orjson.Fragment(t) for t in texts)
 
 

@@ -134,3 +134,33 @@ def test_the_line_written_in_one_kernel_call_is_the_reference_encoders_line(pair
             want["cliff"]["points_dropped"] = len(pts) - len(finite)
             want["cliff"]["scan"]["ranges"] = jsonmsg.encode_ranges(res.cliff.scan.ranges)
         assert jsonmsg.frame_json(frame, res, "1", 5.0) == orjson.dumps(want), i
+
+
+WARM_THEN_WRITE = """
+from dataclasses import replace
+from depthnav_daemon.sinks import jsonmsg
+from depthnav_daemon.sinks.json_numbers import _write_lists
+from depthnav_daemon.tools import warmup
+from tests.sinks.conftest import make_pair
+warmup.warm_up()
+before = len(_write_lists.signatures)
+frame, result = make_pair(0)
+jsonmsg.frame_json(frame, result, "1", 1.0)
+jsonmsg.frame_json(frame, replace(result, cliff=None), "1", 1.0)
+print(before, len(_write_lists.signatures))
+"""
+
+
+def test_warm_up_compiles_the_writer_for_every_line_the_sinks_write() -> None:
+    """In a fresh process: after the warm-up, a frame's line (float32 lists from the stages)
+    compiles nothing more (a compile at the first frame stalls it for seconds)."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[2]
+    out = subprocess.run(
+        [sys.executable, "-c", WARM_THEN_WRITE],
+        cwd=root, capture_output=True, text=True, timeout=600, check=True,
+    ).stdout.split()  # fmt: skip
+    assert len(out) == 2 and int(out[0]) >= 2 and out[0] == out[1], out
