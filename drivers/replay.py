@@ -33,7 +33,7 @@ import logging
 import os
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import numpy as np
@@ -121,6 +121,7 @@ class ReplayDriver:
         self._wall0: float | None = None
         self._is_open = False
         self._has_accel = False
+        self._make_items: Callable[[], tuple[Iterator[Item], Intrinsics, str]] | None = None
 
     @classmethod
     def from_spec(cls, spec: Spec) -> ReplayDriver:
@@ -278,43 +279,46 @@ class ReplayDriver:
         return items, intr, f"{self.path.name} {probe.depth_topic}"
 
     def _start(self) -> None:
-        if rosbag.is_rosbag(self.path) and self.path.exists():
-            self._items, intr, name = self._rosbag_items()
-        elif self.path.is_dir():
-            if (self.path / "recording.toml").exists():
-                self._items, intr, name = self._depthnav_items()
-            elif (self.path / "INDEX.txt").exists():
-                self._items, intr, name = self._fakenect_items()
-            elif self.glob is not None or png_folder.is_png_folder(self.path):
-                self._items, intr, name = self._png_items()
-            else:
-                raise RecordingError(
-                    f"{self.path}: not a recording folder "
-                    "(no recording.toml, INDEX.txt, depth.txt, *.png or *.pgm)",
-                    hint="record one with `depthnav record`, or name the depth images with "
-                    "replay:PATH?glob=PATTERN",
-                )
-        elif self.glob is not None:
-            raise RecordingError(
-                f"{self.path}: glob= picks images in a folder; this is not a folder",
-                hint="write replay:FOLDER?glob=PATTERN",
-            )
-        elif self.path.suffix.lower() == ".npz":
-            self._items, intr, name = self._depthnav_items()
-        elif self.path.suffix.lower() == ".npy":
-            self._items, intr, name = self._npy_items()
-        elif not self.path.exists():
-            raise RecordingError(f"{self.path}: no such file or folder", hint="check the path")
-        else:
-            raise RecordingError(
-                f"{self.path}: unknown recording type {self.path.suffix or '(no suffix)'!r}",
-                hint="replay takes a recording folder, .npz, .npy, image folder, fakenect folder, "
-                ".oni or a ROS bag (.bag, .mcap, .db3, ROS 2 bag folder)",
-            )
+        if self._make_items is None:  # the kind of recording: found once, not on every loop pass
+            self._make_items = self._items_maker()
+        self._items, intr, name = self._make_items()
         if self._intrinsics is not None and intr != self._intrinsics:
             raise RecordingError(f"{self.path}: intrinsics changed while looping")
         self._intrinsics = intr
         self._name = name
+
+    def _items_maker(self) -> Callable[[], tuple[Iterator[Item], Intrinsics, str]]:
+        if rosbag.is_rosbag(self.path) and self.path.exists():
+            return self._rosbag_items
+        if self.path.is_dir():
+            if (self.path / "recording.toml").exists():
+                return self._depthnav_items
+            if (self.path / "INDEX.txt").exists():
+                return self._fakenect_items
+            if self.glob is not None or png_folder.is_png_folder(self.path):
+                return self._png_items
+            raise RecordingError(
+                f"{self.path}: not a recording folder "
+                "(no recording.toml, INDEX.txt, depth.txt, *.png or *.pgm)",
+                hint="record one with `depthnav record`, or name the depth images with "
+                "replay:PATH?glob=PATTERN",
+            )
+        if self.glob is not None:
+            raise RecordingError(
+                f"{self.path}: glob= picks images in a folder; this is not a folder",
+                hint="write replay:FOLDER?glob=PATTERN",
+            )
+        if self.path.suffix.lower() == ".npz":
+            return self._depthnav_items
+        if self.path.suffix.lower() == ".npy":
+            return self._npy_items
+        if not self.path.exists():
+            raise RecordingError(f"{self.path}: no such file or folder", hint="check the path")
+        raise RecordingError(
+            f"{self.path}: unknown recording type {self.path.suffix or '(no suffix)'!r}",
+            hint="replay takes a recording folder, .npz, .npy, image folder, fakenect folder, "
+            ".oni or a ROS bag (.bag, .mcap, .db3, ROS 2 bag folder)",
+        )
 
     # --- Driver protocol -----------------------------------------------------------------
     def open(self) -> DeviceInfo:

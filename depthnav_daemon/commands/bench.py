@@ -65,7 +65,7 @@ class BenchReport:
     sinks: list[Timing] = field(default_factory=list)  # the outputs' per-frame work
     latency: dict[str, float] | None = None
     loop_ms: dict[str, float] | None = None  # the whole loop per frame, by sink set
-    # the whole loop / the in-process pipeline run right before it, by sink set (median ratio)
+    # the whole loop / the in-process pipeline interleaved with it, by sink set (median ratio)
     loop_vs_pipeline: dict[str, float] | None = None
     cpu_30fps: dict[str, float] | None = None
     startup: dict[str, float] | None = None
@@ -202,8 +202,9 @@ def format_report(r: BenchReport) -> str:
         )
     if r.loop_ms and r.loop_vs_pipeline:
         out.append(
-            "whole loop per frame (read, stages, sinks) / in-process pipeline (timed right "
-            "before each run; targets: null <= 1.2x, stdout + udp <= 1.5x): "
+            "whole loop per frame (read, stages, sinks) / in-process pipeline (interleaved: "
+            "one call after every 30 frames of the loop, median of the pairs; targets: null "
+            "<= 1.2x, stdout + udp <= 1.5x): "
             + ", ".join(
                 f"{k} {v:.3f} ms = {r.loop_vs_pipeline[k]:.2f}x" for k, v in r.loop_ms.items()
             )

@@ -193,13 +193,16 @@ def loop_cost(
 
     For each sink set of LOOP_SINKS the loop runs ``n_frames`` frames of ``spec`` at full speed
     (stdout goes to /dev/null, or to a pipe that another process reads; UDP to that process),
-    timed from the first frame's output to the last one's (start-up is timed on its own).
-    Right before each run, ``reference`` (the in-process pipeline) runs as many frames: on a busy
-    machine the two then see the same load, and their ratio holds where either time alone moves.
+    timed from one frame's output to the next (start-up and the end are left out), in blocks of
+    ``reference.frames_per_call`` frames. ``reference`` (the in-process pipeline) runs inside the
+    same run, one call (as many frames, one pose estimate, as a block) after every block, timed
+    apart (see _Clock): on a busy machine, where either time alone moves by half from one second
+    to the next, a block and its reference call see the same load.
 
     Returns:
-        (ms per frame, median over ``rounds`` runs; loop / reference, median over the runs'
-        ratios), each keyed by the set's name; the ratios are empty without ``reference``.
+        (ms per frame: median block of the ``rounds`` runs; loop / reference: median over the
+        blocks of block / its reference call), each keyed by the set's name; the ratios are
+        empty without ``reference``.
     """
     import logging
 
@@ -228,22 +231,21 @@ def loop_cost(
 
             for label, sinks in LOOP_SINKS.items():
                 cfg = Config(device=spec, sinks=sinks, daemon=DaemonParams(tilt_source="floor"))
-                per_frame, ratios = [], []
+                blocks: list[float] = []
+                ratios: list[float] = []
                 for i in range(rounds + 1):  # the first run builds the tables: not counted
-                    ref = _per_frame(reference, n_frames) if reference is not None else None
-                    clock = _Clock()
+                    clock = _Clock(reference)
 
                     def timed(name: str, clock: _Clock = clock) -> Any:
                         sink = make(name)
                         return clock.wrap(sink) if not clock.wrapped else sink
 
                     run(cfg, threading.Event(), n_frames, sink_factory=timed)
-                    loop = clock.per_frame_s()
                     if i:
-                        per_frame.append(loop)
-                        if ref is not None:
-                            ratios.append(loop / ref)
-                ms[label] = float(np.median(per_frame)) * 1e3
+                        clock.finish()
+                        blocks += [b / clock.block for b in clock.blocks]
+                        ratios += clock.ratios()
+                ms[label] = float(np.median(blocks)) * 1e3
                 if ratios:
                     ratio[label] = float(np.median(ratios))
     finally:
@@ -253,13 +255,27 @@ def loop_cost(
 
 
 class _Clock:
-    """Notes the time of every write to the loop's first sink: from one frame's write to the
-    next one's is a whole cycle of the loop (its other sinks, the next read and stages), so the
-    run's start (opening the recording, the first frame's tables) and end stay out."""
+    """Times the loop at every write to its first sink: from one frame's write to the next one's
+    is a whole cycle of the loop (its other sinks, the next read and stages), so the run's start
+    (opening the recording, the first frame's tables) and end stay out.
 
-    def __init__(self) -> None:
-        self.times: list[float] = []
+    Cycles are summed in blocks of ``reference.frames_per_call`` (as many pose estimates as one
+    call of the reference); after each block, at the start of a write, one call of ``reference``
+    runs, timed apart (the next cycle is timed from its end). A block and the call after it are
+    a pair measured within tens of milliseconds: their ratio holds where a busy machine moves
+    either alone by half, and the median over pairs leaves out the blocks another process
+    preempted (the stages' bench takes medians of samples likewise).
+    """
+
+    def __init__(self, reference: Work | None = None, block: int = 30) -> None:
+        self.reference = reference
+        self.block = reference.frames_per_call if reference is not None else block
         self.wrapped = False
+        self.blocks: list[float] = []  # seconds of each block of cycles
+        self.references: list[float] = []  # seconds of each reference call, after its block
+        self._cycles = 0
+        self._block_s = 0.0
+        self._last: float | None = None
 
     def wrap(self, inner: Any) -> Any:
         self.wrapped = True
@@ -269,7 +285,7 @@ class _Clock:
             name = inner.name
 
             def write(self, frame: Frame, result: Any) -> None:
-                clock.times.append(time.perf_counter())
+                clock.tick()
                 inner.write(frame, result)
 
             def __getattr__(self, attr: str) -> Any:
@@ -277,19 +293,46 @@ class _Clock:
 
         return Timed()
 
-    def per_frame_s(self) -> float:
-        if len(self.times) < 2:  # noqa: PLR2004 - two writes make one interval
+    def tick(self) -> None:
+        now = time.perf_counter()
+        if self._last is not None:
+            self._block_s += now - self._last
+            self._cycles += 1
+            if self._cycles % self.block == 0:
+                self.blocks.append(self._block_s)
+                self._block_s = 0.0
+                if self.reference is not None:
+                    self.reference.fn()
+                    done = time.perf_counter()
+                    self.references.append(done - now)
+                    now = done
+        self._last = now
+
+    def finish(self) -> None:
+        """After a run too short for one block: its cycles as one (scaled), and a reference
+        call after it.
+
+        Raises:
+            DepthnavError: the loop delivered fewer than 2 frames.
+        """
+        if self.blocks:
+            return
+        if not self._cycles:
             raise DepthnavError("the loop delivered fewer than 2 frames to time")
-        return (self.times[-1] - self.times[0]) / (len(self.times) - 1)
+        self.blocks.append(self._block_s * self.block / self._cycles)
+        if self.reference is not None:
+            t0 = time.perf_counter()
+            self.reference.fn()
+            self.references.append(time.perf_counter() - t0)
 
+    def per_frame_s(self) -> float:
+        """Median block / its cycles."""
+        self.finish()
+        return float(np.median(self.blocks)) / self.block
 
-def _per_frame(work: Work, n_frames: int) -> float:
-    """Seconds per frame of ``work`` over about ``n_frames`` frames."""
-    calls = max(1, n_frames // work.frames_per_call)
-    t0 = time.perf_counter()
-    for _ in range(calls):
-        work.fn()
-    return (time.perf_counter() - t0) / (calls * work.frames_per_call)
+    def ratios(self) -> list[float]:
+        """Each block / the reference call after it (the same number of frames)."""
+        return [b / r for b, r in zip(self.blocks, self.references, strict=False)]
 
 
 def _cpu_s(pid: int) -> float:

@@ -4,8 +4,8 @@ writes one).
 
 - the JSON line of the stdout and udp sinks (made once a frame and shared by both);
 - the rosbag sink writing a ROS 2 ``.mcap`` and a ROS 1 ``.bag`` (issue 13's budget: ~1 ms);
-- the ros2 sink's encoding: its messages and their CDR, padded as it hands them to DDS (issue
-  13's budget: 0.22 ms; the DDS write itself is cyclonedds' and left out);
+- the ros2 sink's encoding: its messages' CDR (sinks/ros_cdr.py), padded as it hands them to DDS
+  (issue 13's budget: 0.22 ms; the DDS write itself is cyclonedds' and left out);
 - the foxglove sink writing its channels to an ``.mcap``, without and with the depth image.
 
 The files go to a temporary folder removed at the end.
@@ -19,7 +19,6 @@ import tempfile
 import time
 from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
-from typing import Any
 
 import orjson
 
@@ -31,6 +30,7 @@ from depthnav_daemon.pipeline import Result, StageParams, process
 from depthnav_daemon.pipeline.geometry import Mount
 from depthnav_daemon.sinks import create_sink, jsonmsg
 from depthnav_daemon.sinks.base import Sink, SinkContext
+from depthnav_daemon.sinks.ros_cdr import CdrEncoder
 from depthnav_daemon.sinks.ros_messages import NAME_OPTIONS, MessageBuilder, RosNames, typestore
 from drivers.base import DeviceInfo, Frame
 
@@ -128,23 +128,12 @@ def _writes(sink: Sink, pairs: Sequence[tuple[Frame, Result]]) -> Callable[[], o
 
 
 def _ros2_encode(pairs: Sequence[tuple[Frame, Result]]) -> Callable[[], object]:
-    """What sinks/ros2.py does per frame before cyclonedds' write."""
+    """What sinks/ros2.py does per frame before cyclonedds' write: its CdrEncoder (templates
+    made on the first frame, as the sink makes them)."""
     builder = MessageBuilder(typestore(ros1=False), RosNames(dict(NAME_OPTIONS)))
     store = builder.store
     for msgtype in builder.msgtypes().values():
         store.get_msgdef(msgtype)  # as the sink does at open
+    encoder = CdrEncoder(builder)
     nxt = _cycle(pairs)
-
-    def encode() -> Any:
-        frame, result = nxt()
-        _, messages = builder.messages(frame, result, t_ns=time.time_ns())
-        out = []
-        for _, msg in messages:
-            data = bytearray(store.serialize_cdr(msg, msg.__msgtype__))
-            pad = -len(data) % 4
-            data += bytes(pad)
-            data[3] |= pad
-            out.append(data)
-        return out
-
-    return encode
+    return lambda: encoder.encode(*nxt(), t_ns=time.time_ns())

@@ -22,10 +22,11 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import orjson
 
-from depthnav_daemon.sinks.json_numbers import mm_json
+from depthnav_daemon.sinks.json_numbers import lists_json, mm_json
 
 if TYPE_CHECKING:
     from depthnav_daemon.pipeline import Result
+    from depthnav_daemon.pipeline.geometry import Mount
     from depthnav_daemon.pipeline.scan import LaserScan
     from drivers.base import Frame
 
@@ -103,8 +104,9 @@ def decode_ranges(values: Sequence[float | str | None]) -> np.ndarray:
     return out
 
 
-def scan_to_json(scan: LaserScan) -> dict[str, Any]:
-    """A LaserScan as a dict with sensor_msgs/LaserScan field names (radians, metres)."""
+def scan_to_json(scan: LaserScan, ranges: orjson.Fragment | None = None) -> dict[str, Any]:
+    """A LaserScan as a dict with sensor_msgs/LaserScan field names (radians, metres);
+    ``ranges``: its ranges' JSON when already written."""
     a_min, a_max, a_inc, r_min, r_max = _scan_geometry(
         scan.angle_min, scan.angle_max, scan.angle_increment, scan.range_min, scan.range_max
     )
@@ -114,7 +116,7 @@ def scan_to_json(scan: LaserScan) -> dict[str, Any]:
         "angle_increment": a_inc,
         "range_min": r_min,
         "range_max": r_max,
-        "ranges": ranges_json(scan.ranges),
+        "ranges": ranges_json(scan.ranges) if ranges is None else ranges,
     }
 
 
@@ -133,9 +135,41 @@ def _scan_geometry(
     )
 
 
-def _cliff_to_json(cliff: Any, max_points: int | None, trusted: bool = True) -> dict[str, Any]:
+def _frame_lists(result: Result) -> tuple[orjson.Fragment, ...] | None:
+    """The JSON of the scan's ranges, and of the cliff's points and ranges, written by one
+    kernel call (one call per list cost microseconds each); None when the kernel cannot write
+    them (a cliff point that is not finite, a range beyond 1e12 m): then they are written one by
+    one."""
+    scan, cliff = result.scan, result.cliff
+    if np.ndim(scan.ranges) != 1:
+        return None
+    if cliff is None:
+        texts = lists_json(scan.ranges)
+        return None if texts is None else (orjson.Fragment(texts[0]),)
+    if np.ndim(cliff.scan.ranges) != 1:
+        return None
+    texts = lists_json(scan.ranges, np.asarray(cliff.points_m).reshape(-1, 2), cliff.scan.ranges)
+    return None if texts is None else tuple(orjson.Fragment(t) for t in texts)
+
+
+def _cliff_to_json(
+    cliff: Any,
+    max_points: int | None,
+    trusted: bool = True,
+    lists: tuple[orjson.Fragment, ...] | None = None,
+) -> dict[str, Any]:
     """The cliff object; keeps the ``max_points`` floor points nearest the sensor when capped.
-    ``trusted`` False flags its drop-offs (the mount they rest on is not trusted)."""
+    ``trusted`` False flags its drop-offs (the mount they rest on is not trusted). ``lists``:
+    its points' and ranges' JSON when already written (all points finite, not capped)."""
+    if lists is not None:
+        total = np.size(cliff.points_m) // 2
+        return {
+            "points_m": lists[0],
+            "points_total": total,
+            "points_dropped": 0,
+            "scan": scan_to_json(cliff.scan, lists[1]),
+            "trusted": trusted,
+        }
     pts = np.asarray(cliff.points_m, dtype=np.float64).reshape(-1, 2)
     total = int(pts.shape[0])
     if max_points is not None and total > max_points:
@@ -220,19 +254,25 @@ def mount_trust_to_json(result: Result) -> dict[str, Any] | None:
     }
 
 
+@functools.lru_cache(maxsize=16)
+def _mount_json(m: Mount, source: str) -> tuple[tuple[str, Any], ...]:
+    """The pose object's mount part: the same frame after frame (a mount changes seldom), so
+    rounded once (six rounds were a tenth of the line's cost)."""
+    return (
+        ("height_m", _num(m.height_m, MM)),
+        ("tilt_deg", _num(m.tilt_deg, DEG)),
+        ("roll_deg", _num(m.roll_deg, DEG)),
+        ("x_m", _num(m.x_m, MM)),
+        ("y_m", _num(m.y_m, MM)),
+        ("yaw_deg", _num(m.yaw_deg, DEG)),
+        ("source", source),
+        ("estimate", None),
+    )
+
+
 def _pose_to_json(result: Result) -> dict[str, Any]:
     """The mount used for this frame, where it came from, and this frame's floor estimate if any."""
-    m = result.mount
-    out: dict[str, Any] = {
-        "height_m": _num(m.height_m, MM),
-        "tilt_deg": _num(m.tilt_deg, DEG),
-        "roll_deg": _num(m.roll_deg, DEG),
-        "x_m": _num(m.x_m, MM),
-        "y_m": _num(m.y_m, MM),
-        "yaw_deg": _num(m.yaw_deg, DEG),
-        "source": result.mount_source,
-        "estimate": None,
-    }
+    out = dict(_mount_json(result.mount, result.mount_source))
     est = result.pose
     if est is not None:
         out["estimate"] = {
@@ -271,16 +311,23 @@ def frame_message(
     Returns:
         A dict ready for :func:`dumps`.
     """
+    # every list in one kernel call, unless points are capped
+    lists = _frame_lists(result) if max_cliff_points is None else None
     return {
         "v": SCHEMA_VERSION,
         "version": version,
         "seq": int(result.seq),
         "t_s": _num(result.timestamp_s, SEC),
         "wall_s": _num(wall_time_s, SEC),
-        "scan": scan_to_json(result.scan),
+        "scan": scan_to_json(result.scan, None if lists is None else lists[0]),
         "cliff": None
         if result.cliff is None
-        else _cliff_to_json(result.cliff, max_cliff_points, dropoffs_trusted(result)),
+        else _cliff_to_json(
+            result.cliff,
+            max_cliff_points,
+            dropoffs_trusted(result),
+            None if lists is None else lists[1:],
+        ),
         "pose": _pose_to_json(result),
         "mount": mount_trust_to_json(result),
         "memory": memory_to_json(result.memory),

@@ -45,6 +45,7 @@ from depthnav_daemon.sinks.base import (
     check_options,
     number_option,
 )
+from depthnav_daemon.sinks.ros_cdr import CdrEncoder
 from depthnav_daemon.sinks.ros_messages import (
     NAME_OPTIONS,
     OPTIONS,
@@ -178,6 +179,7 @@ class Ros2Sink:
         self._participant: Any = None
         self._writers: dict[str, Any] = {}  # ROS topic -> DataWriter
         self._builder: MessageBuilder | None = None
+        self._encoder: CdrEncoder | None = None
         self._write: Any = None
         self.failures = RateLimitedLog(log)
         self.samples = 0
@@ -243,6 +245,7 @@ class Ros2Sink:
                 "message, if any, is above)",
                 hint="check CYCLONEDDS_URI (network interface, peers) and the domain",
             ) from None
+        self._encoder = CdrEncoder(self._builder)
         self._write = ddspy_write
         log.info(
             "ros2 sink publishing %s on DDS domain %d",
@@ -252,15 +255,10 @@ class Ros2Sink:
 
     def write(self, frame: Frame, result: Result) -> None:
         """Serialise and publish the frame's messages; never waits for a subscriber."""
-        if self._builder is None or self._write is None:
+        if self._encoder is None or self._write is None:
             raise SinkError(f"sink {self.name!r} is not open")
-        store = self._builder.store
-        _, messages = self._builder.messages(frame, result, t_ns=time.time_ns())
-        for topic, msg in messages:
-            data = bytearray(store.serialize_cdr(msg, msg.__msgtype__))
-            pad = -len(data) % 4  # DDS wants whole 4-byte words; the header's options say so
-            data += bytes(pad)
-            data[3] |= pad
+        # rosbags' CDR of the messages, padded to whole 4-byte words (sinks/ros_cdr.py)
+        for topic, data in self._encoder.encode(frame, result, t_ns=time.time_ns()):
             # cyclonedds' DataWriter.write serialises a sample in Python and hands the bytes to
             # this call: we hand it rosbags' CDR of the same layout (checked in the tests)
             rc = self._write(self._writers[topic]._ref, data)
@@ -274,6 +272,7 @@ class Ros2Sink:
         participant, self._participant = self._participant, None
         self._writers = {}
         self._write = None
+        self._encoder = None
         if participant is not None:
             # cyclonedds deletes an entity (and what it contains) in its finaliser: run it now,
             # so the other side hears the participant leave at close, not at garbage collection

@@ -261,8 +261,13 @@ class StdoutSink:
             fcntl.ioctl(self._fd, termios.FIONREAD, unread, True)
         except OSError:
             return 0
-        # a pipe holds whole pages: the page being read and the one being filled count as used
-        return self._pipe_size - unread[0] - 2 * PAGE_BYTES
+        # a pipe holds pages, and a write may leave the last one part empty (so lines of 3.1
+        # pages take 4): unread bytes may use up to twice their pages, plus the page being read
+        # and the one being filled; our write may need one page more than its bytes. Counting
+        # the bytes only, a pipe made larger than 64 KiB (by the reader, before we start) took a
+        # write it then blocked in, for good when the reader had stalled.
+        pages = -(-unread[0] // PAGE_BYTES)
+        return self._pipe_size - PAGE_BYTES * (2 * pages + 3)
 
     def _raise_error(self) -> None:
         exc, self._error = self._error, None

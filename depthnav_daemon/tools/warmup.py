@@ -64,7 +64,8 @@ def warm_up() -> float:
     # and the whole per-frame path once, as the daemon calls it
     estimate_pose(frame.depth_mm, intr, pose, rng)
     process(frame, mount, StageParams(scan=ScanParams(), cliff=CliffParams(used_depth_height=100)))
-    mm_json(np.zeros(2))  # the stdout/udp sinks' number writer
+    for dtype in (np.float64, np.float32):  # the stdout/udp sinks' number writer
+        mm_json(np.zeros(2, dtype))
     return time.perf_counter() - t0
 
 

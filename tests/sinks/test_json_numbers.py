@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import math
+from dataclasses import replace
 
 import numpy as np
 import orjson
@@ -99,3 +100,67 @@ def test_udp_mm_ranges_from_the_written_text(pairs) -> None:
     got = json.loads(data)["scan"]["ranges"]
     want = jsonmsg.encode_ranges(result.scan.ranges)
     assert got == [round(v * 1000) if isinstance(v, float) else v for v in want]
+
+
+def test_the_line_written_in_one_kernel_call_is_the_reference_encoders_line(pairs) -> None:
+    """Both scans and the cliff points come from one kernel call: the line is the one the
+    reference encoders make, with special ranges, non-finite or no cliff points, and no cliff."""
+    frame, result = pairs[2]
+    assert result.cliff is not None and len(result.cliff.points_m) > 3
+    ranges = result.scan.ranges.copy()
+    ranges[:4] = [np.nan, np.inf, -np.inf, -0.0]
+    special = with_ranges(result, ranges)
+    cliff = result.cliff
+    bad_pts = np.array(cliff.points_m, dtype=np.float32)
+    bad_pts[1] = [np.nan, 1.0]
+    cliff_ranges = np.array(cliff.scan.ranges, dtype=np.float32)
+    cliff_ranges[-3:] = [np.nan, -np.inf, 123.4567]
+    cases = [
+        result,
+        special,
+        replace(result, cliff=replace(cliff, points_m=bad_pts)),
+        replace(result, cliff=replace(cliff, points_m=np.zeros((0, 2), np.float32))),
+        replace(result, cliff=replace(cliff, scan=replace(cliff.scan, ranges=cliff_ranges))),
+        replace(result, cliff=None),
+    ]
+    for i, res in enumerate(cases):
+        want = jsonmsg.frame_message(frame, res, "1", 5.0)
+        want["scan"]["ranges"] = jsonmsg.encode_ranges(res.scan.ranges)
+        if res.cliff is not None:
+            pts = np.asarray(res.cliff.points_m, dtype=np.float64).reshape(-1, 2)
+            finite = pts[np.isfinite(pts).all(axis=1)]
+            want["cliff"]["points_m"] = np.round(finite, 3).tolist()
+            want["cliff"]["points_total"] = len(pts)
+            want["cliff"]["points_dropped"] = len(pts) - len(finite)
+            want["cliff"]["scan"]["ranges"] = jsonmsg.encode_ranges(res.cliff.scan.ranges)
+        assert jsonmsg.frame_json(frame, res, "1", 5.0) == orjson.dumps(want), i
+
+
+WARM_THEN_WRITE = """
+from dataclasses import replace
+from depthnav_daemon.sinks import jsonmsg
+from depthnav_daemon.sinks.json_numbers import _write_lists
+from depthnav_daemon.tools import warmup
+from tests.sinks.conftest import make_pair
+warmup.warm_up()
+before = len(_write_lists.signatures)
+frame, result = make_pair(0)
+jsonmsg.frame_json(frame, result, "1", 1.0)
+jsonmsg.frame_json(frame, replace(result, cliff=None), "1", 1.0)
+print(before, len(_write_lists.signatures))
+"""
+
+
+def test_warm_up_compiles_the_writer_for_every_line_the_sinks_write() -> None:
+    """In a fresh process: after the warm-up, a frame's line (float32 lists from the stages)
+    compiles nothing more (a compile at the first frame stalls it for seconds)."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[2]
+    out = subprocess.run(
+        [sys.executable, "-c", WARM_THEN_WRITE],
+        cwd=root, capture_output=True, text=True, timeout=600, check=True,
+    ).stdout.split()  # fmt: skip
+    assert len(out) == 2 and int(out[0]) >= 2 and out[0] == out[1], out

@@ -231,3 +231,34 @@ def test_a_file_gets_every_line_written_by_the_loop_itself(pairs, context, tmp_p
         assert len(out.read_bytes().splitlines()) == 5  # on disk before close
         sink.close()
     assert [json.loads(line)["seq"] for line in out.read_text().splitlines()] == list(range(5))
+
+
+def test_a_stalled_reader_of_a_pipe_made_large_never_blocks_the_frame_loop(pairs, context):
+    """The reader made the pipe 1 MiB before depthnav started (tools that read fast do), then
+    stopped reading: a write the loop makes itself must still never block (a pipe's pages hold
+    less than their bytes when lines leave them part empty)."""
+    import fcntl
+    import threading
+
+    r, w = os.pipe()
+    try:
+        fcntl.fcntl(w, fcntl.F_SETPIPE_SZ, 1 << 20)
+    except OSError:
+        pytest.skip("this system does not let a pipe grow to 1 MiB (fs/pipe-max-size)")
+    with os.fdopen(w, "w") as writer:
+        sink = StdoutSink(stream=writer)
+        sink.open(context)
+        loop = threading.Thread(
+            target=lambda: [sink.write(f, res) for f, res in _many(pairs, 200)], daemon=True
+        )
+        loop.start()
+        loop.join(120)  # one wait of STALL_S for room, then skips: seconds, not forever
+        assert not loop.is_alive(), "the frame loop blocked in a write to the full pipe"
+        assert sink._skipped.count > 0
+        sink.close()  # gives up on a reader that does not read
+    data = b""
+    while chunk := os.read(r, 1 << 20):  # the line stuck in the pipe is finished as it is read
+        data += chunk
+    os.close(r)
+    seqs = [json.loads(line)["seq"] for line in data.splitlines()]
+    assert seqs == list(range(len(seqs))) and 0 < len(seqs) < 200
