@@ -21,7 +21,7 @@ log = logging.getLogger(__name__)
 
 EXIT_OK, EXIT_FAIL, EXIT_USAGE, EXIT_INTERRUPTED = 0, 1, 2, 130
 # measured with an empty NUMBA_CACHE_DIR on a 2-core machine: 10.6 s idle, 30 s at load average 5
-FIRST_COMPILE_S = (10, 30)
+FIRST_COMPILE_S = (20, 70)  # measured: 23.5 s idle, 67 s at load average 3-4 (README)
 
 
 def overrides(args: argparse.Namespace, device: str | None = None) -> dict[str, Any]:
