@@ -75,16 +75,13 @@ def _open_work(frames: Sequence[Frame], mount: Mount) -> Iterator[list[Work]]:
         for name, spec in (
             ("rosbag sink, ROS 2 .mcap (messages, CDR, write)", f"rosbag:{folder / 'b.mcap'}"),
             ("rosbag sink, ROS 1 .bag (messages, serialise, write)", f"rosbag:{folder / 'b.bag'}"),
-        ):
-            sink = _open(spec, context)
-            if sink is not None:
-                opened.append(sink)
-                work.append(Work(name, _writes(sink, pairs)))
-        work.append(Work("ros2 sink encoding (messages, CDR; no DDS write)", _ros2_encode(pairs)))
-        for name, spec in (
+            ("ros2 sink encoding (messages, CDR; no DDS write)", None),  # no sink: its encoder
             ("foxglove sink to .mcap, image=0", f"foxglove:{folder / 'f.mcap'}?image=0"),
             ("foxglove sink to .mcap, with the depth image", f"foxglove:{folder / 'g.mcap'}"),
         ):
+            if spec is None:
+                work.append(Work(name, _ros2_encode(pairs)))
+                continue
             sink = _open(spec, context)
             if sink is not None:
                 opened.append(sink)
