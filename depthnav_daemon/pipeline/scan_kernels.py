@@ -339,69 +339,6 @@ def exact_scan_kernel(
 
 
 @kernel
-def bin_map_kernel(centre, lo_b, hi_b, sane, angle_min, inc, g_lo, g_hi, cb_lo, cb_hi):
-    """The exact scan's bin map (table building, once per mount; see scan._bin_map).
-
-    Args:
-        centre, lo_b, hi_b: (Hs, Ws) float64 bearing of each pixel's centre and footprint edges.
-        sane: (Hs, Ws) bool pixels to use.
-        angle_min, inc: bin b is centred on angle_min + b * inc.
-        g_lo, g_hi: (Hs, n) int64, overwritten: first and last column feeding each bin (Ws, -1:
-            none).
-        cb_lo, cb_hi: (Hs, Ws) int64, overwritten: first and last bin a column feeds (n, -1: none).
-    """
-    hs, ws = centre.shape
-    n = g_lo.shape[1]
-    cols = np.empty(ws, np.int64)
-    lo_r = np.empty(ws, np.float64)
-    hi_r = np.empty(ws, np.float64)
-    for i in range(hs):
-        for b in range(n):
-            g_lo[i, b] = ws
-            g_hi[i, b] = -1
-        for j in range(ws):
-            cb_lo[i, j] = n
-            cb_hi[i, j] = -1
-        for j in range(ws):
-            if sane[i, j]:
-                b = min(max(np.int64(np.floor((centre[i, j] - angle_min) / inc + 0.5)), 0), n - 1)
-                g_lo[i, b] = min(g_lo[i, b], j)
-                g_hi[i, b] = max(g_hi[i, b], j)
-                cb_lo[i, j] = b
-                cb_hi[i, j] = b
-        m = 0
-        for j in range(ws - 1, -1, -1):  # bearings fall with the column: rising order
-            if sane[i, j]:
-                cols[m] = j
-                lo_r[m] = lo_b[i, j]
-                hi_r[m] = hi_b[i, j]
-                m += 1
-        if m == 0:
-            continue
-        # bins without a pixel centre in this row: the pixel whose footprint covers the bin centre
-        for b in range(n):
-            if g_hi[i, b] >= 0:
-                continue
-            c_b = angle_min + inc * b
-            lo_k = 0  # searchsorted(lo_r[:m], c_b, side="right")
-            hi_k = m
-            while lo_k < hi_k:
-                mid = (lo_k + hi_k) // 2
-                if lo_r[mid] <= c_b:
-                    lo_k = mid + 1
-                else:
-                    hi_k = mid
-            k = lo_k - 1
-            kk = min(max(k, 0), m - 1)
-            if k >= 0 and c_b <= hi_r[kk]:
-                c = cols[kk]
-                g_lo[i, b] = c
-                g_hi[i, b] = c
-                cb_lo[i, c] = min(cb_lo[i, c], b)
-                cb_hi[i, c] = max(cb_hi[i, c], b)
-
-
-@kernel
 def paper_scan_kernel(
     depth, row0, row_step, lo_mm, hi_mm, factor, range_per_z, index, scratch, out
 ):

@@ -21,12 +21,8 @@ from depthnav_daemon.pipeline.geometry import (
     normalized_coords,
 )
 from depthnav_daemon.pipeline.scan_blocks import block_tables
-from depthnav_daemon.pipeline.scan_kernels import (
-    MAX_CODE_INDEX,
-    bin_map_kernel,
-    run_flush_codes,
-)
-from depthnav_daemon.pipeline.table_kernels import exact_table_kernel
+from depthnav_daemon.pipeline.scan_kernels import MAX_CODE_INDEX, run_flush_codes
+from depthnav_daemon.pipeline.table_kernels import bin_map_kernel, exact_table_kernel
 from drivers.base import Intrinsics
 
 if TYPE_CHECKING:

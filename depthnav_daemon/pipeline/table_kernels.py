@@ -1,5 +1,5 @@
-"""Compiled table builders (once per mount): the exact scan's per-pixel thresholds and bearings,
-and the pose stage's prior envelope.
+"""Compiled table builders (once per mount): the exact scan's per-pixel thresholds, bearings and
+bin map, and the pose stage's prior envelope.
 
 numpy took 50-70 ms for these at 640x480 (arctan2 and a dozen full-size temporaries); a mount
 change rebuilt them on the frame path. The arithmetic is written out operation by operation, in
@@ -175,3 +175,66 @@ def pose_envelope_kernel(rx, ry, rz, rows_kz, lo_kz, hi_kz):
                 down = -(rx[i, j] * a + ry[i, j] * b + rz[i, j] * c)
                 lo_kz[i, j] = _fmin(lo_kz[i, j], down)
                 hi_kz[i, j] = _fmax(hi_kz[i, j], down)
+
+
+@kernel
+def bin_map_kernel(centre, lo_b, hi_b, sane, angle_min, inc, g_lo, g_hi, cb_lo, cb_hi):
+    """The exact scan's bin map (once per mount; see scan_table._bin_map).
+
+    Args:
+        centre, lo_b, hi_b: (Hs, Ws) float64 bearing of each pixel's centre and footprint edges.
+        sane: (Hs, Ws) bool pixels to use.
+        angle_min, inc: bin b is centred on angle_min + b * inc.
+        g_lo, g_hi: (Hs, n) int64, overwritten: first and last column feeding each bin (Ws, -1:
+            none).
+        cb_lo, cb_hi: (Hs, Ws) int64, overwritten: first and last bin a column feeds (n, -1: none).
+    """
+    hs, ws = centre.shape
+    n = g_lo.shape[1]
+    cols = np.empty(ws, np.int64)
+    lo_r = np.empty(ws, np.float64)
+    hi_r = np.empty(ws, np.float64)
+    for i in range(hs):
+        for b in range(n):
+            g_lo[i, b] = ws
+            g_hi[i, b] = -1
+        for j in range(ws):
+            cb_lo[i, j] = n
+            cb_hi[i, j] = -1
+        for j in range(ws):
+            if sane[i, j]:
+                b = min(max(np.int64(np.floor((centre[i, j] - angle_min) / inc + 0.5)), 0), n - 1)
+                g_lo[i, b] = min(g_lo[i, b], j)
+                g_hi[i, b] = max(g_hi[i, b], j)
+                cb_lo[i, j] = b
+                cb_hi[i, j] = b
+        m = 0
+        for j in range(ws - 1, -1, -1):  # bearings fall with the column: rising order
+            if sane[i, j]:
+                cols[m] = j
+                lo_r[m] = lo_b[i, j]
+                hi_r[m] = hi_b[i, j]
+                m += 1
+        if m == 0:
+            continue
+        # bins without a pixel centre in this row: the pixel whose footprint covers the bin centre
+        for b in range(n):
+            if g_hi[i, b] >= 0:
+                continue
+            c_b = angle_min + inc * b
+            lo_k = 0  # searchsorted(lo_r[:m], c_b, side="right")
+            hi_k = m
+            while lo_k < hi_k:
+                mid = (lo_k + hi_k) // 2
+                if lo_r[mid] <= c_b:
+                    lo_k = mid + 1
+                else:
+                    hi_k = mid
+            k = lo_k - 1
+            kk = min(max(k, 0), m - 1)
+            if k >= 0 and c_b <= hi_r[kk]:
+                c = cols[kk]
+                g_lo[i, b] = c
+                g_hi[i, b] = c
+                cb_lo[i, c] = min(cb_lo[i, c], b)
+                cb_hi[i, c] = max(cb_hi[i, c], b)

@@ -427,7 +427,7 @@ def test_warm_up_compiles_every_kernel_the_daemon_path_calls() -> None:
     kernels = [
         scan_kernels.exact_scan_kernel,
         scan_kernels.paper_scan_kernel,
-        scan_kernels.bin_map_kernel,
+        table_kernels.bin_map_kernel,
         cliff_kernels.cliff_kernel,
         pose_kernels.count_candidates_kernel,
         pose_kernels.candidates_kernel,
