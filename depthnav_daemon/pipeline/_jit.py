@@ -21,7 +21,13 @@ os.environ.setdefault(
 from numba import njit
 
 # Every kernel: compiled once, cached on disk, releases the GIL, no bounds checks in the hot loops.
-_njit = njit(cache=True, nogil=True, boundscheck=False, error_model="numpy")
+_OPTIONS: dict[str, Any] = {
+    "cache": True,
+    "nogil": True,
+    "boundscheck": False,
+    "error_model": "numpy",
+}
+_njit = njit(**_OPTIONS)
 
 KERNELS: list[Any] = []  # every kernel's dispatcher, so a first run can report its compiling
 
@@ -43,7 +49,7 @@ def inlined(fn: Callable[..., Any]) -> Any:
     """A helper that numba inlines into every caller before LLVM sees it: for small functions
     called per block of a row, where a call (its arrays passed field by field on the stack)
     costs as much as the work, and where the caller's loops vectorise better with it inline."""
-    return njit(cache=True, nogil=True, boundscheck=False, error_model="numpy", inline="always")(fn)
+    return njit(**_OPTIONS, inline="always")(fn)
 
 
 __all__ = ["KERNELS", "helper", "inlined", "kernel"]
