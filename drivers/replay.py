@@ -198,9 +198,11 @@ class ReplayDriver:
 
         def items() -> Iterator[Item]:
             for i, frame in enumerate(depth):
-                accel = None if rec.accel_mps2 is None else tuple(map(float, rec.accel_mps2[i]))
-                odom = None if rec.odom is None else tuple(map(float, rec.odom[i]))
-                yield float(rec.timestamp_s[i]), frame, accel, None, odom  # type: ignore[misc]
+                # a row's tolist() makes Python floats at once (map(float, row) cost ~1.8 us a
+                # frame, a percent of the frame loop)
+                accel = None if rec.accel_mps2 is None else tuple(rec.accel_mps2[i].tolist())
+                odom = None if rec.odom is None else tuple(rec.odom[i].tolist())
+                yield rec.timestamp_s.item(i), frame, accel, None, odom  # type: ignore[misc]
 
         return items(), intr, rec.description or self.path.name
 

@@ -231,3 +231,21 @@ def test_a_frame_served_with_the_old_mount_while_tables_build_is_not_trusted() -
     held = _pending(confirmed, TRUE_MOUNT, wanted)
     assert not held.dropoffs_trusted and held.floor == "confirmed"
     assert "pending" in held.note and "0.50 m" in held.note and "0.70 m" in held.note
+
+
+def test_the_verdict_is_made_once_and_anew_when_what_it_rests_on_changes() -> None:
+    from depthnav_daemon.daemon.mount_tracker import MountTracker, TrackerParams
+
+    tracker = MountTracker(TRUE_MOUNT, TrackerParams())
+    first = tracker.trust()
+    assert tracker.trust() is first  # nothing changed: the same frozen verdict
+    tracker.check_floor(0.9, 30.0, 0.0)  # the floor contradicts the mount
+    contradicted = tracker.trust()
+    assert contradicted.floor == "contradicted" and contradicted.floor_height_m == 0.9
+    assert tracker.trust() is contradicted
+    tracker.mount = Mount(0.6, 12.0, 0.0)  # the mount in use moved: its note names the new one
+    assert "0.60 m" in (tracker.trust().note or "")
+    tracker.check_floor(0.6, 12.0, 0.0)
+    assert tracker.trust().floor == "confirmed" and tracker.trust().dropoffs_trusted
+    tracker.from_floor(0.6, 12.0, 0.0)  # the source changes to the floor
+    assert tracker.trust().source == "floor"
