@@ -13,7 +13,14 @@ import orjson
 import pytest
 
 from depthnav_daemon.sinks import jsonmsg
-from depthnav_daemon.sinks.json_numbers import mm_json
+from depthnav_daemon.sinks.json_numbers import (
+    _TEXTS,
+    CHARS_PER_VALUE,
+    TABLE_K,
+    _write_lists,
+    lists_json,
+    mm_json,
+)
 from tests.sinks.conftest import with_ranges
 
 
@@ -26,6 +33,109 @@ def test_a_pinned_list() -> None:
     want = b'[null,"Infinity","-Infinity",1.235,0.0,2.5,12.0,-0.0,0.1]'
     assert mm_json(r) == want == reference(r)
     assert mm_json(np.zeros(0)) == b"[]" == reference(np.zeros(0))
+
+
+def pairs_reference(points: np.ndarray) -> bytes:
+    return orjson.dumps(np.round(np.asarray(points, np.float64), 3).tolist())
+
+
+def test_the_table_holds_the_text_of_every_millimetre_below_100_m() -> None:
+    """Entry k of the table: the text of k / 1000 as Python (and orjson) write that float, a
+    comma, and its length in the top byte."""
+    assert TABLE_K == 100_000 and _TEXTS.dtype == np.uint64 and _TEXTS.shape == (TABLE_K,)
+    rows = _TEXTS.astype("<u8").view(np.uint8).reshape(-1, 8)
+    for k in range(TABLE_K):
+        text = (repr(k / 1000) + ",").encode()
+        assert rows[k, 7] == len(text) and rows[k, : len(text)].tobytes() == text, k
+
+
+BOUNDARIES = [
+    0.0, -0.0, 0.0004, 0.0005, 0.0015, -0.0004, -0.0005, 0.001, 0.999, 0.9995, 1.0,
+    9.999, 9.9994, 9.9995, 10.0, 10.001, 99.0, 99.999, 99.9994, 99.99949, 99.9995, 99.9996,
+    100.0, 100.0004, 100.0005, 100.001, 100.999, 101.0, 999.9995, 1000.0, 12345.678,
+    999_999_999_999.999, 0.1, 1e-300, 5e-324,
+]  # fmt: skip
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_values_at_the_bounds_of_the_table_and_of_rounding(dtype: type) -> None:
+    """0.0005 rounds as np.round does, -0.0004 is "-0.0", 99.9995 leaves the table (100.0 m and
+    beyond are written digit by digit), and each with either sign, flat and as pairs."""
+    v = np.array(BOUNDARIES + [-b for b in BOUNDARIES], dtype)
+    assert mm_json(v) == reference(v)
+    assert mm_json(v[::-1]) == reference(v[::-1])
+    pts = v.reshape(-1, 2)
+    assert mm_json(pts, pairs=True) == pairs_reference(pts)
+    assert lists_json(v, pts, v[::-1]) == (reference(v), pairs_reference(pts), reference(v[::-1]))
+    for x in v:  # one at a time: each a list of its own
+        assert mm_json(np.array([x], dtype)) == reference(np.array([x], dtype)), x
+    # as np.round rounds: half to even for the float64 0.0005 (0.5 mm), while the float32 nearest
+    # 0.0005 lies above it and the one nearest 99.9995 below
+    pinned = mm_json(np.array([0.0005, -0.0004, 9.9995, 99.9995, -99.999, 100.0], dtype))
+    if dtype == np.float64:
+        assert pinned == b"[0.0,-0.0,10.0,100.0,-99.999,100.0]"
+    else:
+        assert pinned == b"[0.001,-0.0,10.0,99.999,-99.999,100.0]"
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_every_entry_of_the_table_and_the_values_rounded_into_it(dtype: type) -> None:
+    """Every millimetre below the table's end (and a little beyond), and values up to 0.4 mm
+    either side of it, of either sign: flat, as pairs, and all three lists of one call."""
+    k = np.arange(TABLE_K + 1001)
+    for offset in (0.0, 0.0004, -0.0004):
+        v = (k / 1000 + offset).astype(dtype)
+        for sign in (1, -1):
+            flat = sign * v
+            assert mm_json(flat) == reference(flat), (offset, sign)
+            pts = flat[: flat.size // 2 * 2].reshape(-1, 2)
+            texts = lists_json(flat[:5000], pts, flat[-5000:])
+            assert texts == (
+                reference(flat[:5000]),
+                pairs_reference(pts),
+                reference(flat[-5000:]),
+            ), (offset, sign)
+
+
+@pytest.mark.parametrize("size", [0, 1, 2, 3, 2000])
+def test_the_longest_texts_stay_within_the_buffer(size: int) -> None:
+    """Lists of nothing but the longest texts (-999999999999.999, "-Infinity"), flat and as
+    pairs: the kernel's fixed 8-byte stores stay within the buffer lists_json gives it (a guard
+    after it stays untouched), and the text is the reference's."""
+    empty = np.zeros(0)
+    longest = np.full(size, -999_999_999_999.999)
+    cases = [
+        (longest, empty, empty),
+        (empty, longest, empty),
+        (empty, empty, np.full(size, -math.inf)),
+        (longest, longest, longest),
+    ]
+    for lists in cases:
+        room = CHARS_PER_VALUE * sum(a.size for a in lists) + 12  # as lists_json allocates
+        buffer = np.full(2 * room + 64, 0xAB, np.uint8)  # a guard as long: a clean failure
+        n, a, b = _write_lists(*lists, _TEXTS, buffer[:room])
+        assert 0 < n <= room and (buffer[room:] == 0xAB).all(), size
+        text = buffer[:n].tobytes()
+        pairs = lists[1][: size // 2 * 2].reshape(-1, 2)
+        if size % 2 == 0:
+            assert text[a:b] == pairs_reference(pairs)
+        assert text[:a] == reference(lists[0]) and text[b:] == reference(lists[2])
+    assert mm_json(np.array([1e12])) is None  # k = 1e15: the reference path's
+    assert mm_json(np.array([-999_999_999_999.9994])) == b"[-999999999999.999]"
+
+
+def test_an_odd_count_of_pair_values_and_lists_not_given() -> None:
+    """The kernel's pairs list holds a last pair of one value for an odd count, and the lists
+    not given are "[]" (as the writer wrote them before the table)."""
+    assert lists_json(np.zeros(0), np.array([1.0, 2.0, 3.0])) == (
+        b"[]",
+        b"[[1.0,2.0],[3.0]]",
+        b"[]",
+    )
+    assert lists_json(np.array([1.5])) == (b"[1.5]", b"[]", b"[]")
+    assert lists_json(np.array([1.5], np.float32), None, [2.25]) == (b"[1.5]", b"[]", b"[2.25]")
+    assert mm_json(np.array([np.copysign(math.nan, -1.0), -math.inf])) == b'[null,"-Infinity"]'
+    assert lists_json(np.zeros(0), np.array([[1.0, math.inf]])) is None
 
 
 def test_every_millimetre_up_to_2_km_is_written_as_orjson_writes_it() -> None:
