@@ -242,6 +242,21 @@ def mount_trust_to_json(result: Result) -> dict[str, Any] | None:
     t = result.mount_trust
     if t is None:
         return None
+    # the daemon hands every frame the same frozen verdict until it changes: made once (a copy,
+    # so that a caller changing its message changes no other frame's)
+    global _last_trust  # noqa: PLW0603 - a one-entry cache
+    last = _last_trust
+    if last is not None and last[0] is t:
+        return dict(last[1])
+    out = _trust_json(t)
+    _last_trust = (t, out)  # one tuple, replaced whole (threads read it)
+    return dict(out)
+
+
+_last_trust: tuple[Any, dict[str, Any]] | None = None
+
+
+def _trust_json(t: Any) -> dict[str, Any]:
     return {
         "source": t.source,
         "pinned": t.pinned,
@@ -252,6 +267,9 @@ def mount_trust_to_json(result: Result) -> dict[str, Any] | None:
         "dropoffs_trusted": t.dropoffs_trusted,
         "note": t.note,
     }
+
+
+_last_mount: tuple[Any, str, tuple[tuple[str, Any], ...]] | None = None
 
 
 @functools.lru_cache(maxsize=16)
@@ -272,7 +290,15 @@ def _mount_json(m: Mount, source: str) -> tuple[tuple[str, Any], ...]:
 
 def _pose_to_json(result: Result) -> dict[str, Any]:
     """The mount used for this frame, where it came from, and this frame's floor estimate if any."""
-    out = dict(_mount_json(result.mount, result.mount_source))
+    global _last_mount  # noqa: PLW0603 - a one-entry cache
+    m, source = result.mount, result.mount_source
+    last = _last_mount
+    if last is not None and last[0] is m and last[1] == source:
+        out = dict(last[2])  # the same mount object as the last frame's: no hashing it anew
+    else:
+        pairs = _mount_json(m, source)
+        _last_mount = (m, source, pairs)
+        out = dict(pairs)
     est = result.pose
     if est is not None:
         out["estimate"] = {

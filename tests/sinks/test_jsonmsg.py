@@ -192,3 +192,28 @@ def test_documented_example_has_exactly_the_real_fields(pairs):
         math.inf,
         2.346,
     ]
+
+
+def test_the_mount_parts_made_once_follow_every_change_and_are_not_shared(pairs):
+    frame, result = pairs[0]
+    trusted = MountTrust(source="config", floor="confirmed")
+    first = replace(result, mount_trust=trusted)
+    jsonmsg.frame_message(frame, first, "0.1.0", 1.0)  # makes the parts
+    msg = jsonmsg.frame_message(frame, first, "0.1.0", 1.0)  # reuses them
+    # a caller changing its message changes no later frame's (the parts are made once)
+    msg["mount"]["source"] = "changed"
+    msg["pose"]["height_m"] = -1.0
+    again = jsonmsg.frame_message(frame, first, "0.1.0", 1.0)
+    assert again["mount"]["source"] == "config" and again["pose"]["height_m"] == 0.5
+    # a new verdict (another object) and a new mount are written anew
+    doubt = MountTrust(
+        source="config", floor="contradicted", floor_height_m=0.9, dropoffs_trusted=False
+    )
+    moved = replace(first, mount_trust=doubt, mount=replace(first.mount, height_m=0.61))
+    later = jsonmsg.frame_message(frame, moved, "0.1.0", 1.0)
+    assert later["mount"]["floor"] == "contradicted" and later["mount"]["floor_height_m"] == 0.9
+    assert later["pose"]["height_m"] == 0.61
+    # another source with the same mount object as the last frame's
+    jsonmsg.frame_message(frame, first, "0.1.0", 1.0)
+    other = replace(first, mount_source="floor")
+    assert jsonmsg.frame_message(frame, other, "0.1.0", 1.0)["pose"]["source"] == "floor"
