@@ -48,8 +48,11 @@ MAX_NICE = 19
 # thread that wants the interpreter lock while another runs Python code waits this long before
 # asking for it: the frame loop, reacquiring the lock after each compiled stage, waited up to
 # 5 ms each time the worker was between two of its kernels (at 1280x720 a frame took 13 ms
-# instead of 2.5 against a worker running Python code; 2.4-2.6 ms with 0.5 ms)
-BUILD_SWITCH_S = 0.0005
+# instead of 2.5 against a worker running Python code; 2.4-2.6 ms with 0.5 ms). A frame gives the
+# lock up at every compiled stage, so it may wait once per stage: over 8 large changes at
+# 1280x720 the 90th percentile of a frame's extra time was 0.9-1.5 ms with 0.5 ms, 0.6-0.8 ms with
+# 0.1 ms (four runs each, interleaved); 0.05 ms gained nothing more
+BUILD_SWITCH_S = 0.0001
 
 Key = tuple[Intrinsics, Mount]
 PriorKey = tuple[Intrinsics, Hashable]  # (camera, the pose stage's prior window)
