@@ -34,6 +34,7 @@ import sys
 import termios
 import threading
 import time
+import weakref
 from typing import TYPE_CHECKING, TextIO
 
 from depthnav_daemon.errors import ConfigError, SinkError
@@ -56,6 +57,24 @@ STALLED = "stdout sink: the reader is not reading (stalled?); lines skipped"
 # (and points fd 1 at /dev/null), every other one must stop too, or it writes to /dev/null
 # forever (`depthnav run --sink stdout --sink text | head -1` never ended).
 _SHARED = {"reader_gone": False, "users": 0}
+# Sinks writing to one pipe or terminal (stdout and text both on fd 1) take turns, a write each:
+# a pipe write over 4 KiB is not atomic (a JSON line is ~12 kB), so two writer threads writing at
+# once cut each other's lines (seen in the soak on a loaded machine). One lock per open file,
+# kept while a sink (or its writer thread) uses it.
+
+
+class _FileLock:
+    """The write lock of one open file (weakly listed: a later file on the same inode gets its
+    own)."""
+
+    __slots__ = ("__weakref__", "lock")
+
+    def __init__(self) -> None:
+        self.lock = threading.Lock()
+
+
+_FILE_LOCKS: weakref.WeakValueDictionary[tuple[int, int], _FileLock] = weakref.WeakValueDictionary()
+_FILE_LOCKS_LOCK = threading.Lock()
 
 
 class StdoutSink:
@@ -84,6 +103,8 @@ class StdoutSink:
         self._pipe_size = 0  # stdout is a pipe of this many bytes (0: a socket, a terminal)
         self._error: BaseException | None = None
         self._skipped = RateLimitedLog(log)
+        self._lock = threading.Lock()  # the file's (see _FILE_LOCKS), set at open()
+        self._file_lock: _FileLock | None = None  # keeps the file's lock listed
 
     @classmethod
     def from_spec(cls, spec: SinkSpec) -> StdoutSink:
@@ -126,6 +147,8 @@ class StdoutSink:
             return  # an in-memory stream: written directly, it cannot stall
         stream.flush()  # what was printed before goes first; from now on the fd is written
         self._fd = fd
+        self._file_lock = _lock_of(fd)
+        self._lock = self._file_lock.lock
         if _never_waits(fd):
             # a file or /dev/null: no reader can stall it, so the frame loop writes it itself
             # (no thread hand-off per line; an error shows on the line that met it)
@@ -136,16 +159,20 @@ class StdoutSink:
         # the thread gets the queue and fd it serves: a close() right after open() (a stop
         # signal at once) may clear the attributes before the thread has run a line
         self._thread = threading.Thread(
-            target=self._writer, args=(self._queue, fd), name=f"sink {self.name}", daemon=True
+            target=self._writer,
+            args=(self._queue, fd, self._file_lock),
+            name=f"sink {self.name}",
+            daemon=True,
         )
         self._thread.start()
         if stat.S_ISFIFO(os.fstat(fd).st_mode):
             with contextlib.suppress(OSError):
                 self._pipe_size = fcntl.fcntl(fd, fcntl.F_GETPIPE_SZ)
 
-    def _writer(self, lines: queue.Queue[bytes | None], fd: int) -> None:
-        """Write the queued lines to the fd, those waiting together in one write; a stalled reader
-        blocks this thread, not the frame loop. Ends at None or at the first error."""
+    def _writer(self, lines: queue.Queue[bytes | None], fd: int, lock: _FileLock) -> None:
+        """Write the queued lines to the fd, those waiting together in one write (taking turns
+        with the other sinks on the same file); a stalled reader blocks this thread, not the frame
+        loop. Ends at None or at the first error."""
         regular = _is_regular(fd)
         while True:
             data = lines.get()
@@ -162,7 +189,8 @@ class StdoutSink:
                     break
                 batch.append(more)
             try:
-                _write_whole_lines(fd, b"".join(batch), regular)
+                with lock.lock:
+                    _write_whole_lines(fd, b"".join(batch), regular)
             except BaseException as exc:
                 self._error = exc
                 self._first.set()
@@ -194,7 +222,8 @@ class StdoutSink:
         if self._direct:
             assert self._fd is not None
             try:
-                _write_whole_lines(self._fd, data, self._regular)
+                with self._lock:  # a file or device: never waits, so held briefly
+                    _write_whole_lines(self._fd, data, self._regular)
             except OSError as exc:
                 self._error = exc
                 self._raise_error()
@@ -221,14 +250,22 @@ class StdoutSink:
         already gone is reported at once); later ones wait only when QUEUE_LINES are queued."""
         assert self._queue is not None and self._fd is not None
         self._raise_error()
-        if self._served == self._handed and len(data) <= self._pipe_room():
-            # the writer thread is idle and the pipe has room: this write cannot block, so the
-            # frame loop makes it (waking the thread costs the loop a thread switch a line)
+        if (
+            self._served == self._handed
+            and len(data) <= self._pipe_room()
+            and self._lock.acquire(blocking=False)
+        ):
+            # the writer thread is idle, the pipe has room and no other sink is writing to it:
+            # this write cannot block, so the frame loop makes it (waking the thread costs the
+            # loop a thread switch a line); the lock taken, else another sink's writer thread,
+            # perhaps stuck on a full pipe, holds it: then the line goes to the queue
             try:
                 _write_whole_lines(self._fd, data, False)
             except OSError as exc:
                 self._error = exc
                 self._raise_error()
+            finally:
+                self._lock.release()
             self._stalled = False
             self.lines += 1
             return
@@ -365,6 +402,20 @@ class StdoutSink:
                 os.close(devnull)
             except (OSError, ValueError):
                 log.debug("could not redirect stdout to /dev/null", exc_info=True)
+
+
+def _lock_of(fd: int) -> _FileLock:
+    """The write lock of the file ``fd`` is open on (its device and inode: two fds, one pipe)."""
+    try:
+        st = os.fstat(fd)
+        key = (st.st_dev, st.st_ino)
+    except OSError:
+        key = (-1, fd)
+    with _FILE_LOCKS_LOCK:
+        found = _FILE_LOCKS.get(key)
+        if found is None:
+            found = _FILE_LOCKS[key] = _FileLock()
+        return found
 
 
 def _is_regular(fd: int) -> bool:

@@ -267,3 +267,39 @@ def test_a_stalled_reader_of_a_pipe_made_large_never_blocks_the_frame_loop(pairs
     os.close(r)
     seqs = [json.loads(line)["seq"] for line in data.splitlines()]
     assert seqs == list(range(len(seqs))) and 0 < len(seqs) < 200
+
+
+def test_two_sinks_on_one_pipe_never_cut_each_others_lines(pairs, context):
+    """Two sinks on one pipe (stdout and text both on fd 1) with a slow reader: their writer
+    threads take turns, so every line arrives whole (a pipe write over 4 KiB is not atomic, and a
+    JSON line is several)."""
+    import threading
+    import time
+
+    r, w = os.pipe()
+    got: list[bytes] = []
+
+    def read_slowly() -> None:
+        time.sleep(0.2)  # the pipe fills: both sinks go through their writer threads
+        while chunk := os.read(r, 1500):
+            got.append(chunk)
+            time.sleep(0.0002)
+
+    reader = threading.Thread(target=read_slowly)
+    reader.start()
+    with os.fdopen(w, "w") as writer:
+        one, two = StdoutSink("stdout", stream=writer), StdoutSink("second", stream=writer)
+        one.open(context)
+        two.open(context)
+        for frame, result in _many(pairs, 60):
+            one.write(frame, result)
+            two.write(frame, result)
+        one.close()
+        two.close()
+    reader.join(60)
+    os.close(r)
+    lines = b"".join(got).splitlines()
+    assert min(len(line) for line in lines) > 4096  # lines a pipe does not write atomically
+    assert len(lines) == one.lines + two.lines == 120
+    seqs = [json.loads(line)["seq"] for line in lines]  # each line whole
+    assert sorted(seqs) == sorted(list(range(60)) * 2)
