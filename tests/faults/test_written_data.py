@@ -174,7 +174,7 @@ def test_stdout_writer_serves_its_own_queue_after_a_close_at_once(tmp_path: Path
     and fd when it is made; here it runs after the sink has let go of both."""
     import queue
 
-    from depthnav_daemon.sinks.stdout import StdoutSink
+    from depthnav_daemon.sinks.stdout import StdoutSink, _lock_of
 
     sink = StdoutSink()
     lines: queue.Queue[bytes | None] = queue.Queue()
@@ -184,5 +184,5 @@ def test_stdout_writer_serves_its_own_queue_after_a_close_at_once(tmp_path: Path
         lines.put(None)
         sink._queue = None  # what close() leaves
         sink._fd = None
-        sink._writer(lines, fh.fileno())
+        sink._writer(lines, fh.fileno(), _lock_of(fh.fileno()))
     assert out.read_bytes() == b'{"seq":0}\n' and sink._error is None
