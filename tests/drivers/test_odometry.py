@@ -88,7 +88,15 @@ def test_json_lines_over_loopback_udp(caplog) -> None:
             tx.sendto(b"\n".join(json.dumps(x).encode() for x in lines), ("127.0.0.1", port))
             with caplog.at_level(logging.WARNING):
                 tx.sendto(b'{"x_m": "oops"}\n', ("127.0.0.1", port))
-                _wait(lambda: src.bad_messages == 1 and src.buffer.count == 3)
+                # the receiver counts the line, then logs it: wait for both (on a loaded machine
+                # the log record came after the count)
+                _wait(
+                    lambda: (
+                        src.bad_messages == 1
+                        and src.buffer.count == 3
+                        and any("oops" in r.getMessage() for r in caplog.records)
+                    )
+                )
         pose, age = src.buffer.pose_at(11.5)  # matched by the sender's t_s
         assert pose == pytest.approx((0.15, -0.075, 0.3)) and age == 0.0
         # one line naming the problem, never a traceback
