@@ -156,6 +156,25 @@ def test_two_sinks_on_stdout_both_stop_when_the_reader_goes_away() -> None:
     assert "Traceback" not in err
 
 
+def _read_slowly(fd: int, start_s: float, chunk: int, pause_s: float):
+    """A started thread reading ``fd`` after ``start_s``, ``chunk`` bytes every ``pause_s``, to
+    its end; and the list of what it read."""
+    import threading
+    import time
+
+    got: list[bytes] = []
+
+    def read() -> None:
+        time.sleep(start_s)
+        while data := os.read(fd, chunk):
+            got.append(data)
+            time.sleep(pause_s)
+
+    reader = threading.Thread(target=read)
+    reader.start()
+    return reader, got
+
+
 def _many(pairs, n):
     from dataclasses import replace
 
@@ -166,20 +185,9 @@ def _many(pairs, n):
 def test_a_slow_reader_gets_every_line_in_order_also_those_queued_at_close(pairs, context):
     """Lines that wait for the reader (pipe full, queue filling) all arrive, in order, and close()
     writes the queued ones out while the reader keeps reading."""
-    import threading
-    import time
 
     r, w = os.pipe()
-    got: list[bytes] = []
-
-    def read_slowly() -> None:
-        time.sleep(0.3)  # the pipe and the queue fill meanwhile
-        while chunk := os.read(r, 4096):
-            got.append(chunk)
-            time.sleep(0.001)
-
-    reader = threading.Thread(target=read_slowly)
-    reader.start()
+    reader, got = _read_slowly(r, 0.3, 4096, 0.001)  # the pipe and the queue fill meanwhile
     with os.fdopen(w, "w") as writer:
         sink = StdoutSink(stream=writer)
         sink.open(context)
@@ -273,20 +281,10 @@ def test_two_sinks_on_one_pipe_never_cut_each_others_lines(pairs, context):
     """Two sinks on one pipe (stdout and text both on fd 1) with a slow reader: their writer
     threads take turns, so every line arrives whole (a pipe write over 4 KiB is not atomic, and a
     JSON line is several)."""
-    import threading
-    import time
 
     r, w = os.pipe()
-    got: list[bytes] = []
-
-    def read_slowly() -> None:
-        time.sleep(0.2)  # the pipe fills: both sinks go through their writer threads
-        while chunk := os.read(r, 1500):
-            got.append(chunk)
-            time.sleep(0.0002)
-
-    reader = threading.Thread(target=read_slowly)
-    reader.start()
+    # the pipe fills: both sinks go through their writer threads
+    reader, got = _read_slowly(r, 0.2, 1500, 0.0002)
     with os.fdopen(w, "w") as writer:
         one, two = StdoutSink("stdout", stream=writer), StdoutSink("second", stream=writer)
         one.open(context)
