@@ -26,7 +26,7 @@ BLOCK = 64
 UNKNOWN = 2  # a row's "has a reading" flag before it is looked at
 # the exact scan kernel asks for the depth row this many rows ahead of the one it reads: a new
 # frame is not in the cache, and the block test does too little per row for the CPU's own
-# prefetcher to keep ahead (bench, 12 frames in turn: 5-15 % less time at every mount; 2 to 8
+# prefetcher to keep ahead (bench, 12 frames in turn: 5-20 % less time at every mount; 2 to 8
 # rows ahead measured alike, 4 best)
 PREFETCH_ROWS = 4
 LINE_U16 = 32  # uint16 depths per 64-byte cache line

@@ -103,8 +103,7 @@ class StdoutSink:
         self._pipe_size = 0  # stdout is a pipe of this many bytes (0: a socket, a terminal)
         self._error: BaseException | None = None
         self._skipped = RateLimitedLog(log)
-        self._lock = threading.Lock()  # the file's (see _FILE_LOCKS), set at open()
-        self._file_lock: _FileLock | None = None  # keeps the file's lock listed
+        self._file_lock = _FileLock()  # its own until open() finds the file's (see _FILE_LOCKS)
 
     @classmethod
     def from_spec(cls, spec: SinkSpec) -> StdoutSink:
@@ -148,7 +147,6 @@ class StdoutSink:
         stream.flush()  # what was printed before goes first; from now on the fd is written
         self._fd = fd
         self._file_lock = _lock_of(fd)
-        self._lock = self._file_lock.lock
         if _never_waits(fd):
             # a file or /dev/null: no reader can stall it, so the frame loop writes it itself
             # (no thread hand-off per line; an error shows on the line that met it)
@@ -222,7 +220,7 @@ class StdoutSink:
         if self._direct:
             assert self._fd is not None
             try:
-                with self._lock:  # a file or device: never waits, so held briefly
+                with self._file_lock.lock:  # a file or device: never waits, so held briefly
                     _write_whole_lines(self._fd, data, self._regular)
             except OSError as exc:
                 self._error = exc
@@ -253,7 +251,7 @@ class StdoutSink:
         if (
             self._served == self._handed
             and len(data) <= self._pipe_room()
-            and self._lock.acquire(blocking=False)
+            and self._file_lock.lock.acquire(blocking=False)
         ):
             # the writer thread is idle, the pipe has room and no other sink is writing to it:
             # this write cannot block, so the frame loop makes it (waking the thread costs the
@@ -265,7 +263,7 @@ class StdoutSink:
                 self._error = exc
                 self._raise_error()
             finally:
-                self._lock.release()
+                self._file_lock.lock.release()
             self._stalled = False
             self.lines += 1
             return
