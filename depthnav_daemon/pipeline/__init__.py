@@ -9,6 +9,7 @@ the obstacle mask) is on the Result, so sinks never call stage code.
 from __future__ import annotations
 
 import functools
+import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
@@ -197,7 +198,7 @@ def process(
         mask = obstacle_pixels(depth, intr, level, params.scan)
     rows = scan_rows(intr, params.scan)
     # the scan already visited every used pixel: all-NaN means none of them had a reading
-    warning = "no valid depth in this frame (all pixels 0)" if np.isnan(scan.ranges).all() else None
+    warning = "no valid depth in this frame (all pixels 0)" if _all_nan(scan.ranges) else None
     if warning is None and mount_trust is not None and not mount_trust.dropoffs_trusted:
         warning = mount_trust.note
     base_scan, base_cliff = scan, cliff
@@ -292,3 +293,11 @@ def prepare(intr: Intrinsics, mount: Mount, params: StageParams) -> None:
         int(scan.ranges.size),
         (rows.start, rows.stop, rows.step or 1),
     )
+
+
+def _all_nan(ranges: npt.NDArray[np.floating]) -> bool:
+    """Whether every range is NaN (none of an empty scan's is not). The first bin answers for
+    nearly every frame (a bin with a reading), without a pass over the scan."""
+    if ranges.size and not math.isnan(ranges.item(0)):
+        return False
+    return bool(np.isnan(ranges).all())

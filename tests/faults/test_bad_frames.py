@@ -26,6 +26,7 @@ from .kit import depthnav, json_lines, one_error_line
 
 A = Intrinsics(64, 48, 61.5, 57.25, 30.25, 22.75)
 B = Intrinsics(80, 60, 70.0, 66.0, 41.0, 27.5)  # a second mode, for the mid-stream switch
+NO_DEPTH = "no valid depth in this frame (all pixels 0)"
 
 
 class ListDriver:
@@ -147,8 +148,25 @@ def test_extreme_frames_give_defined_results(kinds, seed: int) -> None:
 def test_all_zero_frame_is_a_warning_not_an_error() -> None:
     frame = Frame(0, 0.0, np.zeros((48, 64), np.uint16), A)
     (result,) = run_frames([frame])
-    assert result.warning == "no valid depth in this frame (all pixels 0)"
+    assert result.warning == NO_DEPTH
     assert np.isnan(np.asarray(result.scan.ranges, dtype=np.float64)).all()
+
+
+def test_no_depth_warning_only_when_every_bin_is_nan() -> None:
+    """The first bin is looked at first (process() skips the pass over the scan when it has a
+    reading): a frame whose first bins see nothing but others do is no warning."""
+    depth = np.full((48, 64), 1500, np.uint16)
+    depth[:, :40] = 0  # the left part of the image: the last bins (bearings run right to left)
+    (left_blind,) = run_frames([Frame(0, 0.0, depth, A)])
+    ranges = np.asarray(left_blind.scan.ranges, dtype=np.float64)
+    assert np.isnan(ranges[-1]) and not np.isnan(ranges).all()
+    assert left_blind.warning != NO_DEPTH
+    depth = np.full((48, 64), 1500, np.uint16)
+    depth[:, 24:] = 0  # the right part: the first bins
+    (right_blind,) = run_frames([Frame(1, 1 / 30, depth, A)])
+    ranges = np.asarray(right_blind.scan.ranges, dtype=np.float64)
+    assert np.isnan(ranges[0]) and not np.isnan(ranges).all()
+    assert right_blind.warning != NO_DEPTH
 
 
 def test_nan_inf_negative_depth_in_a_file_is_one_line(tmp_path: Path) -> None:
