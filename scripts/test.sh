@@ -8,4 +8,6 @@ bash scripts/install.sh
 .venv/bin/ruff format --check --quiet .
 # the native sensor libraries were just installed: their tests must run, not skip
 export DEPTHNAV_REQUIRE_NATIVE=1
-exec .venv/bin/python -m pytest -q "$@"
+# one worker per core (pytest-xdist), each test file on one worker: its module fixtures are made
+# once, and the tests of a file that share a resource never run at once
+exec .venv/bin/python -m pytest -q -n auto --dist loadfile "$@"
