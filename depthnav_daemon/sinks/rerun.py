@@ -98,6 +98,13 @@ LOW_SPACE_BYTES = 1 << 20
 # gives up on unsent data within 5 s at exit).
 VIEWER_QUEUE_FRAMES = 30  # 1 s at 30 frames/s: bursts pass, a dead viewer costs <= 30 frames
 VIEWER_JOIN_S = 1.5
+# rerun's disconnect() waits for its sink's writer thread without a timeout. A file writer stuck
+# on a full disk (seen under load: its flushes time out instead of failing) never answers, and the
+# daemon hung at shutdown. So disconnect runs in a thread of its own, waited for this long; one
+# left blocked marks the sink abandoned (the CLI then skips rerun's exit hook, which would wait
+# too).
+DISCONNECT_S = 5.0
+FAILED_DISCONNECT_S = 0.5  # a file that failed: its writer is gone (at once) or stuck (never)
 PROBE_TIMEOUT_S = 2.0  # connecting to and hearing from a viewer at start
 # the HTTP/2 client connection preface and an empty SETTINGS frame (RFC 9113 3.4, 6.5)
 H2_PREFACE = b"PRI * HTTP/2.0\r\n\r\nSM\r\n\r\n" + b"\x00\x00\x00\x04\x00\x00\x00\x00\x00"
@@ -105,14 +112,16 @@ H2_FRAME_HEADER = 9  # bytes: length (3), type, flags, stream id (4)
 H2_SETTINGS = 0x04  # frame type, the 4th byte of a frame header
 
 
-_abandoned: list[str] = []  # viewer sinks whose thread was left blocked inside rerun
+_abandoned: list[str] = []  # sinks whose thread was left blocked inside rerun
 
 
 def abandoned_viewers() -> list[str]:
-    """Sinks whose viewer thread is still blocked inside rerun after close() (the viewer is gone).
+    """Sinks with a thread still blocked inside rerun after close(): a viewer that is gone, or a
+    file whose writer is stuck (DISCONNECT_S).
 
-    The CLI then ends the process without the interpreter's teardown: rerun's exit hook waits 5 s
-    for the viewer, and tearing down under a thread blocked in native code can abort (SIGABRT).
+    The CLI then ends the process without the interpreter's teardown: rerun's exit hook waits for
+    them too (5 s for a viewer, for ever for a stuck file), and tearing down under a thread blocked
+    in native code can abort (SIGABRT).
     """
     return list(_abandoned)
 
@@ -447,13 +456,37 @@ class RerunSink:
             )
 
     def _finish(self, rec: Any) -> None:
+        # a file that already failed is not flushed again: its writer is gone or stuck, and a
+        # flush would only hold the frame loop for its timeout
+        delivered = not self._file_failed and self._flush(rec)
+        wait_s = FAILED_DISCONNECT_S if self._file_failed else DISCONNECT_S
+        if not _disconnect(rec, self.target or "viewer", wait_s):
+            _abandoned.append(self.name)
+            log.warning(
+                "rerun sink: %s does not close (rerun's writer is stuck); not waiting for it",
+                self.target or "the viewer",
+            )
+        if self._file_failed:
+            size = trim_partial_message(self.target)
+            if size is not None:
+                log.warning(
+                    "rerun sink: %s cut back to its last complete message (%d bytes), "
+                    "readable without a footer",
+                    self.target,
+                    size,
+                )
+        self._unlock_file()
+        if delivered:
+            log.info("rerun sink: %d frames logged to %s", self.logged, self.target or "viewer")
+
+    def _flush(self, rec: Any) -> bool:
+        """Flush before closing; whether everything logged was delivered."""
         try:
             # a file must be complete, and writing it is fast; a viewer that went away must not
             # hold the daemon's shutdown (rerun's gRPC sink itself gives up after a few seconds)
             rec.flush(timeout_sec=30.0 if self.mode == "save" else 1.0)
         except Exception as exc:  # one line; the traceback only with -v
             self._file_failed = self.mode == "save"
-            delivered = False
             if self.mode == "save":
                 log.warning(
                     "rerun sink: flushing %s failed: %s", self.target, self._file_problem(exc)
@@ -467,22 +500,22 @@ class RerunSink:
                     self.logged,
                 )
             log.debug("flush failure", exc_info=True)
-        else:
-            delivered = True
+            return False
+        return True
+
+
+def _disconnect(rec: Any, what: str, wait_s: float) -> bool:
+    """``rec.disconnect()`` (which writes a file's footer), waited for at most ``wait_s``;
+    whether it returned (see DISCONNECT_S)."""
+
+    def run() -> None:
         try:
             rec.disconnect()
         except Exception as exc:
-            log.warning("rerun sink: disconnecting %s failed: %s", self.target or "viewer", exc)
+            log.warning("rerun sink: disconnecting %s failed: %s", what, exc)
             log.debug("disconnect failure", exc_info=True)
-        if self._file_failed:
-            size = trim_partial_message(self.target)
-            if size is not None:
-                log.warning(
-                    "rerun sink: %s cut back to its last complete message (%d bytes), "
-                    "readable without a footer",
-                    self.target,
-                    size,
-                )
-        self._unlock_file()
-        if delivered:
-            log.info("rerun sink: %d frames logged to %s", self.logged, self.target or "viewer")
+
+    thread = threading.Thread(target=run, name=f"rerun disconnect {what}", daemon=True)
+    thread.start()
+    thread.join(wait_s)
+    return not thread.is_alive()

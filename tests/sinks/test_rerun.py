@@ -6,6 +6,7 @@ import os
 import signal
 import socket
 import subprocess
+import threading
 import time
 import warnings
 from dataclasses import replace
@@ -18,6 +19,7 @@ from depthnav_daemon.errors import ConfigError, SinkError
 from depthnav_daemon.pipeline.geometry import rot_x, rot_y
 from depthnav_daemon.pipeline.scan import obstacle_pixels
 from depthnav_daemon.sinks import create_sink
+from depthnav_daemon.sinks import rerun as rerun_sink
 from depthnav_daemon.sinks.rerun import RerunSink
 from tests.drivers.driverkit import skip_without
 
@@ -437,3 +439,45 @@ def test_check_viewer_refuses_a_silent_listener_and_a_closed_port():
         assert f"rerun --port {port}" in info.value.hint
     with pytest.raises(SinkError, match=f"no rerun viewer at 127.0.0.1:{port}"):
         check_viewer(f"rerun+http://127.0.0.1:{port}/proxy", timeout_s=0.5)
+
+
+class _StuckWriter:
+    """A sink's real recording whose file writer is stuck, as rerun's was on a full disk under load:
+    a flush times out, disconnect() does not return until released."""
+
+    def __init__(self, rec) -> None:
+        self.rec, self.flushes, self.release = rec, 0, threading.Event()
+
+    def flush(self, timeout_sec: float) -> None:
+        self.flushes += 1
+        raise RuntimeError(f"flush timed out after {timeout_sec} s")
+
+    def disconnect(self) -> None:
+        self.release.wait()
+        self.rec.disconnect()
+
+    def __getattr__(self, name: str):
+        return getattr(self.rec, name)
+
+
+def test_a_stuck_file_writer_never_holds_the_daemon(tmp_path, pairs, context, monkeypatch, caplog):
+    """The writer stuck: the sink fails at its next file check, close() flushes no more (that
+    only waits) and leaves the blocked disconnect behind, marked for the CLI's quick exit."""
+    monkeypatch.setattr(rerun_sink, "DISCONNECT_S", 600.0)  # a failed file's is FAILED_DISCONNECT_S
+    monkeypatch.setattr(rerun_sink, "_abandoned", [])
+    path = tmp_path / "stuck.rrd"
+    sink = create_sink(f"rerun:{path}")
+    sink.open(context)
+    sink.write(*pairs[0])
+    stuck = _StuckWriter(sink._rec)
+    sink._rec, sink._next_check = stuck, 0.0  # the next write checks the file
+    try:
+        with pytest.raises(SinkError, match=r"writing .* failed"):
+            sink.write(*pairs[1])
+        with caplog.at_level("WARNING"):
+            sink.close()  # returns: before the fix, rerun's disconnect() blocked for ever
+        assert stuck.flushes == 1  # the failed file is not flushed again at close
+        assert rerun_sink.abandoned_viewers() == [sink.name]
+        assert "does not close (rerun's writer is stuck)" in caplog.text
+    finally:
+        stuck.release.set()  # the real recording closes now
