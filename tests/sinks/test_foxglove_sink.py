@@ -41,6 +41,9 @@ class Client:
                     sock=sock,
                     max_queue=max_queue,
                     open_timeout=WAIT_S,
+                    # no keepalive thread: one left pinging a stopped daemon logged an error
+                    # into the closed output of a later test
+                    ping_interval=None,
                 )
                 break
             except OSError:
