@@ -88,6 +88,9 @@ APP_ID = "depthnav"
 DEFAULT_GRPC = ("127.0.0.1", 9876)
 # A file sink's writer thread dies quietly when the disk fills: flush this often so the failure
 # becomes a SinkError (the sink is dropped, the others go on) instead of frames silently lost.
+# The flush stays in the frame loop: flushed from a thread of its own while the loop went on
+# logging, a stuck writer's queue filled and rerun's log() then blocked for ever (3 runs of 10 on
+# a full disk under load); here a stuck writer costs the loop FILE_CHECK_TIMEOUT_S once.
 FILE_CHECK_S = 1.0
 FILE_CHECK_TIMEOUT_S = 10.0
 LOW_SPACE_BYTES = 1 << 20
