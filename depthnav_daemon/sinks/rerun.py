@@ -462,7 +462,11 @@ class RerunSink:
         # a file that already failed is not flushed again: its writer is gone or stuck, and a
         # flush would only hold the frame loop for its timeout
         delivered = not self._file_failed and self._flush(rec)
-        wait_s = FAILED_DISCONNECT_S if self._file_failed else DISCONNECT_S
+        # a viewer's is waited for as long as it takes: this runs on the viewer's own thread,
+        # which close() waits for VIEWER_JOIN_S only
+        wait_s = None if self.mode != "save" else DISCONNECT_S
+        if self._file_failed:
+            wait_s = FAILED_DISCONNECT_S
         if not _disconnect(rec, self.target or "viewer", wait_s):
             _abandoned.append(self.name)
             log.warning(
@@ -507,9 +511,9 @@ class RerunSink:
         return True
 
 
-def _disconnect(rec: Any, what: str, wait_s: float) -> bool:
-    """``rec.disconnect()`` (which writes a file's footer), waited for at most ``wait_s``;
-    whether it returned (see DISCONNECT_S)."""
+def _disconnect(rec: Any, what: str, wait_s: float | None) -> bool:
+    """``rec.disconnect()`` (which writes a file's footer), waited for at most ``wait_s`` (None:
+    until it returns); whether it returned (see DISCONNECT_S)."""
 
     def run() -> None:
         try:
