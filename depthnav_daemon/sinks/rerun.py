@@ -40,17 +40,13 @@ releases).
 from __future__ import annotations
 
 import contextlib
-import fcntl
 import logging
 import os
 import queue
-import shutil
-import socket
 import threading
 import time
 import uuid
 from typing import TYPE_CHECKING, Any
-from urllib.parse import urlsplit
 
 from depthnav_daemon.errors import ConfigError, SinkError
 from depthnav_daemon.sinks.base import (
@@ -62,7 +58,12 @@ from depthnav_daemon.sinks.base import (
     number_option,
     parse_host_port,
 )
-from depthnav_daemon.sinks.rerun_file import trim_partial_message
+from depthnav_daemon.sinks.rerun_file import (
+    disconnect,
+    file_problem,
+    lock_rrd,
+    trim_partial_message,
+)
 from depthnav_daemon.sinks.rerun_layout import (
     LayoutState,
     blueprint,
@@ -71,6 +72,7 @@ from depthnav_daemon.sinks.rerun_layout import (
     scan_points,
 )
 from depthnav_daemon.sinks.rerun_topdown import DEFAULT_FOOTPRINT_M
+from depthnav_daemon.sinks.rerun_viewer import DEFAULT_GRPC, check_viewer
 
 if TYPE_CHECKING:
     from depthnav_daemon.pipeline import Result
@@ -85,7 +87,6 @@ GRAMMAR = (
 OPTIONS = ("every", "image", "robot_length_m", "robot_width_m")
 __all__ = ["RerunSink", "abandoned_viewers", "blueprint", "scan_points", "trim_partial_message"]
 APP_ID = "depthnav"
-DEFAULT_GRPC = ("127.0.0.1", 9876)
 # A file sink's writer thread dies quietly when the disk fills: flush this often so the failure
 # becomes a SinkError (the sink is dropped, the others go on) instead of frames silently lost.
 # The flush stays in the frame loop: flushed from a thread of its own while the loop went on
@@ -93,7 +94,6 @@ DEFAULT_GRPC = ("127.0.0.1", 9876)
 # a full disk under load); here a stuck writer costs the loop FILE_CHECK_TIMEOUT_S once.
 FILE_CHECK_S = 1.0
 FILE_CHECK_TIMEOUT_S = 10.0
-LOW_SPACE_BYTES = 1 << 20
 # A viewer (gRPC) that is gone or never came: once rerun's send quota is full, every rerun call
 # (log, flush, disconnect) blocks until the viewer answers, which may be never. So viewer output
 # is logged from its own thread through a short queue: the frame loop never waits for it, a full
@@ -108,11 +108,6 @@ VIEWER_JOIN_S = 1.5
 # too).
 DISCONNECT_S = 5.0
 FAILED_DISCONNECT_S = 0.5  # a file that failed: its writer is gone (at once) or stuck (never)
-PROBE_TIMEOUT_S = 2.0  # connecting to and hearing from a viewer at start
-# the HTTP/2 client connection preface and an empty SETTINGS frame (RFC 9113 3.4, 6.5)
-H2_PREFACE = b"PRI * HTTP/2.0\r\n\r\nSM\r\n\r\n" + b"\x00\x00\x00\x04\x00\x00\x00\x00\x00"
-H2_FRAME_HEADER = 9  # bytes: length (3), type, flags, stream id (4)
-H2_SETTINGS = 0x04  # frame type, the 4th byte of a frame header
 
 
 _abandoned: list[str] = []  # sinks whose thread was left blocked inside rerun
@@ -153,52 +148,10 @@ def _one_line(exc: BaseException) -> str:
     return text.splitlines()[0] if text else type(exc).__name__
 
 
-def _discard(rec: Any) -> None:
-    """Disconnect a recording whose sink could not be set up."""
-    try:
-        rec.disconnect()
-    except Exception:  # best effort on an already failing path
-        log.debug("discarding the rerun recording failed", exc_info=True)
-
-
-def check_viewer(url: str, timeout_s: float = PROBE_TIMEOUT_S) -> None:
-    """Check that a rerun viewer (a gRPC server: HTTP/2) listens at ``url`` before connecting.
-
-    rerun's own connect never fails: with nothing listening it retries in the background, the
-    frames go nowhere, and the run ends claiming them logged. An HTTP/2 server answers the
-    client preface with a SETTINGS frame; anything else (refused, silent, HTTP/1) is not a viewer.
-
-    Raises:
-        SinkError: nothing listens, it does not answer, or it is not a gRPC server.
-    """
-    parts = urlsplit(url)
-    host, port = parts.hostname or DEFAULT_GRPC[0], parts.port or DEFAULT_GRPC[1]
-    where = f"{host}:{port}"
-    hint = (
-        f"start a viewer there (rerun --port {port}), or save to a file with --sink rerun:FILE.rrd"
-    )
-    try:
-        with socket.create_connection((host, port), timeout=timeout_s) as sock:
-            sock.sendall(H2_PREFACE)
-            answer = b""
-            while len(answer) < H2_FRAME_HEADER:
-                chunk = sock.recv(H2_FRAME_HEADER - len(answer))
-                if not chunk:
-                    break
-                answer += chunk
-    except TimeoutError:
-        raise SinkError(
-            f"rerun sink: the server at {where} does not answer (no rerun viewer)", hint=hint
-        ) from None
-    except OSError as exc:
-        raise SinkError(
-            f"rerun sink: no rerun viewer at {where} ({exc.strerror or exc})", hint=hint
-        ) from None
-    if len(answer) < H2_FRAME_HEADER or answer[3] != H2_SETTINGS:
-        raise SinkError(
-            f"rerun sink: the server at {where} is not a rerun viewer (it does not speak gRPC)",
-            hint=hint,
-        )
+def _discard(rec: Any, what: str) -> None:
+    """Disconnect a recording whose sink could not be set up (bounded: see DISCONNECT_S)."""
+    if not disconnect(rec, what, FAILED_DISCONNECT_S):
+        _abandoned.append(what)
 
 
 class RerunSink:
@@ -232,6 +185,7 @@ class RerunSink:
         self._frames = 0
         self._next_check = 0.0
         self._file_failed = False
+        self._lock_fd: int | None = None  # the .rrd's lock (rerun_file.lock_rrd) while saving
         self._queue: queue.Queue[tuple[Frame, Result] | None] | None = None
         self._thread: threading.Thread | None = None
         self._error: BaseException | None = None
@@ -285,7 +239,7 @@ class RerunSink:
         try:
             self._attach(rec, blueprint(context))
         except Exception as exc:  # rerun raises plain RuntimeError/OSError subclasses
-            _discard(rec)
+            _discard(rec, self.name)
             self._unlock_file()
             if isinstance(exc, SinkError):
                 raise
@@ -308,7 +262,7 @@ class RerunSink:
             parent = os.path.dirname(os.path.abspath(self.target))
             if not os.path.isdir(parent):
                 raise SinkError(f"rerun sink: folder {parent!r} does not exist")
-            self._lock_file()
+            self._lock_fd = lock_rrd(self.target)
             rec.save(self.target, default_blueprint=layout)
         elif self.mode == "connect":
             check_viewer(self.target)
@@ -356,16 +310,6 @@ class RerunSink:
             self._check_file()
             self._next_check = time.monotonic() + FILE_CHECK_S
 
-    def _file_problem(self, exc: BaseException) -> str:
-        """Why writing the .rrd failed, in words: a full disk is the usual cause."""
-        try:
-            folder = os.path.dirname(os.path.abspath(self.target))
-            if shutil.disk_usage(folder).free < LOW_SPACE_BYTES:
-                return "no space left on the disk"
-        except OSError:
-            pass
-        return str(exc).splitlines()[0] if str(exc) else type(exc).__name__
-
     def _check_file(self) -> None:
         """Flush to the file; a dead writer thread (disk full, file-size limit) is a SinkError."""
         try:
@@ -373,7 +317,7 @@ class RerunSink:
         except Exception as exc:  # rerun raises RuntimeError("File-writer thread shut down ...")
             self._file_failed = True
             raise SinkError(
-                f"rerun sink: writing {self.target} failed: {self._file_problem(exc)}; "
+                f"rerun sink: writing {self.target} failed: {file_problem(self.target, exc)}; "
                 f"{self.logged} frames logged, the last ones may be lost",
                 hint="free disk space; what was written reads back with rerun (the footer is "
                 "missing)",
@@ -401,29 +345,8 @@ class RerunSink:
             self.logged += 1
         self._finish(rec)
 
-    def _lock_file(self) -> None:
-        """Open the .rrd and hold an exclusive lock on it while this sink writes it: a second
-        daemon given the same file is refused instead of both claiming frames the file lost.
-
-        Raises:
-            SinkError: the file cannot be written, or another process is writing it.
-        """
-        try:  # fail with a plain message before rerun does (it also warns about lost data)
-            fd = os.open(self.target, os.O_WRONLY | os.O_CREAT | os.O_CLOEXEC, 0o644)
-        except OSError as exc:
-            raise SinkError(f"rerun sink: cannot write {self.target!r}: {exc.strerror}") from exc
-        try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except OSError:
-            os.close(fd)
-            raise SinkError(
-                f"rerun sink: another process is writing {self.target!r}",
-                hint="give each depthnav its own .rrd file",
-            ) from None
-        self._lock_fd = fd
-
     def _unlock_file(self) -> None:
-        fd, self._lock_fd = getattr(self, "_lock_fd", None), None
+        fd, self._lock_fd = self._lock_fd, None
         if fd is not None:
             os.close(fd)  # releases the lock
 
@@ -467,7 +390,7 @@ class RerunSink:
         wait_s = None if self.mode != "save" else DISCONNECT_S
         if self._file_failed:
             wait_s = FAILED_DISCONNECT_S
-        if not _disconnect(rec, self.target or "viewer", wait_s):
+        if not disconnect(rec, self.target or "viewer", wait_s):
             _abandoned.append(self.name)
             log.warning(
                 "rerun sink: %s does not close (rerun's writer is stuck); not waiting for it",
@@ -496,7 +419,9 @@ class RerunSink:
             self._file_failed = self.mode == "save"
             if self.mode == "save":
                 log.warning(
-                    "rerun sink: flushing %s failed: %s", self.target, self._file_problem(exc)
+                    "rerun sink: flushing %s failed: %s",
+                    self.target,
+                    file_problem(self.target, exc),
                 )
             else:
                 log.warning(
@@ -509,20 +434,3 @@ class RerunSink:
             log.debug("flush failure", exc_info=True)
             return False
         return True
-
-
-def _disconnect(rec: Any, what: str, wait_s: float | None) -> bool:
-    """``rec.disconnect()`` (which writes a file's footer), waited for at most ``wait_s`` (None:
-    until it returns); whether it returned (see DISCONNECT_S)."""
-
-    def run() -> None:
-        try:
-            rec.disconnect()
-        except Exception as exc:
-            log.warning("rerun sink: disconnecting %s failed: %s", what, exc)
-            log.debug("disconnect failure", exc_info=True)
-
-    thread = threading.Thread(target=run, name=f"rerun disconnect {what}", daemon=True)
-    thread.start()
-    thread.join(wait_s)
-    return not thread.is_alive()

@@ -428,7 +428,7 @@ def test_a_viewer_that_goes_away_is_not_claimed_delivered(tmp_path, pairs, conte
 
 
 def test_check_viewer_refuses_a_silent_listener_and_a_closed_port():
-    from depthnav_daemon.sinks.rerun import check_viewer
+    from depthnav_daemon.sinks.rerun_viewer import check_viewer
 
     with socket.socket() as listener:  # accepts connections (backlog) but never answers
         listener.bind(("127.0.0.1", 0))
@@ -481,3 +481,29 @@ def test_a_stuck_file_writer_never_holds_the_daemon(tmp_path, pairs, context, mo
         assert "does not close (rerun's writer is stuck)" in caplog.text
     finally:
         stuck.release.set()  # the real recording closes now
+
+
+def test_a_sink_that_fails_to_open_never_waits_on_a_stuck_recording(tmp_path, context, monkeypatch):
+    """open() fails (no such folder) and its recording's disconnect blocks: open() still reports
+    its error at once and leaves the recording behind, marked for the CLI's quick exit."""
+    monkeypatch.setattr(rerun_sink, "_abandoned", [])
+    rr = rerun_sink._import_rerun()
+    made: list[_StuckWriter] = []
+
+    class _Rerun:
+        def __getattr__(self, name: str):
+            return getattr(rr, name)
+
+        def RecordingStream(self, *args, **kwargs):  # noqa: N802 - rerun's name
+            made.append(_StuckWriter(rr.RecordingStream(*args, **kwargs)))
+            return made[-1]
+
+    monkeypatch.setattr(rerun_sink, "_import_rerun", _Rerun)
+    sink = create_sink(f"rerun:{tmp_path / 'missing' / 'x.rrd'}")
+    try:
+        with pytest.raises(SinkError, match="does not exist"):
+            sink.open(context)  # before: rec.disconnect() unbounded, here for ever
+        assert rerun_sink.abandoned_viewers() == [sink.name]
+    finally:
+        for stuck in made:
+            stuck.release.set()
