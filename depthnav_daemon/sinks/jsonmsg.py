@@ -8,7 +8,7 @@ strings; :func:`decode_ranges` is the reference decoder.
 
 Arrays of metres are written as JSON text at once (json_numbers.py, ``orjson.Fragment`` in the
 message dict): the same bytes as :func:`encode_ranges` + orjson, several times faster. A frame's
-line is made once and shared by the sinks that send the same object (:func:`frame_json`).
+line is made once and shared by the sinks that send the same object (json_line.py).
 """
 
 from __future__ import annotations
@@ -16,7 +16,7 @@ from __future__ import annotations
 import functools
 import logging
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -372,74 +372,3 @@ def dumps(msg: dict[str, Any]) -> str:
     NaN or Infinity literals: a stray non-finite float becomes null, the schema's "unknown".
     """
     return orjson.dumps(msg).decode()
-
-
-# The last frame's line: (result, version, UTF-8 JSON). Every sink that sends the whole object
-# (stdout, udp with content=all) gets these bytes: made once a frame, not once a sink.
-_last_line: list[tuple[Any, str, bytes]] = []
-
-
-def frame_json(frame: Frame, result: Result, version: str, wall_time_s: float) -> bytes:
-    """:func:`frame_message` of the frame as compact UTF-8 JSON, made once per Result.
-
-    The sinks of one frame share it, so they also share its ``wall_s`` (the time the first one
-    asked). A new Result (the next frame) or another version makes a new line.
-    """
-    for last_result, last_version, last_data in _last_line[-1:]:
-        if last_result is result and last_version == version:
-            return last_data
-    data = orjson.dumps(frame_message(frame, result, version, wall_time_s))
-    _last_line[:] = [(result, version, data)]  # one entry, replaced whole (threads read it)
-    return data
-
-
-def fit_message(
-    frame: Frame,
-    result: Result,
-    version: str,
-    wall_time_s: float,
-    max_bytes: int,
-    shape: Callable[[dict[str, Any]], dict[str, Any]] | None = None,
-) -> bytes | None:
-    """The frame's JSON as UTF-8, cliff points dropped (nearest kept) until it fits ``max_bytes``.
-
-    Args:
-        shape: applied to each message before it is encoded (a sink's choice of content); None:
-            the whole object (then the line :func:`frame_json` shares when it fits).
-
-    Returns:
-        The encoded message, or None when even the message without any cliff points is too big.
-    """
-    if shape is None:
-        data = frame_json(frame, result, version, wall_time_s)
-        shape = _whole
-    else:
-        data = orjson.dumps(shape(frame_message(frame, result, version, wall_time_s)))
-    if len(data) <= max_bytes:
-        return data
-    if result.cliff is None:
-        return None
-    total = int(np.asarray(result.cliff.points_m).reshape(-1, 2).shape[0])
-    cap = total
-    while cap > 0:
-        # scale by the overshoot, then shave 10 % more: a couple of rounds at most in practice
-        cap = min(cap - 1, int(cap * max_bytes / len(data) * 0.9))
-        cap = max(cap, 0)
-        note = (
-            f"cliff points capped to the nearest {cap} of {total} "
-            f"to fit one {max_bytes}-byte datagram"
-        )
-        data = orjson.dumps(
-            shape(
-                frame_message(
-                    frame, result, version, wall_time_s, max_cliff_points=cap, message=note
-                )
-            )
-        )
-        if len(data) <= max_bytes:
-            return data
-    return None
-
-
-def _whole(msg: dict[str, Any]) -> dict[str, Any]:
-    return msg

@@ -38,7 +38,7 @@ import weakref
 from typing import TYPE_CHECKING, TextIO
 
 from depthnav_daemon.errors import ConfigError, SinkError
-from depthnav_daemon.sinks import jsonmsg
+from depthnav_daemon.sinks import json_line
 from depthnav_daemon.sinks.base import RateLimitedLog, SinkContext, SinkSpec, check_options
 
 if TYPE_CHECKING:
@@ -329,14 +329,14 @@ class StdoutSink:
     def _line(self, frame: Frame, result: Result) -> bytes | None:
         """The bytes to write for one frame, newline included (None: nothing for it)."""
         if type(self).format is StdoutSink.format:
-            # the frame's JSON is made once and shared with the udp sink (jsonmsg.frame_json)
-            return jsonmsg.frame_json(frame, result, self._version, time.time()) + b"\n"
+            # the frame's JSON is made once and shared with the udp sink (json_line.frame_json)
+            return json_line.frame_json(frame, result, self._version, time.time()) + b"\n"
         line = self.format(frame, result)
         return None if line is None else (line + "\n").encode("utf-8")
 
     def format(self, frame: Frame, result: Result) -> str | None:
         """The line to write for one frame (None: write nothing for it)."""
-        return jsonmsg.frame_json(frame, result, self._version, time.time()).decode()
+        return json_line.frame_json(frame, result, self._version, time.time()).decode()
 
     def close(self) -> None:
         """Write what is queued and stop. Safe to call twice; a broken pipe now is ignored."""

@@ -31,7 +31,7 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 from depthnav_daemon.errors import SinkError
-from depthnav_daemon.sinks import jsonmsg
+from depthnav_daemon.sinks import json_line, jsonmsg
 from depthnav_daemon.sinks.base import (
     RateLimitedLog,
     SinkContext,
@@ -144,9 +144,11 @@ class UdpSink:
             raise SinkError(f"sink {self.name!r} is not open")
         if not self._due(result.timestamp_s):
             return
-        # the whole object: the line the stdout sink sends too, made once (jsonmsg.frame_json)
+        # the whole object: the line the stdout sink sends too, made once (json_line.frame_json)
         shape = None if self.content.whole else self.content.shape
-        data = jsonmsg.fit_message(frame, result, self._version, time.time(), self.max_bytes, shape)
+        data = json_line.fit_message(
+            frame, result, self._version, time.time(), self.max_bytes, shape
+        )
         if data is None:
             self._oversize.failed(
                 "udp sink: frame %d does not fit one %d-byte datagram; skipped (raise max_bytes, "

@@ -12,7 +12,7 @@ import numpy as np
 import orjson
 import pytest
 
-from depthnav_daemon.sinks import jsonmsg
+from depthnav_daemon.sinks import json_line, jsonmsg
 from depthnav_daemon.sinks.json_numbers import (
     _TEXTS,
     CHARS_PER_VALUE,
@@ -184,7 +184,7 @@ def test_the_line_is_strict_json_and_decodes(pairs) -> None:
     ranges = result.scan.ranges.copy()
     ranges[:5] = [np.nan, np.inf, -np.inf, 1.23456, 0.0]
     result = with_ranges(result, ranges)
-    line = jsonmsg.frame_json(frame, result, "9.9", 1.0)
+    line = json_line.frame_json(frame, result, "9.9", 1.0)
     msg = json.loads(line)  # strict: no NaN / Infinity literals
     assert msg["scan"]["ranges"][:5] == [None, "Infinity", "-Infinity", 1.235, 0.0]
     assert line == orjson.dumps(jsonmsg.frame_message(frame, result, "9.9", 1.0))
@@ -192,20 +192,20 @@ def test_the_line_is_strict_json_and_decodes(pairs) -> None:
 
 def test_one_line_per_result_shared_by_the_sinks(pairs) -> None:
     (f0, r0), (f1, r1) = pairs[0], pairs[1]
-    first = jsonmsg.frame_json(f0, r0, "1", 1.0)
-    assert jsonmsg.frame_json(f0, r0, "1", 2.0) is first  # same frame: the same line (wall_s 1.0)
+    first = json_line.frame_json(f0, r0, "1", 1.0)
+    assert json_line.frame_json(f0, r0, "1", 2.0) is first  # same frame: the same line (wall_s 1.0)
     assert json.loads(first)["wall_s"] == 1.0
-    assert jsonmsg.frame_json(f1, r1, "1", 2.0) != first  # the next frame: a new line
-    assert json.loads(jsonmsg.frame_json(f0, r0, "2", 3.0))["version"] == "2"
+    assert json_line.frame_json(f1, r1, "1", 2.0) != first  # the next frame: a new line
+    assert json.loads(json_line.frame_json(f0, r0, "2", 3.0))["version"] == "2"
     # a datagram of the whole object is that line; a reshaped one is built anew
-    assert jsonmsg.fit_message(f1, r1, "1", 9.0, 60000) is jsonmsg.frame_json(f1, r1, "1", 9.0)
+    assert json_line.fit_message(f1, r1, "1", 9.0, 60000) is json_line.frame_json(f1, r1, "1", 9.0)
 
 
 def test_udp_mm_ranges_from_the_written_text(pairs) -> None:
     from depthnav_daemon.sinks.udp import Content
 
     frame, result = pairs[0]
-    data = jsonmsg.fit_message(frame, result, "1", 1.0, 60000, Content(ranges_mm=True).shape)
+    data = json_line.fit_message(frame, result, "1", 1.0, 60000, Content(ranges_mm=True).shape)
     assert data is not None
     got = json.loads(data)["scan"]["ranges"]
     want = jsonmsg.encode_ranges(result.scan.ranges)
@@ -243,20 +243,20 @@ def test_the_line_written_in_one_kernel_call_is_the_reference_encoders_line(pair
             want["cliff"]["points_total"] = len(pts)
             want["cliff"]["points_dropped"] = len(pts) - len(finite)
             want["cliff"]["scan"]["ranges"] = jsonmsg.encode_ranges(res.cliff.scan.ranges)
-        assert jsonmsg.frame_json(frame, res, "1", 5.0) == orjson.dumps(want), i
+        assert json_line.frame_json(frame, res, "1", 5.0) == orjson.dumps(want), i
 
 
 WARM_THEN_WRITE = """
 from dataclasses import replace
-from depthnav_daemon.sinks import jsonmsg
+from depthnav_daemon.sinks import json_line
 from depthnav_daemon.sinks.json_numbers import _write_lists
 from depthnav_daemon.tools import warmup
 from tests.sinks.conftest import make_pair
 warmup.warm_up()
 before = len(_write_lists.signatures)
 frame, result = make_pair(0)
-jsonmsg.frame_json(frame, result, "1", 1.0)
-jsonmsg.frame_json(frame, replace(result, cliff=None), "1", 1.0)
+json_line.frame_json(frame, result, "1", 1.0)
+json_line.frame_json(frame, replace(result, cliff=None), "1", 1.0)
 print(before, len(_write_lists.signatures))
 """
 

@@ -14,7 +14,7 @@ from hypothesis import strategies as st
 
 from depthnav_daemon.pipeline import MountTrust
 from depthnav_daemon.pipeline.pose import PoseEstimate
-from depthnav_daemon.sinks import jsonmsg
+from depthnav_daemon.sinks import json_line, jsonmsg
 from tests.sinks.conftest import make_pair, with_memory, with_ranges
 
 
@@ -138,7 +138,7 @@ def test_fit_message_caps_cliff_points_nearest_first(pairs):
     result = replace(result, cliff=cliff)
     full = jsonmsg.dumps(jsonmsg.frame_message(frame, result, "0.1.0", 1.0)).encode()
     assert len(full) > 20000
-    data = jsonmsg.fit_message(frame, result, "0.1.0", 1.0, 20000)
+    data = json_line.fit_message(frame, result, "0.1.0", 1.0, 20000)
     assert data is not None and len(data) <= 20000
     msg = json.loads(data)
     kept = np.asarray(msg["cliff"]["points_m"])
@@ -153,7 +153,7 @@ def test_fit_message_caps_cliff_points_nearest_first(pairs):
         dist_kept.max() <= dropped_min + 0.001
     )  # every kept point is nearer than every dropped one
     # a message that cannot fit even without cliff points is refused
-    assert jsonmsg.fit_message(frame, result, "0.1.0", 1.0, 600) is None
+    assert json_line.fit_message(frame, result, "0.1.0", 1.0, 600) is None
 
 
 def test_each_frame_is_one_line(pairs):

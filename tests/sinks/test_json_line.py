@@ -1,0 +1,111 @@
+"""The JSON line put together from text (json_line._line) is the message's line, byte for byte:
+``orjson.dumps(jsonmsg.frame_message(...))``, for every kind of frame the daemon sends."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import orjson
+import pytest
+
+from depthnav_daemon.pipeline import MountTrust
+from depthnav_daemon.pipeline.merge import SensorState
+from depthnav_daemon.sinks import json_line, jsonmsg
+from tests.sinks.conftest import with_memory
+
+DOUBT = MountTrust(
+    source="default",
+    floor="contradicted",
+    floor_height_m=0.61234,
+    floor_tilt_deg=14.56789,
+    floor_roll_deg=-0.5,
+    dropoffs_trusted=False,
+    note="the floor says 0.612 m, 14.6 deg",
+)
+
+
+def _variants(pairs):
+    """(name, frame, result): the kinds of frames a daemon sends."""
+    frame, result = pairs[1]
+    _, with_pose = pairs[2]  # this frame's floor estimate
+    _, warned = pairs[3]
+    cliff = result.cliff
+    assert cliff is not None and with_pose.pose is not None and warned.warning
+    special = result.scan.ranges.copy()
+    special[:4] = [np.nan, np.inf, -np.inf, -0.0]
+    yield "plain", frame, result
+    yield "floor estimate", frame, with_pose
+    yield "warning", frame, warned
+    yield "no cliff stage", frame, replace(result, cliff=None)
+    yield "special ranges", frame, replace(result, scan=replace(result.scan, ranges=special))
+    yield (
+        "no cliff points",
+        frame,
+        replace(result, cliff=replace(cliff, points_m=np.zeros((0, 2), np.float32))),
+    )
+    yield "trusted", frame, replace(result, mount_trust=MountTrust(floor="confirmed"))
+    yield "not trusted", frame, replace(result, mount_trust=DOUBT, warning=DOUBT.note)
+    yield "memory", frame, with_memory(result)
+    yield (
+        "more timings",
+        frame,
+        replace(
+            result, timings_s={"scan": 0.0012345, "pose": 0.0009, "cliff": 5.5e-05, "memory": 1e-9}
+        ),
+    )
+    yield (
+        "float64 ranges",
+        frame,
+        replace(result, scan=replace(result.scan, ranges=result.scan.ranges.astype(np.float64))),
+    )
+
+
+def test_the_line_from_text_is_the_messages_line(pairs) -> None:
+    for name, frame, result in _variants(pairs):
+        line = json_line._line(result, "1.2.3", 1796194456.0331335)
+        assert line is not None, name  # every one of these takes the text path
+        want = orjson.dumps(jsonmsg.frame_message(frame, result, "1.2.3", 1796194456.0331335))
+        assert line == want, name
+
+
+def test_the_cached_pieces_follow_the_mount_and_the_trust(pairs) -> None:
+    """The pose and trust texts are kept per object: a new mount or verdict is a new text."""
+    (f0, r0), (f1, r1) = pairs[0], pairs[1]
+    assert r0.mount != r1.mount  # the pairs' mount height changes frame to frame
+    for trust in (MountTrust(floor="confirmed"), DOUBT, MountTrust(floor="confirmed")):
+        for frame, result in ((f0, r0), (f1, r1), (f0, r0)):
+            res = replace(result, mount_trust=trust)
+            want = orjson.dumps(jsonmsg.frame_message(frame, res, "1", 2.0))
+            assert json_line._line(res, "1", 2.0) == want
+
+
+def test_what_text_cannot_make_goes_through_the_message(pairs) -> None:
+    """Several sensors, or cliff points the kernel cannot write (not finite): the message's own
+    dicts make the line, which is still the message's line."""
+    frame, result = pairs[1]
+    assert result.cliff is not None
+    bad = np.array(result.cliff.points_m, dtype=np.float32)
+    bad[0] = [np.nan, 1.0]
+    sensors = (SensorState("left", "ok", 0.01, result), SensorState("right", "stale", 0.9, None))
+    for res in (
+        replace(result, cliff=replace(result.cliff, points_m=bad)),
+        replace(result, sensors=sensors),
+    ):
+        assert json_line._line(res, "1", 2.0) is None
+        line = json_line.frame_json(frame, res, "1", 2.0)
+        assert line == orjson.dumps(jsonmsg.frame_message(frame, res, "1", 2.0))
+
+
+@pytest.mark.parametrize("n_bins", [1, 640, 4000])
+def test_the_kept_buffer_grows_and_the_texts_stay_apart(pairs, n_bins: int) -> None:
+    """The buffer the lists are written into is kept between calls: a longer scan after a short
+    one grows it, and a line made earlier is not changed by a later one."""
+    frame, result = pairs[1]
+    rng = np.random.default_rng(n_bins)
+    ranges = rng.uniform(0.4, 5.0, n_bins).astype(np.float32)
+    res = replace(result, scan=replace(result.scan, ranges=ranges))
+    first = json_line._line(res, "1", 2.0)
+    again = json_line._line(replace(result, cliff=None), "1", 2.0)  # reuses the buffer
+    assert first == orjson.dumps(jsonmsg.frame_message(frame, res, "1", 2.0))
+    assert again != first and len(orjson.loads(first)["scan"]["ranges"]) == n_bins
