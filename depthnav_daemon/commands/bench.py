@@ -67,6 +67,8 @@ class BenchReport:
     loop_ms: dict[str, float] | None = None  # the whole loop per frame, by sink set
     # the whole loop / the in-process pipeline interleaved with it, by sink set (median ratio)
     loop_vs_pipeline: dict[str, float] | None = None
+    # the quartiles of those ratios over the blocks (this machine moves them from run to run)
+    loop_vs_pipeline_iqr: dict[str, tuple[float, float]] | None = None
     cpu_30fps: dict[str, float] | None = None
     startup: dict[str, float] | None = None
     resolutions: dict[str, list[Timing]] = field(default_factory=dict)
@@ -139,7 +141,7 @@ def run_bench(
     if latency_frames:
         report.latency = udp_latency(loop_spec, latency_frames)
         pipeline = stage_work(frames, floor)[-1]  # "pipeline per frame", the reference
-        report.loop_ms, report.loop_vs_pipeline = loop_cost(
+        report.loop_ms, report.loop_vs_pipeline, report.loop_vs_pipeline_iqr = loop_cost(
             loop_spec, latency_frames, reference=pipeline
         )
     views: list[tuple[str, Intrinsics, Mount | None]] = []  # synthetic frames to time as well
@@ -169,6 +171,11 @@ def run_bench(
     if startup:
         report.startup = startup_time()
     return report
+
+
+def _quartiles(r: BenchReport, key: str) -> str:
+    q = (r.loop_vs_pipeline_iqr or {}).get(key)
+    return "" if q is None else f" ({q[0]:.2f}-{q[1]:.2f})"
 
 
 def format_report(r: BenchReport) -> str:
@@ -203,10 +210,11 @@ def format_report(r: BenchReport) -> str:
     if r.loop_ms and r.loop_vs_pipeline:
         out.append(
             "whole loop per frame (read, stages, sinks) / in-process pipeline (interleaved: "
-            "one call after every 30 frames of the loop, median of the pairs; targets: null "
-            "<= 1.2x, stdout + udp <= 1.5x): "
+            "one call after every 30 frames of the loop, median of the pairs (quartiles); "
+            "targets: null <= 1.2x, stdout + udp <= 1.5x): "
             + ", ".join(
-                f"{k} {v:.3f} ms = {r.loop_vs_pipeline[k]:.2f}x" for k, v in r.loop_ms.items()
+                f"{k} {v:.3f} ms = {r.loop_vs_pipeline[k]:.2f}x{_quartiles(r, k)}"
+                for k, v in r.loop_ms.items()
             )
         )
     for name, ts in r.resolutions.items():

@@ -188,7 +188,7 @@ LOOP_SINKS = {
 
 def loop_cost(
     spec: str, n_frames: int = 600, rounds: int = 5, reference: Work | None = None
-) -> tuple[dict[str, float], dict[str, float]]:
+) -> tuple[dict[str, float], dict[str, float], dict[str, tuple[float, float]]]:
     """Per-frame wall time of the daemon's whole frame loop (read, stages, sinks), in-process.
 
     For each sink set of LOOP_SINKS the loop runs ``n_frames`` frames of ``spec`` at full speed
@@ -201,8 +201,8 @@ def loop_cost(
 
     Returns:
         (ms per frame: median block of the ``rounds`` runs; loop / reference: median over the
-        blocks of block / its reference call), each keyed by the set's name; the ratios are
-        empty without ``reference``.
+        blocks of block / its reference call; those ratios' quartiles, how far one run's median
+        may move), each keyed by the set's name; the ratios are empty without ``reference``.
     """
     import logging
 
@@ -217,6 +217,7 @@ def loop_cost(
     quiet.setLevel(logging.WARNING)
     ms: dict[str, float] = {}
     ratio: dict[str, float] = {}
+    spread: dict[str, tuple[float, float]] = {}
     try:
         with open(os.devnull, "w") as devnull:
 
@@ -248,10 +249,12 @@ def loop_cost(
                 ms[label] = float(np.median(blocks)) * 1e3
                 if ratios:
                     ratio[label] = float(np.median(ratios))
+                    q1, q3 = np.percentile(ratios, [25, 75])
+                    spread[label] = (float(q1), float(q3))
     finally:
         consumer.close()
         quiet.setLevel(level)
-    return ms, ratio
+    return ms, ratio, spread
 
 
 class _Clock:

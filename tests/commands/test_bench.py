@@ -54,6 +54,8 @@ def test_quick_bench_json_has_every_stage_latency_and_machine(
     assert all(v > 0 for v in report["loop_ms"].values())
     assert set(report["loop_vs_pipeline"]) == set(report["loop_ms"])
     assert all(v > 0 for v in report["loop_vs_pipeline"].values())
+    for key, (q1, q3) in report["loop_vs_pipeline_iqr"].items():  # how far a run's median moves
+        assert 0 < q1 <= report["loop_vs_pipeline"][key] <= q3, key
     assert {"cpu", "cores", "loadavg", "numpy", "numba"} <= set(report["machine"])
     sinks = [t["name"] for t in report["sinks"]]  # each output's per-frame work
     for output in ("stdout/udp JSON line", "rosbag sink, ROS 2", "rosbag sink, ROS 1", "ros2 sink"):
