@@ -21,8 +21,8 @@ from depthnav_daemon.pipeline.geometry import (
     normalized_coords,
 )
 from depthnav_daemon.pipeline.scan_blocks import block_tables
-from depthnav_daemon.pipeline.scan_kernels import MAX_CODE_INDEX, run_flush_codes
-from depthnav_daemon.pipeline.table_kernels import bin_map_kernel, exact_table_kernel
+from depthnav_daemon.pipeline.scan_kernels import MAX_CODE_INDEX
+from depthnav_daemon.pipeline.table_kernels import bin_map_kernel, exact_codes_kernel
 from drivers.base import Intrinsics
 
 if TYPE_CHECKING:
@@ -207,35 +207,9 @@ def exact_table(intr: Intrinsics, mount: Mount, params: ScanParams) -> ExactTabl
     g = _grid(intr, (rows.start, rows.stop, rows.step or 1), params.col_step)
     rot = cam_to_level(mount.tilt_rad, mount.roll_rad)
     shape = g.x.shape
-    u16 = [np.empty(shape, dtype=np.uint16) for _ in range(7)]
+    u16 = np.empty((7, *shape), dtype=np.uint16)
     zlo_mm, zhi_mm, near_lo_mm, near_hi_mm, k_lo, k_mid, k_hi = u16
     kr32 = np.empty(shape, dtype=np.float32)
-    centre, lo_b, hi_b = (np.empty(shape) for _ in range(3))
-    sane = np.empty(shape, dtype=np.bool_)
-    # compiled: numpy took ~50 ms at 640x480, on the frame path of a mount change
-    edge_min, edge_max, used = exact_table_kernel(
-        g.x,
-        g.y,
-        g.xe,
-        g.ye,
-        rot,
-        float(mount.height_m),
-        float(params.min_obstacle_height_m),
-        float(params.max_obstacle_height_m),
-        float(params.range_min_m),
-        float(params.range_max_m),
-        *u16,
-        kr32,
-        centre,
-        lo_b,
-        hi_b,
-        sane,
-    )
-    if used == 0:
-        raise ConfigError(
-            f"no pixel of this image looks at a bearing for this mount (tilt {mount.tilt_deg:g} "
-            f"deg, roll {mount.roll_deg:g} deg); check the mount"
-        )
     px, py = g.principal
     fwd = rot[0, 0] * px + rot[0, 1] * py + rot[0, 2]
     left = rot[1, 0] * px + rot[1, 1] * py + rot[1, 2]
@@ -245,21 +219,31 @@ def exact_table(intr: Intrinsics, mount: Mount, params: ScanParams) -> ExactTabl
         if params.angle_increment_deg > 0
         else float(abs(principal[1] - principal[0]))
     )
-    n = max(1, math.ceil((float(edge_max) - float(edge_min)) / inc))
+    limits = np.array(
+        [
+            mount.height_m,
+            params.min_obstacle_height_m,
+            params.max_obstacle_height_m,
+            params.range_min_m,
+            params.range_max_m,
+        ],
+        dtype=np.float64,
+    )
+    # compiled: numpy took ~50 ms at 640x480, on the frame path of a mount change; one call, so
+    # that its large temporaries are freed without the interpreter lock (exact_codes_kernel)
+    used, n, angle_min, fl_start, fl_code = exact_codes_kernel(
+        g.x, g.y, g.xe, g.ye, rot, limits, u16, kr32, inc, MAX_BINS
+    )
+    if used == 0:
+        raise ConfigError(
+            f"no pixel of this image looks at a bearing for this mount (tilt {mount.tilt_deg:g} "
+            f"deg, roll {mount.roll_deg:g} deg); check the mount"
+        )
     if n > MAX_BINS:
         raise ConfigError(
             f"scan.angle_increment_deg={params.angle_increment_deg} gives {n} bins "
             f"(accepted: up to {MAX_BINS})"
         )
-    angle_min = float(edge_min) + inc / 2.0
-    # the kernel straight into the flush codes: _bin_map's per-bin column lists and int16 copies
-    # (~13 MB of numpy work at 1280x720) are for the tests' reference, not for the scan
-    hs = shape[0]
-    cb_lo = np.empty(shape, dtype=np.int64)
-    cb_hi = np.empty(shape, dtype=np.int64)
-    g = np.empty((hs, n), dtype=np.int64)
-    bin_map_kernel(centre, lo_b, hi_b, sane, angle_min, inc, g, np.empty_like(g), cb_lo, cb_hi)
-    fl_start, fl_code = run_flush_codes(cb_lo, cb_hi, n)
     blk, fl_blk, probe_start, probe, spans = block_tables(k_lo, k_mid, k_hi, fl_start, fl_code, n)
     row_idx = np.arange(intr.height, dtype=np.int32)[rows]
     table = ExactTable(

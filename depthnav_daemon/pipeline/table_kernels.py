@@ -16,6 +16,7 @@ import math
 import numpy as np
 
 from depthnav_daemon.pipeline._jit import helper, kernel
+from depthnav_daemon.pipeline.scan_kernels import flush_codes_kernel
 
 U16_MAX = 65535.0
 
@@ -175,6 +176,53 @@ def pose_envelope_kernel(rx, ry, rz, rows_kz, lo_kz, hi_kz):
                 down = -(rx[i, j] * a + ry[i, j] * b + rz[i, j] * c)
                 lo_kz[i, j] = _fmin(lo_kz[i, j], down)
                 hi_kz[i, j] = _fmax(hi_kz[i, j], down)
+
+
+@kernel
+def exact_codes_kernel(x, y, xe, ye, rot, limits, u16, kr32, inc, max_bins):
+    """exact_table_kernel, then the bin map and the run flush codes, in one call: the per-pixel
+    bearings and bin maps in between (~40 MB of float64 and int64 at 1280x720) are made and
+    freed in here, without the interpreter lock. Freed by numpy on the table worker, they held
+    it 1-2 ms an array (the pages going back to the system): the frame loop waited as long.
+
+    Args:
+        x, y, xe, ye, rot: as exact_table_kernel.
+        limits: (5,) float64 height_m, min_h_m, max_h_m, range_min_m, range_max_m.
+        u16: (7, Hs, Ws) uint16, overwritten: zlo_mm, zhi_mm, near_lo_mm, near_hi_mm, k_lo,
+            k_mid, k_hi (exact_table_kernel's tables).
+        kr32: (Hs, Ws) float32, overwritten: horizontal range per mm of depth.
+        inc: bin width, radians.
+        max_bins: the most bins accepted.
+
+    Returns:
+        (used, n, angle_min, fl_start, fl_code): sane pixels (0: no bins, nothing else made),
+        bins (> max_bins: refused, no codes made), the first bin's centre, and the run flush
+        codes (scan_kernels.run_flush_codes) of the bin map.
+    """
+    shape = x.shape
+    centre = np.empty(shape)
+    lo_b = np.empty(shape)
+    hi_b = np.empty(shape)
+    sane = np.empty(shape, np.bool_)
+    edge_min, edge_max, used = exact_table_kernel(
+        x, y, xe, ye, rot, limits[0], limits[1], limits[2], limits[3], limits[4],
+        u16[0], u16[1], u16[2], u16[3], u16[4], u16[5], u16[6], kr32, centre, lo_b, hi_b, sane,
+    )  # fmt: skip
+    none = np.zeros(0, np.int32)
+    if used == 0:
+        return used, 0, 0.0, none, none
+    n = max(1, math.ceil((edge_max - edge_min) / inc))
+    if n > max_bins:
+        return used, n, 0.0, none, none
+    angle_min = edge_min + inc / 2.0
+    cb_lo = np.empty(shape, np.int64)
+    cb_hi = np.empty(shape, np.int64)
+    g_lo = np.empty((shape[0], n), np.int64)
+    bin_map_kernel(
+        centre, lo_b, hi_b, sane, angle_min, inc, g_lo, np.empty_like(g_lo), cb_lo, cb_hi
+    )
+    fl_start, fl_code = flush_codes_kernel(cb_lo, cb_hi, n, 0)
+    return used, n, angle_min, fl_start, fl_code
 
 
 @kernel

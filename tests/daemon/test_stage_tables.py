@@ -262,7 +262,7 @@ def test_the_frame_loop_builds_no_table_after_a_cameras_first_frame(monkeypatch)
         return run
 
     monkeypatch.setattr(
-        scan_table, "exact_table_kernel", spy("scan", scan_table.exact_table_kernel)
+        scan_table, "exact_codes_kernel", spy("scan", scan_table.exact_codes_kernel)
     )
     monkeypatch.setattr(
         pose_fit, "pose_envelope_kernel", spy("pose", pose_fit.pose_envelope_kernel)

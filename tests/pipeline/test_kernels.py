@@ -437,6 +437,7 @@ def test_warm_up_compiles_every_kernel_the_daemon_path_calls() -> None:
         scan_kernels.flush_codes_kernel,
         scan_blocks.block_tables_kernel,
         table_kernels.exact_table_kernel,
+        table_kernels.exact_codes_kernel,
         table_kernels.pose_envelope_kernel,
     ]
     warmup.warm_up()
