@@ -28,7 +28,7 @@ from depthnav_daemon.config.loader import Config
 from depthnav_daemon.errors import SinkError
 from depthnav_daemon.pipeline import Result, StageParams, process
 from depthnav_daemon.pipeline.geometry import Mount
-from depthnav_daemon.sinks import create_sink, jsonmsg
+from depthnav_daemon.sinks import create_sink, json_line, jsonmsg
 from depthnav_daemon.sinks.base import Sink, SinkContext
 from depthnav_daemon.sinks.ros_cdr import CdrEncoder
 from depthnav_daemon.sinks.ros_messages import NAME_OPTIONS, MessageBuilder, RosNames, typestore
@@ -71,7 +71,7 @@ def _open_work(frames: Sequence[Frame], mount: Mount) -> Iterator[list[Work]]:
     with tempfile.TemporaryDirectory(prefix="depthnav-bench-") as tmp:
         folder = Path(tmp)
         opened: list[Sink] = []
-        work = [Work("stdout/udp JSON line (frame_message + orjson)", _json_line(pairs))]
+        work = [Work("stdout/udp JSON line (as frame_json makes it)", _json_line(pairs))]
         for name, spec in (
             ("rosbag sink, ROS 2 .mcap (messages, CDR, write)", f"rosbag:{folder / 'b.mcap'}"),
             ("rosbag sink, ROS 1 .bag (messages, serialise, write)", f"rosbag:{folder / 'b.bag'}"),
@@ -114,9 +114,18 @@ def _cycle(pairs: Sequence[tuple[Frame, Result]]) -> Callable[[], tuple[Frame, R
 
 
 def _json_line(pairs: Sequence[tuple[Frame, Result]]) -> Callable[[], object]:
+    """How frame_json makes a frame's line (from text; the message's dicts where it must), made
+    anew each call: frame_json itself returns the line it made for a Result."""
     nxt = _cycle(pairs)
-    # frame_message + orjson, not frame_json: that one returns the line it made for a Result
-    return lambda: orjson.dumps(jsonmsg.frame_message(*nxt(), __version__, time.time()))
+
+    def line() -> bytes:
+        frame, result = nxt()
+        data = json_line._line(result, __version__, time.time())
+        if data is None:
+            data = orjson.dumps(jsonmsg.frame_message(frame, result, __version__, time.time()))
+        return data
+
+    return line
 
 
 def _writes(sink: Sink, pairs: Sequence[tuple[Frame, Result]]) -> Callable[[], object]:
