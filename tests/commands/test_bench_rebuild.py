@@ -20,13 +20,13 @@ def test_every_change_is_built_off_the_frame_thread_and_then_served(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
     threads: list[int] = []
-    real = scan_table.exact_table_kernel
+    real = scan_table.exact_codes_kernel
 
     def spy(*args):  # the real kernel, noting the thread that runs it
         threads.append(threading.get_ident())
         return real(*args)
 
-    monkeypatch.setattr(scan_table, "exact_table_kernel", spy)
+    monkeypatch.setattr(scan_table, "exact_codes_kernel", spy)
     t = rebuild_timing("160x120", SMALL, changes=3, pace_hz=0.0, n_frames=3)
     assert isinstance(t, RebuildTiming) and t.changes == 3 and t.resolution == "160x120"
     # every change served within the bench's bound (it would report MAX_CHANGE_FRAMES)
