@@ -18,7 +18,8 @@ F64 = npt.NDArray[np.float64]
 def slab(o: F64, d: F64, lo: F64, hi: F64) -> tuple[F64, F64]:
     """Entry and exit ray parameters of an axis-aligned box, per ray (..., ); entry > exit =
     miss."""
-    with np.errstate(divide="ignore", invalid="ignore"):
+    # over: a subnormal direction component gives inf, as a zero one does (handled below)
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         inv = 1.0 / d
         t1 = (lo - o) * inv
         t2 = (hi - o) * inv
