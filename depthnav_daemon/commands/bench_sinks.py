@@ -71,7 +71,7 @@ def _open_work(frames: Sequence[Frame], mount: Mount) -> Iterator[list[Work]]:
     with tempfile.TemporaryDirectory(prefix="depthnav-bench-") as tmp:
         folder = Path(tmp)
         opened: list[Sink] = []
-        work = [Work("stdout/udp JSON line (as frame_json makes it)", _json_line(pairs))]
+        work = [Work("stdout/udp JSON line (as frame_line makes it)", _json_line(pairs))]
         for name, spec in (
             ("rosbag sink, ROS 2 .mcap (messages, CDR, write)", f"rosbag:{folder / 'b.mcap'}"),
             ("rosbag sink, ROS 1 .bag (messages, serialise, write)", f"rosbag:{folder / 'b.bag'}"),
@@ -114,8 +114,8 @@ def _cycle(pairs: Sequence[tuple[Frame, Result]]) -> Callable[[], tuple[Frame, R
 
 
 def _json_line(pairs: Sequence[tuple[Frame, Result]]) -> Callable[[], object]:
-    """How frame_json makes a frame's line (from text; the message's dicts where it must), made
-    anew each call: frame_json itself returns the line it made for a Result."""
+    """How frame_line makes a frame's line (from a template; the message's dicts where it must),
+    made anew each call: frame_line itself returns the line it made for a Result."""
     nxt = _cycle(pairs)
 
     def line() -> bytes:
@@ -123,6 +123,7 @@ def _json_line(pairs: Sequence[tuple[Frame, Result]]) -> Callable[[], object]:
         data = json_line._line(result, __version__, time.time())
         if data is None:
             data = orjson.dumps(jsonmsg.frame_message(frame, result, __version__, time.time()))
+            data += b"\n"
         return data
 
     return line

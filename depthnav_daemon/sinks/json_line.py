@@ -1,38 +1,39 @@
 """The frame's JSON line as bytes, made once a frame and shared by the ``stdout`` and ``udp`` sinks.
 
-The line is ``orjson.dumps(jsonmsg.frame_message(...))``, byte for byte. In the frame loop (its
-stages have just streamed megabytes of tables through the caches) building that message's dozen
-small objects cost about as much as writing its 1500 numbers, so the line is put together from
-text instead wherever the message allows:
+The line is ``orjson.dumps(jsonmsg.frame_message(...))`` and a newline, byte for byte. In the
+frame loop (its stages have just streamed megabytes of tables through the caches) every small
+Python step costs: the message's dicts, its four rounded times and the joins of the pieces cost as
+much as writing its 1500 numbers. So the line is written by one compiled call from a template
+(json_template): the text around the numbers, with a control byte where each number goes:
 
-- the numbers: the three lists written by one kernel call into a buffer kept from frame to frame
-  (json_numbers.lists_text), copied once, into the scan and cliff objects' text;
-- a scan's head (angles and limits: the same frame after frame), the pose when the frame has no
-  floor estimate, and the mount's trust: made once, reused while they stay the same object.
+- the text pieces: a scan's head (angles and limits, the same frame after frame), the pose when
+  the frame has no floor estimate, the mount's trust, the timings' keys: made once, reused while
+  they stay the same;
+- the numbers: the three lists, the sequence number and point count, the times (as orjson writes
+  Python's ``round(t, 6)``), written into a buffer kept from frame to frame, then copied once.
 
-Anything else (several sensors, points the kernel cannot write, a frame's floor estimate inside
-the pose) takes the message's own dicts; tests/sinks/test_json_line.py compares both.
+Anything else (several sensors, points the kernel cannot write, a time beyond 2106) takes the
+message's own dicts; tests/sinks/test_json_line.py compares both.
 """
 
 from __future__ import annotations
 
 import functools
+import operator
+from array import array
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import orjson
 
-from depthnav_daemon.sinks.json_numbers import lists_text
+from depthnav_daemon.sinks.json_template import FLAT, INTEGER, PAIRS, SECONDS, template_text
 from depthnav_daemon.sinks.jsonmsg import (
     SCHEMA_VERSION,
-    SEC,
     _mount_json,
-    _num,
     _pose_to_json,
     _scan_geometry,
     _trust_json,
-    dropoffs_trusted,
     frame_message,
     memory_to_json,
 )
@@ -42,20 +43,19 @@ if TYPE_CHECKING:
     from depthnav_daemon.pipeline.scan import LaserScan
     from drivers.base import Frame
 
-Fragment = orjson.Fragment
-
 # The last frame's line: (result, version, UTF-8 JSON). Every sink that sends the whole object
 # (stdout, udp with content=all) gets these bytes: made once a frame, not once a sink.
 _last_line: list[tuple[Any, str, bytes]] = []
 # One-entry caches, each a tuple replaced whole (threads read them): the pose's text for a mount
 # object and source, and the trust's text for a verdict object (the daemon hands every frame the
 # same objects until they change)
-_last_pose: tuple[Any, str, Fragment] | None = None
-_last_trust: tuple[Any, Fragment] | None = None
+_last_pose: tuple[Any, str, bytes] | None = None
+_last_trust: tuple[Any, bytes] | None = None
 
 
-def frame_json(frame: Frame, result: Result, version: str, wall_time_s: float) -> bytes:
-    """:func:`jsonmsg.frame_message` of the frame as compact UTF-8 JSON, made once per Result.
+def frame_line(frame: Frame, result: Result, version: str, wall_time_s: float) -> bytes:
+    """:func:`jsonmsg.frame_message` of the frame as compact UTF-8 JSON and a newline (what the
+    stdout sink writes; the udp sink sends it without the newline), made once per Result.
 
     The sinks of one frame share it, so they also share its ``wall_s`` (the time the first one
     asked). A new Result (the next frame) or another version makes a new line.
@@ -65,62 +65,114 @@ def frame_json(frame: Frame, result: Result, version: str, wall_time_s: float) -
             return last_data
     data = _line(result, version, wall_time_s)
     if data is None:
-        data = orjson.dumps(frame_message(frame, result, version, wall_time_s))
+        data = orjson.dumps(frame_message(frame, result, version, wall_time_s)) + b"\n"
     _last_line[:] = [(result, version, data)]  # one entry, replaced whole (threads read it)
     return data
 
 
+def frame_json(frame: Frame, result: Result, version: str, wall_time_s: float) -> bytes:
+    """:func:`frame_line` without its newline (a copy)."""
+    return frame_line(frame, result, version, wall_time_s)[:-1]
+
+
 def _line(result: Result, version: str, wall_time_s: float) -> bytes | None:
-    """The line from text (see the module docstring); None where the message's dicts are
-    needed."""
+    """The line and its newline from a template (see the module docstring); None where the
+    message's dicts are needed."""
     if result.sensors:
         return None
     scan, cliff = result.scan, result.cliff
-    if np.ndim(scan.ranges) != 1:
+    if not _is_flat(scan.ranges) or (cliff is not None and not _is_flat(cliff.scan.ranges)):
         return None
+    timings = result.timings_s
+    timings_text, timing_values = _timings(tuple(timings))
+    memory, warning = result.memory, result.warning
+    # the values of the template's SECONDS and INTEGER markers, in the order of the markers
+    values: tuple[Any, ...] = (result.seq, result.timestamp_s, wall_time_s)
     if cliff is None:
-        got = lists_text(scan.ranges)
-    elif np.ndim(cliff.scan.ranges) != 1:
-        return None
+        cliff_text = _NO_CLIFF
     else:
-        got = lists_text(scan.ranges, cliff.points_m, cliff.scan.ranges)
-    if got is None:
-        return None
-    text, a, b, n = got
-    scan_json = Fragment(b"".join((_scan_head(scan), text[:a], b"}")))
-    cliff_json = None
-    if cliff is not None:
-        total = np.size(cliff.points_m) // 2
-        cliff_json = Fragment(
-            b"".join(
-                (
-                    b'{"points_m":',
-                    text[a:b],
-                    b',"points_total":%d,"points_dropped":0,"scan":' % total,
-                    _scan_head(cliff.scan),
-                    text[b:n],
-                    b'},"trusted":true}' if dropoffs_trusted(result) else b'},"trusted":false}',
-                )
+        trust = result.mount_trust
+        cliff_text = b"".join(
+            (
+                _CLIFF_START,
+                _scan_head(cliff.scan),
+                _TRUSTED if trust is None or trust.dropoffs_trusted else _NOT_TRUSTED,
             )
         )
-    return orjson.dumps(
-        {
-            "v": SCHEMA_VERSION,
-            "version": version,
-            "seq": int(result.seq),
-            "t_s": _num(result.timestamp_s, SEC),
-            "wall_s": _num(wall_time_s, SEC),
-            "scan": scan_json,
-            "cliff": cliff_json,
-            "pose": _pose(result),
-            "mount": _trust(result),
-            "memory": memory_to_json(result.memory),
-            "sensors": None,
-            "timings_s": {k: _num(v, SEC) for k, v in sorted(result.timings_s.items())},
-            "warning": result.warning,
-            "message": None,
-        }
+        points = cliff.points_m
+        values += ((points.size if type(points) is np.ndarray else np.size(points)) // 2,)
+    template = b"".join(
+        (
+            _prefix(version),
+            _scan_head(scan),
+            _SCAN_END,
+            cliff_text,
+            b',"pose":',
+            _pose(result),
+            b',"mount":',
+            _trust(result),
+            b',"memory":',
+            b"null" if memory is None else orjson.dumps(memory_to_json(memory)),
+            b',"sensors":null,"timings_s":',
+            timings_text,
+            b',"warning":',
+            b"null" if warning is None else orjson.dumps(warning),
+            b',"message":null}\n',
+        )
     )
+    try:
+        numbers = array("d", values + timing_values(timings))
+    except (TypeError, OverflowError):
+        return None  # a value that is no number (None: the message writes null) or too large
+    if cliff is None:
+        text = template_text(template, scan.ranges, None, None, numbers)
+    else:
+        text = template_text(template, scan.ranges, cliff.points_m, cliff.scan.ranges, numbers)
+    return None if text is None else bytes(text)
+
+
+def _is_flat(values: Any) -> bool:
+    """np.ndim(values) == 1, quicker for an array."""
+    return values.ndim == 1 if type(values) is np.ndarray else np.ndim(values) == 1
+
+
+# the template's fixed pieces (json_template's markers where the numbers go)
+_SCAN_END = FLAT + b"}"
+_NO_CLIFF = b',"cliff":null'
+_CLIFF_START = b"".join(
+    (b',"cliff":{"points_m":', PAIRS, b',"points_total":', INTEGER, b',"points_dropped":0,"scan":')
+)
+_TRUSTED = FLAT + b'},"trusted":true}'
+_NOT_TRUSTED = FLAT + b'},"trusted":false}'
+
+
+@functools.lru_cache(maxsize=8)
+def _prefix(version: str) -> bytes:
+    """The line's text up to its scan's head."""
+    return b"".join(
+        (
+            b'{"v":%d,"version":' % SCHEMA_VERSION,
+            orjson.dumps(version),
+            b',"seq":',
+            INTEGER,
+            b',"t_s":',
+            SECONDS,
+            b',"wall_s":',
+            SECONDS,
+            b',"scan":',
+        )
+    )
+
+
+@functools.lru_cache(maxsize=64)
+def _timings(keys: tuple[str, ...]) -> tuple[bytes, Callable[[dict[str, float]], tuple[Any, ...]]]:
+    """The timings object's template for a dict with these keys (in its order): the keys sorted,
+    a SECONDS marker for each value; and what takes the values from the dict in that order."""
+    ordered = sorted(keys)
+    text = b"{%b}" % b",".join(orjson.dumps(k) + b":" + SECONDS for k in ordered)
+    if len(ordered) > 1:
+        return text, operator.itemgetter(*ordered)
+    return text, lambda timings: tuple(timings[k] for k in ordered)
 
 
 def _scan_head(scan: LaserScan) -> bytes:
@@ -150,30 +202,31 @@ def _head(
     return whole[: -len(b"null}")]
 
 
-def _pose(result: Result) -> Any:
-    """The pose object: its text, made once per mount, when the frame has no floor estimate."""
+def _pose(result: Result) -> bytes:
+    """The pose object's text: made once per mount when the frame has no floor estimate."""
     global _last_pose  # noqa: PLW0603 - a one-entry cache
     if result.pose is not None:
-        return _pose_to_json(result)
+        return orjson.dumps(_pose_to_json(result))
     m, source = result.mount, result.mount_source
     last = _last_pose
     if last is not None and last[0] is m and last[1] == source:
         return last[2]
-    text = Fragment(orjson.dumps(dict(_mount_json(m, source))))
+    text = orjson.dumps(dict(_mount_json(m, source)))
     _last_pose = (m, source, text)
     return text
 
 
-def _trust(result: Result) -> Fragment | None:
-    """The mount object (its trust): its text, made once per verdict."""
+def _trust(result: Result) -> bytes:
+    """The mount object's text (its trust; ``null`` when nobody assessed it): made once per
+    verdict."""
     global _last_trust  # noqa: PLW0603 - a one-entry cache
     t = result.mount_trust
     if t is None:
-        return None
+        return b"null"
     last = _last_trust
     if last is not None and last[0] is t:
         return last[1]
-    text = Fragment(orjson.dumps(_trust_json(t)))
+    text = orjson.dumps(_trust_json(t))
     _last_trust = (t, text)
     return text
 
@@ -190,7 +243,7 @@ def fit_message(
 
     Args:
         shape: applied to each message before it is encoded (a sink's choice of content); None:
-            the whole object (then the line :func:`frame_json` shares when it fits).
+            the whole object (then :func:`frame_json`, the line the sinks share, when it fits).
 
     Returns:
         The encoded message, or None when even the message without any cliff points is too big.

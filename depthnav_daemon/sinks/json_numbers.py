@@ -77,8 +77,96 @@ _NULL = _packed("null,")
 _LOW = 2**56 - 1  # the bytes of a text below its length
 
 
-@njit(cache=True, nogil=True, boundscheck=False, error_model="numpy")
-def _write_lists(  # noqa: PLR0912, PLR0915 - one function: each one more is a second of compiling
+_OPTIONS = {"cache": True, "nogil": True, "boundscheck": False, "error_model": "numpy"}
+
+
+@njit(**_OPTIONS, inline="always")
+def put_list(  # noqa: PLR0912, PLR0915 - every kind of value in the one loop LLVM sees
+    values: np.ndarray, pairs: bool, texts: np.ndarray, out: np.ndarray, n: int
+) -> int:  # pragma: no cover - compiled; tests/sinks/test_json_numbers.py checks
+    """Write the flat array ``values`` (float32 or float64) as a JSON list into ``out`` (uint8)
+    from byte ``n``; with ``pairs``, as a list of [x, y] pairs. Non-finite values are written as
+    ``null``/``"Infinity"``/``"-Infinity"`` (in a flat list; pairs: see Returns). ``texts`` is
+    :func:`_texts` of at least 1000 entries (an argument: a global array of 800 KB numba would
+    freeze into the machine code and its cache). Inlined into each kernel that calls it.
+
+    Every value is written with a comma after it (the table's entries end in one): the last one
+    becomes the list's ``]``, and a pair's second its ``]`` before a new comma.
+
+    Returns:
+        Where the text ends (the next free byte), -1 for a value it cannot write exactly (see the
+        module docstring), or NOT_FINITE for a non-finite value in a list of pairs.
+    """
+    table_k = texts.size
+    out[np.uint64(n)] = 91  # [
+    n += 1
+    for i in range(values.size):
+        if pairs and not i & 1:
+            out[np.uint64(n)] = 91  # a pair's [
+            n += 1
+        x = np.float64(values[i])  # exact for float32
+        k = abs(np.rint(x * 1000.0))
+        minus = math.copysign(1.0, x) < 0.0
+        if k < table_k:  # false for NaN and inf too
+            head, skip = np.uint64(45), np.int64(minus)  # "-" (-0.0 is written "-0.0")
+            text = texts[np.uint64(np.int64(k))]
+        elif k == math.inf:
+            if pairs:
+                return NOT_FINITE
+            skip = np.int64(8)  # its first 8 bytes, then the rest (the sign in the quotes)
+            head = np.uint64(_NEG_INF[0] if minus else _POS_INF[0])
+            text = np.uint64(_NEG_INF[1] if minus else _POS_INF[1])
+        elif math.isnan(x):
+            if pairs:
+                return NOT_FINITE
+            head, skip = np.uint64(0), np.int64(0)
+            text = np.uint64(_NULL)
+        elif k < MAX_K:  # 100 m and beyond: the digits of the metres, then a fraction's text
+            if minus:
+                out[np.uint64(n)] = 45
+                n += 1
+            q = np.int64(k)
+            frac = q % 1000
+            q //= 1000
+            lo = n
+            while True:  # least significant first, then turned round
+                out[np.uint64(n)] = 48 + q % 10
+                q //= 10
+                n += 1
+                if q == 0:
+                    break
+            a, b = lo, n - 1
+            while a < b:
+                out[np.uint64(a)], out[np.uint64(b)] = out[np.uint64(b)], out[np.uint64(a)]
+                a += 1
+                b -= 1
+            head, skip = np.uint64(0), np.int64(0)
+            text = texts[np.uint64(frac)]  # ".5," of "0.5,": its bytes moved down by one
+            length = (text >> np.uint64(56)) - np.uint64(1)
+            text = (text & np.uint64(_LOW)) >> np.uint64(8) | length << np.uint64(56)
+        else:
+            return -1
+        for c in range(8):  # two 8-byte stores: the head, then the text (its top byte junk)
+            out[np.uint64(n + c)] = (head >> np.uint64(8 * c)) & np.uint64(255)
+        n += skip
+        for c in range(8):
+            out[np.uint64(n + c)] = (text >> np.uint64(8 * c)) & np.uint64(255)
+        n += np.int64(text >> np.uint64(56))
+        if pairs and i & 1:
+            out[np.uint64(n - 1)] = 93  # the pair's ]
+            out[np.uint64(n)] = 44  # ,
+            n += 1
+    if pairs and values.size & 1:  # an odd count: the last pair holds one value
+        out[np.uint64(n - 1)] = 93
+        out[np.uint64(n)] = 44
+        n += 1
+    n -= values.size > 0  # the last comma
+    out[np.uint64(n)] = 93  # ]
+    return n + 1
+
+
+@njit(**_OPTIONS)
+def _write_lists(
     first: np.ndarray,
     second: np.ndarray,
     third: np.ndarray,
@@ -86,94 +174,21 @@ def _write_lists(  # noqa: PLR0912, PLR0915 - one function: each one more is a s
     out: np.ndarray,
 ) -> tuple[int, int, int]:  # pragma: no cover - compiled; tests/sinks/test_json_numbers.py checks
     """Write three flat arrays (float32 or float64, the same type) as JSON lists into ``out``
-    (uint8), one after the other, the second as [x, y] pairs. Non-finite values are written as
-    ``null``/``"Infinity"``/``"-Infinity"`` (in a flat list; pairs: see Returns). ``texts`` is
-    :func:`_texts` of at least 1000 entries (an argument: a global array of 800 KB numba would
-    freeze into the machine code and its cache).
-
-    Every value is written with a comma after it (the table's entries end in one): the last one
-    of a list becomes its ``]``, and a pair's second its ``]`` before a new comma.
+    (uint8), one after the other, the second as [x, y] pairs (:func:`put_list`).
 
     Returns:
-        The number of bytes written, -1 for a value it cannot write exactly (see the module
-        docstring), or NOT_FINITE for a non-finite value in a list of pairs; and the offsets
+        The number of bytes written, or put_list's error (-1 or NOT_FINITE); and the offsets
         where the first and the second list end.
     """
-    n = 0
-    end_first = end_second = 0
-    table_k = texts.size
-    for s in range(3):
-        values = first if s == 0 else (second if s == 1 else third)
-        pairs = s == 1
-        out[np.uint64(n)] = 91  # [
-        n += 1
-        for i in range(values.size):
-            if pairs and not i & 1:
-                out[np.uint64(n)] = 91  # a pair's [
-                n += 1
-            x = np.float64(values[i])  # exact for float32
-            k = abs(np.rint(x * 1000.0))
-            minus = math.copysign(1.0, x) < 0.0
-            if k < table_k:  # false for NaN and inf too
-                head, skip = np.uint64(45), np.int64(minus)  # "-" (-0.0 is written "-0.0")
-                text = texts[np.uint64(np.int64(k))]
-            elif k == math.inf:
-                if pairs:
-                    return NOT_FINITE, 0, 0
-                skip = np.int64(8)  # its first 8 bytes, then the rest (the sign in the quotes)
-                head = np.uint64(_NEG_INF[0] if minus else _POS_INF[0])
-                text = np.uint64(_NEG_INF[1] if minus else _POS_INF[1])
-            elif math.isnan(x):
-                if pairs:
-                    return NOT_FINITE, 0, 0
-                head, skip = np.uint64(0), np.int64(0)
-                text = np.uint64(_NULL)
-            elif k < MAX_K:  # 100 m and beyond: the digits of the metres, then a fraction's text
-                if minus:
-                    out[np.uint64(n)] = 45
-                    n += 1
-                q = np.int64(k)
-                frac = q % 1000
-                q //= 1000
-                lo = n
-                while True:  # least significant first, then turned round
-                    out[np.uint64(n)] = 48 + q % 10
-                    q //= 10
-                    n += 1
-                    if q == 0:
-                        break
-                a, b = lo, n - 1
-                while a < b:
-                    out[np.uint64(a)], out[np.uint64(b)] = out[np.uint64(b)], out[np.uint64(a)]
-                    a += 1
-                    b -= 1
-                head, skip = np.uint64(0), np.int64(0)
-                text = texts[np.uint64(frac)]  # ".5," of "0.5,": its bytes moved down by one
-                length = (text >> np.uint64(56)) - np.uint64(1)
-                text = (text & np.uint64(_LOW)) >> np.uint64(8) | length << np.uint64(56)
-            else:
-                return -1, 0, 0
-            for c in range(8):  # two 8-byte stores: the head, then the text (its top byte junk)
-                out[np.uint64(n + c)] = (head >> np.uint64(8 * c)) & np.uint64(255)
-            n += skip
-            for c in range(8):
-                out[np.uint64(n + c)] = (text >> np.uint64(8 * c)) & np.uint64(255)
-            n += np.int64(text >> np.uint64(56))
-            if pairs and i & 1:
-                out[np.uint64(n - 1)] = 93  # the pair's ]
-                out[np.uint64(n)] = 44  # ,
-                n += 1
-        if pairs and values.size & 1:  # an odd count: the last pair holds one value
-            out[np.uint64(n - 1)] = 93
-            out[np.uint64(n)] = 44
-            n += 1
-        n -= values.size > 0  # the last comma
-        out[np.uint64(n)] = 93  # ]
-        n += 1
-        if s == 0:
-            end_first = n
-        elif s == 1:
-            end_second = n
+    end_first = put_list(first, False, texts, out, 0)
+    if end_first < 0:
+        return end_first, 0, 0
+    end_second = put_list(second, True, texts, out, end_first)
+    if end_second < 0:
+        return end_second, 0, 0
+    n = put_list(third, False, texts, out, end_second)
+    if n < 0:
+        return n, 0, 0
     return n, end_first, end_second
 
 

@@ -329,8 +329,8 @@ class StdoutSink:
     def _line(self, frame: Frame, result: Result) -> bytes | None:
         """The bytes to write for one frame, newline included (None: nothing for it)."""
         if type(self).format is StdoutSink.format:
-            # the frame's JSON is made once and shared with the udp sink (json_line.frame_json)
-            return json_line.frame_json(frame, result, self._version, time.time()) + b"\n"
+            # the frame's JSON is made once and shared with the udp sink (json_line.frame_line)
+            return json_line.frame_line(frame, result, self._version, time.time())
         line = self.format(frame, result)
         return None if line is None else (line + "\n").encode("utf-8")
 

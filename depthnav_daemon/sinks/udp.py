@@ -80,6 +80,9 @@ class UdpSink:
         self.port = port
         self.max_bytes = max_bytes
         self.content = content or Content()
+        # the common case's checks made once: every frame goes, and as the stdout line
+        self._every_frame = self.content.every == 1 and self.content.rate_hz == 0
+        self._whole = self.content.whole
         self._frames = 0
         self._last_sent_t: float | None = None
         self._sock: socket.socket | None = None
@@ -140,15 +143,24 @@ class UdpSink:
 
     def write(self, frame: Frame, result: Result) -> None:
         """Send the frame's datagram; failures are counted and logged, never raised."""
-        if self._sock is None:
+        sock = self._sock
+        if sock is None:
             raise SinkError(f"sink {self.name!r} is not open")
-        if not self._due(result.timestamp_s):
+        if not self._every_frame and not self._due(result.timestamp_s):
             return
-        # the whole object: the line the stdout sink sends too, made once (json_line.frame_json)
-        shape = None if self.content.whole else self.content.shape
-        data = json_line.fit_message(
-            frame, result, self._version, time.time(), self.max_bytes, shape
-        )
+        data: bytes | memoryview | None
+        if self._whole:
+            # the whole object: the line the stdout sink writes too, made once (frame_line),
+            # without its newline (a view: no copy)
+            data = memoryview(json_line.frame_line(frame, result, self._version, time.time()))[:-1]
+            if len(data) > self.max_bytes:
+                data = json_line.fit_message(
+                    frame, result, self._version, time.time(), self.max_bytes
+                )
+        else:
+            data = json_line.fit_message(
+                frame, result, self._version, time.time(), self.max_bytes, self.content.shape
+            )
         if data is None:
             self._oversize.failed(
                 "udp sink: frame %d does not fit one %d-byte datagram; skipped (raise max_bytes, "
@@ -159,7 +171,7 @@ class UdpSink:
             return
         try:
             try:
-                self._sock.send(data)
+                sock.send(data)
             except ConnectionRefusedError:
                 # the ICMP error belongs to an earlier datagram and was reported instead of sending
                 # this one: count it and try once more, so a receiver that came back gets this frame
@@ -168,7 +180,7 @@ class UdpSink:
                     self.host,
                     self.port,
                 )
-                self._sock.send(data)
+                sock.send(data)
         except (BlockingIOError, ConnectionRefusedError) as exc:
             # socket buffer full, or the receiver refused again: drop this frame, keep going
             self._send_errors.failed(

@@ -1,5 +1,6 @@
-"""The JSON line put together from text (json_line._line) is the message's line, byte for byte:
-``orjson.dumps(jsonmsg.frame_message(...))``, for every kind of frame the daemon sends."""
+"""The JSON line written from a template (json_line._line) is the message's line, byte for byte:
+``orjson.dumps(jsonmsg.frame_message(...))`` and a newline, for every kind of frame the daemon
+sends."""
 
 from __future__ import annotations
 
@@ -54,6 +55,9 @@ def _variants(pairs):
             result, timings_s={"scan": 0.0012345, "pose": 0.0009, "cliff": 5.5e-05, "memory": 1e-9}
         ),
     )
+    yield "control characters", frame, replace(warned, warning="a\x01b\x02c\x03d\x04\n")
+    yield "one timing", frame, replace(result, timings_s={"scan": 0.5})
+    yield "no timings", frame, replace(result, timings_s={})
     yield (
         "float64 ranges",
         frame,
@@ -66,7 +70,7 @@ def test_the_line_from_text_is_the_messages_line(pairs) -> None:
         line = json_line._line(result, "1.2.3", 1796194456.0331335)
         assert line is not None, name  # every one of these takes the text path
         want = orjson.dumps(jsonmsg.frame_message(frame, result, "1.2.3", 1796194456.0331335))
-        assert line == want, name
+        assert line == want + b"\n", name
 
 
 def test_the_cached_pieces_follow_the_mount_and_the_trust(pairs) -> None:
@@ -77,12 +81,13 @@ def test_the_cached_pieces_follow_the_mount_and_the_trust(pairs) -> None:
         for frame, result in ((f0, r0), (f1, r1), (f0, r0)):
             res = replace(result, mount_trust=trust)
             want = orjson.dumps(jsonmsg.frame_message(frame, res, "1", 2.0))
-            assert json_line._line(res, "1", 2.0) == want
+            assert json_line._line(res, "1", 2.0) == want + b"\n"
 
 
 def test_what_text_cannot_make_goes_through_the_message(pairs) -> None:
-    """Several sensors, or cliff points the kernel cannot write (not finite): the message's own
-    dicts make the line, which is still the message's line."""
+    """Several sensors, cliff points the kernel cannot write (not finite), a timing that is not a
+    number or a time too large to round exactly: the message's own dicts make the line, which is
+    still the message's line."""
     frame, result = pairs[1]
     assert result.cliff is not None
     bad = np.array(result.cliff.points_m, dtype=np.float32)
@@ -91,10 +96,13 @@ def test_what_text_cannot_make_goes_through_the_message(pairs) -> None:
     for res in (
         replace(result, cliff=replace(result.cliff, points_m=bad)),
         replace(result, sensors=sensors),
+        replace(result, timings_s={"scan": None, "cliff": 0.001}),
+        replace(result, timestamp_s=2.0**33),
     ):
         assert json_line._line(res, "1", 2.0) is None
-        line = json_line.frame_json(frame, res, "1", 2.0)
-        assert line == orjson.dumps(jsonmsg.frame_message(frame, res, "1", 2.0))
+        line = json_line.frame_line(frame, res, "1", 2.0)
+        assert line == orjson.dumps(jsonmsg.frame_message(frame, res, "1", 2.0)) + b"\n"
+        assert json_line.frame_json(frame, res, "1", 2.0) == line[:-1]
 
 
 @pytest.mark.parametrize("n_bins", [1, 640, 4000])
@@ -107,5 +115,5 @@ def test_the_kept_buffer_grows_and_the_texts_stay_apart(pairs, n_bins: int) -> N
     res = replace(result, scan=replace(result.scan, ranges=ranges))
     first = json_line._line(res, "1", 2.0)
     again = json_line._line(replace(result, cliff=None), "1", 2.0)  # reuses the buffer
-    assert first == orjson.dumps(jsonmsg.frame_message(frame, res, "1", 2.0))
+    assert first == orjson.dumps(jsonmsg.frame_message(frame, res, "1", 2.0)) + b"\n"
     assert again != first and len(orjson.loads(first)["scan"]["ranges"]) == n_bins
