@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
-from depthnav_daemon.pipeline._jit import inlined, kernel, prefetch
+from depthnav_daemon.pipeline._jit import inlined, kernel
 
 I32 = NDArray[np.int32]
 
@@ -24,12 +24,6 @@ MAX_CODE_INDEX = CODE_MASK
 # blocks skip the floor more finely but cost more per block
 BLOCK = 64
 UNKNOWN = 2  # a row's "has a reading" flag before it is looked at
-# the exact scan kernel asks for the depth row this many rows ahead of the one it reads: a new
-# frame is not in the cache, and the block test does too little per row for the CPU's own
-# prefetcher to keep ahead (bench, 12 frames in turn: 5-20 % less time at every mount; 2 to 8
-# rows ahead measured alike, 4 best)
-PREFETCH_ROWS = 4
-LINE_U16 = 32  # uint16 depths per 64-byte cache line
 
 
 def run_flush_codes(
@@ -259,10 +253,10 @@ def exact_scan_kernel(
     for ii in range(n_rows):
         i = np.uint64(ii)
         r = np.uint64(rows[ii])
-        if ii + PREFETCH_ROWS < n_rows:
-            ahead = rows[ii + PREFETCH_ROWS]
-            for q in range(0, n_cols, LINE_U16):
-                prefetch(depth, ahead, q)
+        # no software prefetch of the rows ahead: the CPU's own prefetcher keeps up, and 20 hints
+        # a row cost more than they saved (2026-12-02, 12 frames in turn: 3.5-9 % faster without
+        # at every mount and at both sizes, 2.4 % on 150 frames that are not in the cache; hints
+        # into L2 only or 8 rows ahead alike; an earlier day had measured the opposite)
         _classify(depth, r, blk, i, n_cols, kind)
         k = 0
         while k < nb:  # one call per stretch of blocks of one kind: long loops vectorise well
