@@ -155,7 +155,8 @@ def run(
             except FrameError as exc:
                 log.warning("frame %d skipped: %s", frame.seq, exc)
                 continue
-            result = with_memory(keeper, frame, arrival_s, [(result, step.params)], result)
+            if not keeper.idle_for(frame):
+                result = with_memory(keeper, frame, arrival_s, [(result, step.params)], result)
             if result.warning:
                 log.debug("frame %d: %s", frame.seq, result.warning)
             fan_out(sinks, frame, result, report)

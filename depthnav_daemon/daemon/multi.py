@@ -255,7 +255,8 @@ def _serve(
         t0 = time.perf_counter()
         out = merger.merged(result, merger.states(time.monotonic(), statuses()))
         out.timings_s["merge"] = time.perf_counter() - t0
-        out = with_memory(keeper, frame, arrival, [(result, by_name[name].params)], out)
+        if not keeper.idle_for(frame):
+            out = with_memory(keeper, frame, arrival, [(result, by_name[name].params)], out)
         fan_out(sinks, frame, out, report)  # type: ignore[arg-type]
         report.frames += 1  # type: ignore[attr-defined]
         report.last_result = out  # type: ignore[attr-defined]

@@ -181,3 +181,21 @@ def test_odometry_jump_resets_the_memory(drive, caplog) -> None:
     assert any("jumped" in r.getMessage() for r in caplog.records)
     turned = dataclasses.replace(frames[3], odom=(5.0, 0.0, math.radians(90)))
     assert keeper.step(turned, 0.0, [(results[3], params)]).status == "reset"  # 90 > 45 deg
+
+
+def test_a_keeper_with_nothing_to_do_is_skipped_only_once_it_has_said_so(drive, caplog) -> None:
+    """The loop skips the memory step for frames that cannot change it (a step's call was ~2 % of
+    the frame loop): only after the step has said why the memory is off, and never for a frame
+    that carries its own pose."""
+    frames, results, params = drive
+    without_pose = dataclasses.replace(frames[1], odom=None)
+    off = MemoryKeeper(MemorySettings(enabled=False), OdometrySettings(), None)
+    assert off.idle_for(without_pose) and off.idle_for(frames[1])
+    keeper = MemoryKeeper(MemorySettings(), OdometrySettings(), None)
+    assert not keeper.idle_for(without_pose)  # not said yet: the step says it
+    with caplog.at_level(logging.INFO):
+        assert keeper.step(without_pose, 0.0, [(results[1], params)]) is None
+    assert any("no odometry" in r.getMessage() for r in caplog.records)
+    assert keeper.idle_for(without_pose)
+    assert not keeper.idle_for(frames[2])  # a recording's own pose: the memory takes it
+    assert keeper.step(frames[2], 0.0, [(results[2], params)]).status == "on"
