@@ -52,6 +52,8 @@ class FrameStep:
         self._daemon = d
         self._pose_params = cfg.pose
         self._tilt_source = tilt_source
+        # whether a frame's accelerometer reading may set the tilt (else only a serial source)
+        self._tilt_from_accel = d.tilt_source in ("auto", "accel")
         self._tracker = MountTracker(
             cfg.mount, TrackerParams.from_daemon(d), pinned=d.tilt_source == "config"
         )
@@ -77,7 +79,9 @@ class FrameStep:
         Raises:
             FrameError: the frame cannot be processed (the loop skips it).
         """
-        self._read_tilt_source(frame)
+        accel = self._tilt_from_accel and frame.accel_mps2 is not None
+        if accel or self._tilt_source is not None:
+            self._read_tilt_source(frame)  # (a call that finds nothing to read cost ~0.5 %)
         want_pose = self._pose_due(frame)
         pose = None
         timings: dict[str, float] = {}
@@ -169,7 +173,7 @@ def _pending(trust: MountTrust, used: Mount, wanted: Mount) -> MountTrust:
     """``trust`` for a frame processed with ``used`` while ``wanted``'s tables are being built:
     beyond a small change (the tracker's deadband), its drop-offs rest on the old mount and are
     not trusted."""
-    if used == wanted or _SMALL.holds(used, wanted):
+    if used is wanted or used == wanted or _SMALL.holds(used, wanted):
         return trust
     note = (
         f"mount change to {wanted.height_m:.2f} m / tilt {wanted.tilt_deg:.1f} deg pending (its "

@@ -187,9 +187,12 @@ class StageTables:
         when a build starts; None: no pose stage); the build makes its table too, so the next
         estimate finds it ready.
         """
+        ready = self._ready
+        if self._job is None and ready and ready[-1][0] is intr and ready[-1][1] is wanted:
+            return wanted  # the last frame's mount, nothing being built: the common case
         self._collect()
         key = (intr, wanted)
-        if key in self._ready or key in self._failed:  # failed: the frame loop meets the error
+        if key in ready or key in self._failed:  # failed: the frame loop meets the error
             self._mark_ready(key)
             return wanted
         usable = [k for k in self._ready if k[0] == intr and _same_placement(k[1], wanted)]
