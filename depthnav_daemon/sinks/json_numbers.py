@@ -81,7 +81,26 @@ _OPTIONS = {"cache": True, "nogil": True, "boundscheck": False, "error_model": "
 
 
 @njit(**_OPTIONS, inline="always")
-def put_list(  # noqa: PLR0912, PLR0915 - every kind of value in the one loop LLVM sees
+def put_digits(q: int, out: np.ndarray, n: int) -> int:  # pragma: no cover - compiled
+    """Write the decimal digits of the integer ``q`` >= 0 into ``out`` from byte ``n``; where
+    they end."""
+    lo = n
+    while True:  # least significant first, then turned round
+        out[np.uint64(n)] = 48 + q % 10
+        q //= 10
+        n += 1
+        if q == 0:
+            break
+    a, b = lo, n - 1
+    while a < b:
+        out[np.uint64(a)], out[np.uint64(b)] = out[np.uint64(b)], out[np.uint64(a)]
+        a += 1
+        b -= 1
+    return n
+
+
+@njit(**_OPTIONS, inline="always")
+def put_list(  # noqa: PLR0912 - every kind of value in the one loop LLVM sees
     values: np.ndarray, pairs: bool, texts: np.ndarray, out: np.ndarray, n: int
 ) -> int:  # pragma: no cover - compiled; tests/sinks/test_json_numbers.py checks
     """Write the flat array ``values`` (float32 or float64) as a JSON list into ``out`` (uint8)
@@ -127,19 +146,7 @@ def put_list(  # noqa: PLR0912, PLR0915 - every kind of value in the one loop LL
                 n += 1
             q = np.int64(k)
             frac = q % 1000
-            q //= 1000
-            lo = n
-            while True:  # least significant first, then turned round
-                out[np.uint64(n)] = 48 + q % 10
-                q //= 10
-                n += 1
-                if q == 0:
-                    break
-            a, b = lo, n - 1
-            while a < b:
-                out[np.uint64(a)], out[np.uint64(b)] = out[np.uint64(b)], out[np.uint64(a)]
-                a += 1
-                b -= 1
+            n = put_digits(q // 1000, out, n)
             head, skip = np.uint64(0), np.int64(0)
             text = texts[np.uint64(frac)]  # ".5," of "0.5,": its bytes moved down by one
             length = (text >> np.uint64(56)) - np.uint64(1)

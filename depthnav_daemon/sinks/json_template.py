@@ -30,6 +30,7 @@ from depthnav_daemon.sinks.json_numbers import (
     CHARS_PER_VALUE,
     _buffer,
     _flat,
+    put_digits,
     put_list,
 )
 
@@ -47,24 +48,6 @@ FLAT, PAIRS, SECONDS, INTEGER = b"\x01", b"\x02", b"\x03", b"\x04"
 MAX_SECONDS = 2.0**32
 MAX_INTEGER = 2.0**53
 CHARS_PER_SCALAR = 24  # '-' + 10 + '.' + 6 digits, or 'null', and room for nothing else
-
-
-@njit(**_OPTIONS, inline="always")
-def _digits(q: int, out: np.ndarray, n: int) -> int:  # pragma: no cover - compiled
-    """Write the decimal digits of ``q`` >= 0 into ``out`` from ``n``; where they end."""
-    lo = n
-    while True:  # least significant first, then turned round
-        out[np.uint64(n)] = 48 + q % 10
-        q //= 10
-        n += 1
-        if q == 0:
-            break
-    a, b = lo, n - 1
-    while a < b:
-        out[np.uint64(a)], out[np.uint64(b)] = out[np.uint64(b)], out[np.uint64(a)]
-        a += 1
-        b -= 1
-    return n
 
 
 @njit(**_OPTIONS, inline="always")
@@ -122,7 +105,7 @@ def _put_seconds(x: float, out: np.ndarray, n: int) -> int:  # pragma: no cover 
         out[np.uint64(n + 2)] = 45  # -
         out[np.uint64(n + 3)] = 54  # 6
         return n + 4
-    n = _digits(k // 1000000, out, n)
+    n = put_digits(k // 1000000, out, n)
     out[np.uint64(n)] = 46  # .
     frac = k % 1000000
     if frac == 0:
@@ -146,7 +129,7 @@ def _put_integer(x: float, out: np.ndarray, n: int) -> int:  # pragma: no cover 
     if x < 0.0:
         out[np.uint64(n)] = 45
         n += 1
-    return _digits(np.int64(abs(x)), out, n)
+    return put_digits(np.int64(abs(x)), out, n)
 
 
 @njit(**_OPTIONS)
