@@ -24,12 +24,15 @@ from __future__ import annotations
 
 # importing json_numbers first sets numba's cache folder (pipeline/_jit.py) before numba loads
 from depthnav_daemon.sinks.json_numbers import (
+    _EMPTY,
+    _F32,
+    _F64,
     _LOCAL,
     _OPTIONS,
     _TEXTS,
     CHARS_PER_VALUE,
     _buffer,
-    _flat,
+    as_flat,
     put_digits,
     put_list,
 )
@@ -172,8 +175,6 @@ def _write_template(
 
 
 KERNELS = [_write_template]  # for the first run's "compiling kernels" progress (tools/warmup.py)
-_F32, _F64 = np.dtype(np.float32), np.dtype(np.float64)
-_NONE = {_F32: np.zeros(0, np.float32), _F64: np.zeros(0)}
 _NO_PAIRS = {_F32: np.zeros((0, 2), np.float32), _F64: np.zeros((0, 2))}
 
 
@@ -206,21 +207,17 @@ def template_text(
         one, two, three = first, pairs, third
         dtype = _F32
     else:
-        given = [np.asarray(a) for a in (first, pairs, third) if a is not None]
-        dtype = _F32 if all(a.dtype == _F32 for a in given) else _F64
-        one = _flat(np.asarray(first), dtype)
-        two = three = None
-        if pairs is not None:
-            two = _flat(np.asarray(pairs), dtype)
+        dtype, one, two, three = as_flat(first, pairs, third)
+        if two is not None:
             if two.size % 2:
                 return None  # not pairs
             two = two.reshape(-1, 2)
-        if third is not None:
-            three = _flat(np.asarray(third), dtype)
+    if one is None:
+        one = _EMPTY[dtype]
     if two is None:
         two = _NO_PAIRS[dtype]
     if three is None:
-        three = _NONE[dtype]
+        three = _EMPTY[dtype]
     room = (
         len(template)
         + CHARS_PER_VALUE * (one.size + two.size + three.size)
