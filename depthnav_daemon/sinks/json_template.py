@@ -45,7 +45,7 @@ import numpy as np
 from numba import njit
 
 FLAT, PAIRS, SECONDS, INTEGER = b"\x01", b"\x02", b"\x03", b"\x04"
-# |value| below this is rounded exactly (value * 1e6 stays below 2**52, see _put_seconds) and its
+# |value| below this is rounded exactly (value * 1e6 stays below 2**52, see _micros) and its
 # text is the decimal of the rounded microseconds (its shortest text: the doubles there lie closer
 # together than 1e-6): UNIX times until 2106
 MAX_SECONDS = 2.0**32
