@@ -34,6 +34,7 @@ from depthnav_daemon.sinks.jsonmsg import (
     _pose_to_json,
     _scan_geometry,
     _trust_json,
+    dropoffs_trusted,
     frame_message,
     memory_to_json,
 )
@@ -91,12 +92,11 @@ def _line(result: Result, version: str, wall_time_s: float) -> bytes | None:
     if cliff is None:
         cliff_text = _NO_CLIFF
     else:
-        trust = result.mount_trust
         cliff_text = b"".join(
             (
                 _CLIFF_START,
                 _scan_head(cliff.scan),
-                _TRUSTED if trust is None or trust.dropoffs_trusted else _NOT_TRUSTED,
+                _TRUSTED if dropoffs_trusted(result) else _NOT_TRUSTED,
             )
         )
         points = cliff.points_m

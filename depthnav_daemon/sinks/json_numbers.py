@@ -255,19 +255,6 @@ def lists_json(
         The lists' texts (``[]`` for one not given), or None when a value lies outside what the
         kernel writes exactly or a pair is not finite (then use the reference path).
     """
-    got = lists_text(first, second, third)
-    if got is None:
-        return None
-    text, a, b, n = got
-    return bytes(text[:a]), bytes(text[a:b]), bytes(text[b:n])
-
-
-def lists_text(
-    first: np.ndarray, second: np.ndarray | None = None, third: np.ndarray | None = None
-) -> tuple[memoryview, int, int, int] | None:
-    """:func:`lists_json`'s three texts, left in this thread's buffer: (the buffer, the end of
-    the first, of the second, of the third). Valid until this thread's next call; for a caller
-    that copies them once into what it makes (a ``bytes.join``)."""
     dtype, one, two, three = as_flat(first, second, third)
     empty = _EMPTY[dtype]
     one = empty if one is None else one
@@ -277,7 +264,8 @@ def lists_text(
     n, a, b = _write_lists(one, two, three, _TEXTS, out)
     if n < 0:
         return None
-    return _LOCAL.view, a, b, n
+    text = _LOCAL.view
+    return bytes(text[:a]), bytes(text[a:b]), bytes(text[b:n])
 
 
 def mm_json(values: np.ndarray, pairs: bool = False) -> bytes | None:
