@@ -91,36 +91,13 @@ def flush_codes_kernel(cb_lo, cb_hi, n_bins, row_block):
     return fl_start, fl_code
 
 
-# The helpers below index the 2-D arrays with an unsigned row and column offset rather than take
-# row views or slices: a view costs numba two atomic reference-count updates (~40 ns, as much as
-# a block's work), and an unsigned index needs no wrap-around check, so LLVM vectorises the loops.
-
-
-@inlined
-def _lowest_above(depth, r, j0, n, lo):
-    """min over depth[r, j0:j0 + n] of d - lo in uint16 arithmetic: some d lies in [lo, hi] iff
-    it is <= hi - lo (a depth below lo wraps around to a large value)."""
-    m = np.uint16(65535)
-    if n == BLOCK:  # a fixed trip count: no remainder loop, fully unrolled
-        for jj in range(BLOCK):
-            m = min(m, np.uint16(depth[r, j0 + np.uint64(jj)] - lo))
-        return m
-    for jj in range(n):
-        m = min(m, np.uint16(depth[r, j0 + np.uint64(jj)] - lo))
-    return m
-
-
-@inlined
-def _min_max(depth, r, j0, n):
-    """(lowest reading, highest depth) of depth[r, j0:j0 + n]: the lowest non-zero depth (a
-    reading) less one, zeros wrapping around to 65535, and the highest depth."""
-    mn = np.uint16(65535)
-    mx = np.uint16(0)
-    for jj in range(n):
-        d = depth[r, j0 + np.uint64(jj)]
-        mn = min(mn, np.uint16(d - np.uint16(1)))
-        mx = max(mx, d)
-    return mn, mx
+# The kernels index the 2-D arrays with an unsigned row and column offset rather than take row
+# views or slices: a view costs numba two atomic reference-count updates (~40 ns, as much as a
+# block's work), and an unsigned index needs no wrap-around check, so LLVM vectorises the loops.
+# For the same reason the exact scan's per-block loops are written out in the kernel rather than
+# in inlined helpers: numba's inlining gives each array argument a new variable, with an atomic
+# increment and decrement per call, which its pruning pass cannot remove across the loops
+# (2026-12-02: 10-18 % of the kernel at every mount).
 
 
 @inlined
@@ -130,64 +107,6 @@ def _any_reading(depth, r, n):
     for jj in range(n):
         mx = max(mx, depth[r, np.uint64(jj)])
     return mx != 0
-
-
-@inlined
-def _classify(depth, r, blk, i, n_cols, kind):
-    """What each block of row i (image row r) needs (kind[k]): 0 nothing (no depth is an obstacle
-    or too close), 1 ranges only (every depth is an obstacle for every pixel), 2 every
-    threshold."""
-    for k in range(kind.shape[0]):
-        j0 = np.uint64(k * BLOCK)
-        n = min(BLOCK, n_cols - k * BLOCK)
-        lo = blk[0, i, k]
-        hi = blk[1, i, k]
-        kind[k] = 0
-        # one horizontal reduction a block on the common path (most blocks hold no obstacle)
-        if hi >= lo and _lowest_above(depth, r, j0, n, lo) <= np.uint16(hi - lo):
-            mn1, mx = _min_max(depth, r, j0, n)
-            # every reading of the block an obstacle for every pixel (zeros allowed: a wall
-            # with a few holes in it is common)
-            kind[k] = 1 if mn1 >= blk[2, i, k] and mx <= blk[3, i, k] else 2
-
-
-@inlined
-def _pixels(depth, r, near_lo, near_hi, obst_hi, kr, i, acc, j0, n):
-    """acc = min(acc, what each pixel of columns j0:j0 + n says): its range if an obstacle, -inf
-    if too close, else +inf. Branch-free with unconditional stores, so LLVM vectorises it."""
-    inf = np.float32(np.inf)
-    for jj in range(n):
-        j = j0 + np.uint64(jj)
-        d = depth[r, j]
-        nh = near_hi[i, j]
-        obstacle = (nh < d) & (d <= obst_hi[i, j])
-        close = (near_lo[i, j] <= d) & (d <= nh)
-        v = np.float32(d) * kr[i, j] if obstacle else inf
-        v = -inf if close else v
-        acc[j] = min(acc[j], v)
-
-
-@inlined
-def _obstacles(depth, r, kr, i, acc, j0, n):
-    """_pixels where every reading (d > 0) is an obstacle for every pixel: no thresholds."""
-    zero = np.float32(0.0)
-    inf = np.float32(np.inf)
-    for jj in range(n):
-        j = j0 + np.uint64(jj)
-        d = depth[r, j]
-        v = np.float32(d) * kr[i, j] if d != 0 else inf
-        # "+ 0" (exact here: no value is -0) keeps the store unconditional; LLVM otherwise
-        # stores only where the minimum changed, a masked store microcoded on AMD Zen (~4x)
-        acc[j] = min(acc[j], v) + zero
-
-
-@inlined
-def _all_inf(acc, j0, n):
-    """True if nothing is pending in columns j0:j0 + n (every run minimum is +inf)."""
-    m = np.float32(np.inf)
-    for jj in range(n):
-        m = min(m, acc[j0 + np.uint64(jj)])
-    return m == np.float32(np.inf)
 
 
 @kernel
@@ -241,6 +160,7 @@ def exact_scan_kernel(
     nb = blk.shape[2]
     block = BLOCK
     inf = np.float32(np.inf)
+    zero = np.float32(0.0)
     for b in range(out.shape[0]):
         out[b] = inf
     for j in range(n_cols):
@@ -257,9 +177,40 @@ def exact_scan_kernel(
         # a row cost more than they saved (2026-12-02, 12 frames in turn: 3.5-9 % faster without
         # at every mount and at both sizes, 2.4 % on 150 frames that are not in the cache; hints
         # into L2 only or 8 rows ahead alike; an earlier day had measured the opposite)
-        _classify(depth, r, blk, i, n_cols, kind)
+        for k in range(nb):
+            # what each block needs (kind[k]): 0 nothing (no depth is an obstacle or too close),
+            # 1 ranges only (every depth an obstacle for every pixel), 2 every threshold
+            j0 = np.uint64(k * block)
+            n = min(block, n_cols - k * block)
+            lo = blk[0, i, k]
+            hi = blk[1, i, k]
+            kind[k] = 0
+            if hi < lo:
+                continue
+            # min of d - lo in uint16 arithmetic: some d lies in [lo, hi] iff it is <= hi - lo
+            # (a depth below lo wraps around to a large value); one horizontal reduction a
+            # block on the common path (most blocks hold no obstacle)
+            m = np.uint16(65535)
+            if n == BLOCK:  # a fixed trip count: no remainder loop, fully unrolled
+                for jj in range(BLOCK):
+                    m = min(m, np.uint16(depth[r, j0 + np.uint64(jj)] - lo))
+            else:
+                for jj in range(n):
+                    m = min(m, np.uint16(depth[r, j0 + np.uint64(jj)] - lo))
+            if m > np.uint16(hi - lo):
+                continue
+            # the lowest reading less one (zeros wrap around to 65535) and the highest depth:
+            # every reading an obstacle for every pixel (zeros allowed: a wall with a few holes
+            # in it is common)
+            mn1 = np.uint16(65535)
+            mx = np.uint16(0)
+            for jj in range(n):
+                d = depth[r, j0 + np.uint64(jj)]
+                mn1 = min(mn1, np.uint16(d - np.uint16(1)))
+                mx = max(mx, d)
+            kind[k] = 1 if mn1 >= blk[2, i, k] and mx <= blk[3, i, k] else 2
         k = 0
-        while k < nb:  # one call per stretch of blocks of one kind: long loops vectorise well
+        while k < nb:  # one loop per stretch of blocks of one kind: long loops vectorise well
             kk = kind[k]
             k2 = k + 1
             while k2 < nb and kind[k2] == kk:
@@ -267,10 +218,29 @@ def exact_scan_kernel(
             if kk != 0:
                 j0 = np.uint64(k * block)
                 n = min(k2 * block, n_cols) - k * block
-                if kk == 1:
-                    _obstacles(depth, r, kr, i, acc, j0, n)
+                # acc = min(acc, what each pixel says): its range if an obstacle, -inf if too
+                # close, else +inf. Branch-free, so LLVM vectorises it: kr is read whatever the
+                # depth (a read under a condition becomes a masked load, ~2.4x slower on AMD
+                # Zen), and "+ 0" (exact: no value is -0) keeps the store unconditional (LLVM
+                # otherwise stores only where the minimum changed: a masked store, microcoded)
+                if kk == 1:  # every reading (d > 0) an obstacle for every pixel: no thresholds
+                    for jj in range(n):
+                        j = j0 + np.uint64(jj)
+                        d = depth[r, j]
+                        v = np.float32(d) * kr[i, j]
+                        v = v if d != 0 else inf
+                        acc[j] = min(acc[j], v) + zero
                 else:
-                    _pixels(depth, r, near_lo, near_hi, obst_hi, kr, i, acc, j0, n)
+                    for jj in range(n):
+                        j = j0 + np.uint64(jj)
+                        d = depth[r, j]
+                        nh = near_hi[i, j]
+                        obstacle = (nh < d) & (d <= obst_hi[i, j])
+                        close = (near_lo[i, j] <= d) & (d <= nh)
+                        v = np.float32(d) * kr[i, j]
+                        v = v if obstacle else inf
+                        v = -inf if close else v
+                        acc[j] = min(acc[j], v) + zero
                 for q in range(k, k2):
                     dirty[q] = True
             k = k2
@@ -293,9 +263,12 @@ def exact_scan_kernel(
                 acc[c] = inf if x & np.uint32(1 << CODE_BITS) else a  # the run ends here
             for q in range(k, k2):
                 if kind[q] == 0:  # (a block with obstacles in this row is pending anyway)
-                    dirty[q] = not _all_inf(
-                        acc, np.uint64(q * block), min(block, n_cols - q * block)
-                    )
+                    # still pending: some column's run minimum below +inf
+                    q0 = np.uint64(q * block)
+                    m2 = inf
+                    for jj in range(min(block, n_cols - q * block)):
+                        m2 = min(m2, acc[q0 + np.uint64(jj)])
+                    dirty[q] = m2 != inf
             k = k2
     n = out.shape[0] - 1
     nan = np.float32(np.nan)
