@@ -117,3 +117,58 @@ def test_the_kept_buffer_grows_and_the_texts_stay_apart(pairs, n_bins: int) -> N
     again = json_line._line(replace(result, cliff=None), "1", 2.0)  # reuses the buffer
     assert first == orjson.dumps(jsonmsg.frame_message(frame, res, "1", 2.0)) + b"\n"
     assert again != first and len(orjson.loads(first)["scan"]["ranges"]) == n_bins
+
+
+def test_a_plain_frame_reuses_the_last_template(pairs, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Frames that differ only in their numbers (the daemon's usual frame) make their template
+    once; each line is still the message's."""
+    frame, result = pairs[1]
+    built = []
+    new_shape = json_line._new_shape
+    monkeypatch.setattr(json_line, "_last_shape", None)
+    monkeypatch.setattr(
+        json_line, "_new_shape", lambda *args: built.append(args[0]) or new_shape(*args)
+    )
+    rng = np.random.default_rng(5)
+    for seq in range(6):
+        res = replace(
+            result,
+            seq=seq,
+            timestamp_s=1000.0 + seq / 30,
+            scan=replace(result.scan, ranges=rng.uniform(0.5, 4.0, 640).astype(np.float32)),
+            timings_s={"scan": 0.001 * seq, "cliff": 5e-5},
+        )
+        want = orjson.dumps(jsonmsg.frame_message(frame, res, "1", 2.0 + seq)) + b"\n"
+        assert json_line._line(res, "1", 2.0 + seq) == want
+    assert len(built) == 1
+
+
+def test_the_kept_template_follows_what_it_is_made_of(pairs) -> None:
+    """Each thing the template is made of, changed alone, makes a new one, and the next plain
+    frame its own again."""
+    frame, flat = pairs[1]
+    assert flat.cliff is not None and flat.pose is None and flat.warning is None
+    assert flat.mount_source != "serial" and flat.mount_trust != DOUBT
+    cliff = flat.cliff
+    variants = []
+    for field in ("angle_min", "angle_max", "angle_increment", "range_min", "range_max"):
+        for name, scan in (("scan", flat.scan), ("cliff scan", cliff.scan)):
+            moved = replace(scan, **{field: getattr(scan, field) + 0.0123})
+            res = (
+                replace(flat, scan=moved)
+                if name == "scan"
+                else replace(flat, cliff=replace(cliff, scan=moved))
+            )
+            variants.append((f"{name} {field}", "1", res))
+    variants += [
+        ("mount", "1", replace(flat, mount=replace(flat.mount, height_m=0.734))),
+        ("source", "1", replace(flat, mount_source="serial")),
+        ("verdict", "1", replace(flat, mount_trust=DOUBT)),
+        ("timing order", "1", replace(flat, timings_s={"cliff": 2e-4, "scan": 0.002})),
+        ("timing keys", "1", replace(flat, timings_s={"scan": 0.002})),
+        ("version", "2.0", flat),
+    ]
+    for name, version, res in variants:
+        for v, r in ((version, res), ("1", flat)):
+            want = orjson.dumps(jsonmsg.frame_message(frame, r, v, 3.5)) + b"\n"
+            assert json_line._line(r, v, 3.5) == want, name
