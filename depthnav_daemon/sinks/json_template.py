@@ -197,12 +197,33 @@ def template_text(
             anything else as float64.
         values: the SECONDS and INTEGER markers' values in order, as an ``array("d")``.
     """
-    # the stages' arrays go as they are: a check each (every numpy call here costs the frame
-    # loop about a microsecond)
+    # the stages' arrays go as they are: a check each, written out (every numpy call or Python
+    # function call here costs the frame loop about a microsecond); C order and writable: a
+    # read-only array is another type to numba, compiled anew
     if (
-        _ready(first, 1)
-        and (pairs is None or (_ready(pairs, 2) and pairs.shape[1] == 2))  # noqa: PLR2004
-        and (third is None or _ready(third, 1))
+        type(first) is np.ndarray
+        and first.dtype == _F32
+        and first.ndim == 1
+        and first.flags.carray
+        and (
+            pairs is None
+            or (
+                type(pairs) is np.ndarray
+                and pairs.dtype == _F32
+                and pairs.ndim == 2  # noqa: PLR2004
+                and pairs.shape[1] == 2  # noqa: PLR2004
+                and pairs.flags.carray
+            )
+        )
+        and (
+            third is None
+            or (
+                type(third) is np.ndarray
+                and third.dtype == _F32
+                and third.ndim == 1
+                and third.flags.carray
+            )
+        )
     ):
         one, two, three = first, pairs, third
         dtype = _F32
@@ -224,19 +245,10 @@ def template_text(
         + CHARS_PER_SCALAR * len(values)
         + 16  # the 8-byte stores past a text's end
     )
-    out = _buffer(room)
+    out = getattr(_LOCAL, "buf", None)
+    if out is None or out.size < room:
+        out = _buffer(room)
     n = _write_template(template, one, two, three, values, _TEXTS, out)
     if n < 0:
         return None
     return _LOCAL.view[:n]
-
-
-def _ready(values: object, ndim: int) -> bool:
-    """Whether ``values`` is a float32 array of ``ndim`` dimensions that the kernel takes as it
-    is (C order, writable: a read-only array is another type to numba, compiled anew)."""
-    return (
-        type(values) is np.ndarray
-        and values.dtype == _F32
-        and values.ndim == ndim
-        and values.flags.carray
-    )

@@ -104,6 +104,8 @@ class StdoutSink:
         self._error: BaseException | None = None
         self._skipped = RateLimitedLog(log)
         self._file_lock = _FileLock()  # its own until open() finds the file's (see _FILE_LOCKS)
+        # the JSON line (this class's format), not a subclass's: checked once, not per frame
+        self._json = type(self).format is StdoutSink.format
 
     @classmethod
     def from_spec(cls, spec: SinkSpec) -> StdoutSink:
@@ -214,7 +216,12 @@ class StdoutSink:
                 "stdout was closed by the reader (broken pipe)",
                 hint="keep the consumer of depthnav's stdout running, or drop the stdout sinks",
             )
-        data = self._line(frame, result)
+        data = (
+            # the frame's JSON is made once and shared with the udp sink (json_line.frame_line)
+            json_line.frame_line(frame, result, self._version, time.time())
+            if self._json
+            else self._line(frame, result)
+        )
         if data is None:
             return
         if self._direct:
@@ -327,10 +334,8 @@ class StdoutSink:
                 q.put_nowait(None)
 
     def _line(self, frame: Frame, result: Result) -> bytes | None:
-        """The bytes to write for one frame, newline included (None: nothing for it)."""
-        if type(self).format is StdoutSink.format:
-            # the frame's JSON is made once and shared with the udp sink (json_line.frame_line)
-            return json_line.frame_line(frame, result, self._version, time.time())
+        """The bytes to write for one frame of a subclass's :meth:`format`, newline included
+        (None: nothing for it)."""
         line = self.format(frame, result)
         return None if line is None else (line + "\n").encode("utf-8")
 
