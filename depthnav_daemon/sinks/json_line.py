@@ -153,62 +153,30 @@ def _new_shape(key: tuple[Any, ...], result: Result, version: str) -> _Shape:
     sensors, and what takes its timings' values; kept as the last shape (one tuple, replaced
     whole: threads read it)."""
     global _last_shape  # noqa: PLW0603 - a one-entry cache
-    assert result.cliff is not None
     timings_text, timing_values = _timings(tuple(result.timings_s))
-    template = b"".join(
-        (
-            _prefix(version),
-            _scan_head(result.scan),
-            _SCAN_END,
-            _cliff_text(result),
-            b',"pose":',
-            _pose(result),
-            b',"mount":',
-            _trust(result),
-            b',"memory":null,"sensors":null,"timings_s":',
-            timings_text,
-            b',"warning":null,"message":null}\n',
-        )
-    )
+    template = _template(result, version, timings_text)
     shape = (key, result.mount, result.mount_trust, template, timing_values)
     _last_shape = shape
     return shape
 
 
-def _cliff_text(result: Result) -> bytes:
-    """The cliff object's template (its points, count and ranges are markers)."""
-    assert result.cliff is not None
-    return b"".join(
-        (
-            _CLIFF_START,
-            _scan_head(result.cliff.scan),
-            _TRUSTED if dropoffs_trusted(result) else _NOT_TRUSTED,
-        )
-    )
-
-
-def _any_line(result: Result, version: str, wall_time_s: float) -> bytes | None:
-    """:func:`_line` of any frame: its template made of the pieces anew."""
-    if result.sensors:
-        return None
-    scan, cliff = result.scan, result.cliff
-    if not _is_flat(scan.ranges) or (cliff is not None and not _is_flat(cliff.scan.ranges)):
-        return None
-    timings = result.timings_s
-    timings_text, timing_values = _timings(tuple(timings))
-    memory, warning = result.memory, result.warning
-    # the values of the template's SECONDS and INTEGER markers, in the order of the markers
-    values: tuple[Any, ...] = (result.seq, result.timestamp_s, wall_time_s)
+def _template(result: Result, version: str, timings_text: bytes) -> bytes:
+    """The frame's template: its text made of the pieces, with markers where the numbers go."""
+    cliff, memory, warning = result.cliff, result.memory, result.warning
     if cliff is None:
         cliff_text = _NO_CLIFF
     else:
-        cliff_text = _cliff_text(result)
-        points = cliff.points_m
-        values += ((points.size if type(points) is np.ndarray else np.size(points)) // 2,)
-    template = b"".join(
+        cliff_text = b"".join(
+            (
+                _CLIFF_START,
+                _scan_head(cliff.scan),
+                _TRUSTED if dropoffs_trusted(result) else _NOT_TRUSTED,
+            )
+        )
+    return b"".join(
         (
             _prefix(version),
-            _scan_head(scan),
+            _scan_head(result.scan),
             _SCAN_END,
             cliff_text,
             b',"pose":',
@@ -224,6 +192,23 @@ def _any_line(result: Result, version: str, wall_time_s: float) -> bytes | None:
             b',"message":null}\n',
         )
     )
+
+
+def _any_line(result: Result, version: str, wall_time_s: float) -> bytes | None:
+    """:func:`_line` of any frame: its template made of the pieces anew."""
+    if result.sensors:
+        return None
+    scan, cliff = result.scan, result.cliff
+    if not _is_flat(scan.ranges) or (cliff is not None and not _is_flat(cliff.scan.ranges)):
+        return None
+    timings = result.timings_s
+    timings_text, timing_values = _timings(tuple(timings))
+    # the values of the template's SECONDS and INTEGER markers, in the order of the markers
+    values: tuple[Any, ...] = (result.seq, result.timestamp_s, wall_time_s)
+    if cliff is not None:
+        points = cliff.points_m
+        values += ((points.size if type(points) is np.ndarray else np.size(points)) // 2,)
+    template = _template(result, version, timings_text)
     try:
         numbers = array("d", values + timing_values(timings))
     except (TypeError, OverflowError):
