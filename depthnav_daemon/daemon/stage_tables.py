@@ -15,17 +15,16 @@ and an estimate whose window has no table yet searches the window of the camera'
 estimate while the worker builds it. Only a camera's first estimate builds its window's table
 on the frame.
 
-The frame loop must not wait for the worker: one worker thread (started with the tables, at a
-lower priority) gets each build after the frame that decided it; while it builds, the
-interpreter's switch interval is 0.5 ms, so the frame loop waits at most that long for the
-interpreter lock whenever the worker runs Python code between its compiled kernels.
+The frame loop must not wait for the worker: one worker thread (started with the tables, at the
+frame loop's own priority: see _serve) gets each build after the frame that decided it;
+while it builds, the interpreter's switch interval is 0.1 ms, so the frame loop waits at most
+about that long for the interpreter lock whenever the worker runs Python code between its
+compiled kernels.
 """
 
 from __future__ import annotations
 
-import contextlib
 import logging
-import os
 import queue
 import sys
 import threading
@@ -42,8 +41,6 @@ log = logging.getLogger(__name__)
 # the stages keep the tables of their 16 latest mounts (functools.lru_cache); remembering fewer
 # keeps "ready" true, and the memory of a long run with a drifting mount bounded
 KEEP_READY = 8
-BUILD_NICE = 10  # niceness added to the building thread
-MAX_NICE = 19
 # the interpreter's switch interval while a build runs (seconds; Python's default is 5 ms). A
 # thread that wants the interpreter lock while another runs Python code waits this long before
 # asking for it: the frame loop, reacquiring the lock after each compiled stage, waited up to
@@ -113,12 +110,13 @@ _SWITCH = _SwitchWhileBuilding()
 
 def _serve(tables: weakref.ref[StageTables], jobs: queue.SimpleQueue[_Job | None]) -> None:
     """The worker: builds the queued jobs until told to stop (None)."""
-    # a lower priority for this thread only (Linux: nice is per thread): on a loaded 2-core
-    # machine the frame loop keeps its core while the tables are built
-    with contextlib.suppress(AttributeError, OSError):
-        tid = threading.get_native_id()
-        nice = os.getpriority(os.PRIO_PROCESS, tid)
-        os.setpriority(os.PRIO_PROCESS, tid, min(MAX_NICE, nice + BUILD_NICE))
+    # The worker keeps the frame loop's priority. A lower one looks kind to the frame loop but
+    # inverts it through the interpreter lock: on a busy machine a niced worker is preempted while
+    # it holds the lock (between two of its compiled kernels) and waits for its next turn, tens
+    # of ms away, while the frame loop waits for the lock. With two busy processes beside it,
+    # frames during large changes were up to 40-77 ms late with the worker at nice +10, 7.6-9 ms
+    # at +3, and at most 0.1-1.7 ms (frames the busy processes did not preempt) at the same
+    # priority (bench_rebuild's frame path, 2026-12-02, 2-core VM).
     while (job := jobs.get()) is not None:
         key, pkey, done = job
         owner = tables()

@@ -12,7 +12,7 @@ import threading
 import numpy as np
 import pytest
 
-from depthnav_daemon.daemon.stage_tables import BUILD_SWITCH_S, KEEP_READY, MAX_NICE, StageTables
+from depthnav_daemon.daemon.stage_tables import BUILD_SWITCH_S, KEEP_READY, StageTables
 from depthnav_daemon.pipeline import StageParams, prepare, scan_table
 from depthnav_daemon.pipeline.cliff import CliffParams, detect_cliffs
 from depthnav_daemon.pipeline.geometry import Mount
@@ -75,9 +75,11 @@ def test_a_large_change_goes_on_with_the_old_mount_until_its_tables_exist(
         assert tables.mount_for(INTR, far) == far
     assert gate.calls == [(INTR, LARGE), (INTR, far)]
     assert threading.get_ident() not in gate.threads  # built off the frame loop's thread
-    if hasattr(os, "getpriority"):  # and below its priority (unless already at the lowest)
+    if hasattr(os, "getpriority"):
+        # at the frame loop's own priority: a niced worker, preempted on a busy machine while it
+        # held the interpreter lock, kept frames waiting for it tens of ms (stage_tables._serve)
         mine = os.getpriority(os.PRIO_PROCESS, threading.get_native_id())
-        assert all(n > mine for n in gate.nice) or mine == MAX_NICE
+        assert gate.nice and all(n == mine for n in gate.nice)
     said = [r for r in caplog.records if "built on a worker" in r.getMessage()]
     assert len(said) == 1  # said once, not at every change
 
