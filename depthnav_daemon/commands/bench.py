@@ -165,7 +165,7 @@ def run_bench(
             samples,
             min_batch_s,
         )
-    report.rebuild = rebuild_timings(changes=5 if rounds > 1 else 1)
+    report.rebuild = rebuild_timings(changes=1 if quick else 5, loaded=not quick)
     if cpu_seconds:
         report.cpu_30fps = cpu_at_30fps(cpu_seconds)
     if startup:

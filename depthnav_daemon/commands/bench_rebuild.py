@@ -9,17 +9,35 @@ while the new mount's tables are built and until they serve, and on the new moun
 frame's extra time is its time during the change minus the median time of the same frame on the
 mount it was processed with, outside a change. Reported, never asserted: the figures depend on
 the machine and its load.
+
+A preempted frame (an involuntary context switch of the frame thread, Linux: another process, or
+the worker when every core is taken, ran in its place) is late by the machine's doing as much as
+the change's: such frames are counted, and the worst extra time of the frames that were not is
+reported beside the worst of all. A frame waiting for the
+interpreter lock held by the worker is not preempted: those waits stay in that figure. The 640x480
+case also runs with one busy process per core beside it (``load``): a robot's computer is busy,
+and a table worker at a lower priority than the frame loop, preempted while it held the lock,
+made frames wait for it tens of ms only then (stage_tables._serve).
 """
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
+import os
 import statistics
+import subprocess
+import sys
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 
 import numpy as np
+
+try:
+    import resource
+except ImportError:  # not on Windows
+    resource = None  # type: ignore[assignment]
 
 from depthnav_daemon.daemon.frame_step import pose_prior
 from depthnav_daemon.daemon.mount_tracker import MountTracker, TrackerParams
@@ -61,6 +79,12 @@ class RebuildTiming:
             window) on one thread, with no frames running.
         switch_frames: median frames from a change until the new mount served a frame.
         pace_hz: the frame rate the frames were paced at (0: back to back).
+        load: busy processes running beside the frames (0: none).
+        frames: frames timed during the changes.
+        preempted: of those, frames preempted (-1: not known on this system).
+        extra_running_worst_ms: the worst extra time of the frames not preempted (None: none,
+            or not known).
+        noise_frames, noise_preempted: the same counts for the frames before the changes.
     """
 
     resolution: str
@@ -73,6 +97,12 @@ class RebuildTiming:
     build_ms: float
     switch_frames: float
     pace_hz: float
+    load: int = 0
+    frames: int = 0
+    preempted: int = -1
+    extra_running_worst_ms: float | None = None
+    noise_frames: int = 0
+    noise_preempted: int = -1
 
 
 class _FramePath:
@@ -97,30 +127,48 @@ class _FramePath:
         return used
 
 
+def _switches() -> int | None:
+    """Involuntary context switches of this thread so far (None where Linux's RUSAGE_THREAD is
+    missing)."""
+    who = getattr(resource, "RUSAGE_THREAD", None) if resource is not None else None
+    return None if who is None else resource.getrusage(who).ru_nivcsw
+
+
+@dataclass
+class _Run:
+    """What :func:`_paced` saw: per-frame seconds, the mount each used, and whether another
+    process preempted it (None: not known)."""
+
+    times: list[float] = dataclasses.field(default_factory=list)
+    used: list[Mount] = dataclasses.field(default_factory=list)
+    preempted: list[bool | None] = dataclasses.field(default_factory=list)
+
+
 def _paced(
     frames: Sequence[Frame],
     n: int,
     pace_s: float,
     step: Callable[[Frame], Mount],
     until: Callable[[list[Mount]], bool] | None = None,
-) -> tuple[list[float], list[Mount]]:
+) -> _Run:
     """Run ``step`` on up to ``n`` frames (cycling from the first), one every ``pace_s``
-    seconds, stopping early once ``until(mounts used so far)``; per-frame seconds and the mount
-    each used."""
-    times: list[float] = []
-    used: list[Mount] = []
+    seconds, stopping early once ``until(mounts used so far)``."""
+    out = _Run()
     due = time.perf_counter()
     for i in range(n):
         now = time.perf_counter()
         if due > now:
             time.sleep(due - now)
+        s0 = _switches()
         t0 = time.perf_counter()
-        used.append(step(frames[i % len(frames)]))
-        times.append(time.perf_counter() - t0)
+        out.used.append(step(frames[i % len(frames)]))
+        out.times.append(time.perf_counter() - t0)
+        s1 = _switches()
+        out.preempted.append(None if s0 is None or s1 is None else s1 > s0)
         due = max(due + pace_s, t0)
-        if until is not None and until(used):
+        if until is not None and until(out.used):
             break
-    return times, used
+    return out
 
 
 def _per_frame_median(times: Sequence[float], n_frames: int) -> list[float]:
@@ -146,10 +194,38 @@ def build_time_ms(intr: Intrinsics, params: StageParams, mount: Mount, runs: int
     return statistics.median(out) * 1e3
 
 
+@contextlib.contextmanager
+def busy_processes(n: int) -> Iterator[None]:
+    """``n`` processes that spin on the CPU until the block ends (a busy robot computer)."""
+    procs: list[subprocess.Popen[bytes]] = []
+    try:
+        for _ in range(n):
+            procs.append(
+                subprocess.Popen(
+                    [sys.executable, "-c", "while True: pass"],
+                    stdin=subprocess.DEVNULL,
+                    stdout=subprocess.DEVNULL,
+                    stderr=subprocess.DEVNULL,
+                )
+            )
+        yield
+    finally:
+        for proc in procs:
+            proc.kill()
+        for proc in procs:
+            proc.wait()
+
+
 def rebuild_timing(
-    name: str, intr: Intrinsics, changes: int = 5, pace_hz: float = 30.0, n_frames: int = 6
+    name: str,
+    intr: Intrinsics,
+    changes: int = 5,
+    pace_hz: float = 30.0,
+    n_frames: int = 6,
+    load: int = 0,
 ) -> RebuildTiming:
-    """Time ``changes`` large mount changes at the resolution of ``intr`` (module docstring)."""
+    """Time ``changes`` large mount changes at the resolution of ``intr``, with ``load`` busy
+    processes beside the frames from the first change on (module docstring)."""
     from depthnav_daemon.commands.bench_stages import synthetic_frames
 
     frames, mount = synthetic_frames(intr, n=n_frames, mount=START_MOUNT)
@@ -162,33 +238,41 @@ def rebuild_timing(
     extra: list[float] = []
     noise: list[float] = []
     base: list[float] = []
+    hit: list[bool | None] = []  # preempted, for each frame of ``extra``
+    hit_before: list[bool | None] = []
     switch: list[int] = []
     try:
-        for k in range(changes):
-            new = _changed(mount, k)
-            before, _ = _paced(frames, 3 * n_frames, pace_s, lambda f, m=mount: path.run(f, m))
-            # until the new mount has served AFTER_SWITCH frames
-            during, used = _paced(
-                frames,
-                MAX_CHANGE_FRAMES,
-                pace_s,
-                lambda f, m=new: path.run(f, m),
-                lambda u, m=new: u.count(m) >= AFTER_SWITCH,
-            )
-            switch.append(used.index(new) + 1 if new in used else MAX_CHANGE_FRAMES)
-            after, _ = _paced(frames, 3 * n_frames, pace_s, lambda f, m=new: path.run(f, m))
-            ref_old = _per_frame_median(before, n_frames)
-            ref_new = _per_frame_median(after, n_frames)
-            for i, (ti, ui) in enumerate(zip(during, used, strict=True)):
-                ref = ref_new if ui == new else ref_old
-                extra.append(ti - ref[i % n_frames])
-            noise += [ti - ref_old[i % n_frames] for i, ti in enumerate(before)]
-            base += before
-            mount = new
+        with busy_processes(load):
+            for k in range(changes):
+                new = _changed(mount, k)
+                before = _paced(frames, 3 * n_frames, pace_s, lambda f, m=mount: path.run(f, m))
+                # until the new mount has served AFTER_SWITCH frames
+                during = _paced(
+                    frames,
+                    MAX_CHANGE_FRAMES,
+                    pace_s,
+                    lambda f, m=new: path.run(f, m),
+                    lambda u, m=new: u.count(m) >= AFTER_SWITCH,
+                )
+                used = during.used
+                switch.append(used.index(new) + 1 if new in used else MAX_CHANGE_FRAMES)
+                after = _paced(frames, 3 * n_frames, pace_s, lambda f, m=new: path.run(f, m))
+                ref_old = _per_frame_median(before.times, n_frames)
+                ref_new = _per_frame_median(after.times, n_frames)
+                for i, (ti, ui) in enumerate(zip(during.times, used, strict=True)):
+                    ref = ref_new if ui == new else ref_old
+                    extra.append(ti - ref[i % n_frames])
+                noise += [ti - ref_old[i % n_frames] for i, ti in enumerate(before.times)]
+                hit += during.preempted
+                hit_before += before.preempted
+                base += before.times
+                mount = new
     finally:
         path.tables.close()
     ex = np.array(extra) * 1e3
     quiet = np.array(noise) * 1e3
+    known = all(h is not None for h in hit + hit_before)
+    running = ex[[not h for h in hit]] if known else ex[:0]
     return RebuildTiming(
         resolution=name,
         changes=changes,
@@ -200,14 +284,30 @@ def rebuild_timing(
         build_ms=build_ms,
         switch_frames=float(statistics.median(switch)),
         pace_hz=pace_hz,
+        load=load,
+        frames=len(extra),
+        preempted=sum(bool(h) for h in hit) if known else -1,
+        extra_running_worst_ms=float(running.max()) if running.size else None,
+        noise_frames=len(noise),
+        noise_preempted=sum(bool(h) for h in hit_before) if known else -1,
     )
 
 
-def rebuild_timings(changes: int = 5, pace_hz: float = 30.0) -> list[RebuildTiming]:
-    """:func:`rebuild_timing` at every resolution of REBUILD_RESOLUTIONS."""
-    return [
+LOADED = "640x480"  # the resolution also timed with one busy process per core beside it
+
+
+def rebuild_timings(
+    changes: int = 5, pace_hz: float = 30.0, loaded: bool = True
+) -> list[RebuildTiming]:
+    """:func:`rebuild_timing` at every resolution of REBUILD_RESOLUTIONS, then (``loaded``) at
+    LOADED with one busy process per core beside the frames."""
+    out = [
         rebuild_timing(name, intr, changes, pace_hz) for name, intr in REBUILD_RESOLUTIONS.items()
     ]
+    if loaded:
+        load = os.cpu_count() or 1
+        out.append(rebuild_timing(LOADED, REBUILD_RESOLUTIONS[LOADED], changes, pace_hz, load=load))
+    return out
 
 
 def format_rebuild(timings: Sequence[RebuildTiming]) -> str:
@@ -217,12 +317,23 @@ def format_rebuild(timings: Sequence[RebuildTiming]) -> str:
         "extra = a frame's time minus the same frame's without a change:"
     ]
     for t in timings:
+        beside = (
+            f" with {t.load} busy process{'es' if t.load != 1 else ''} beside" if t.load else ""
+        )
         out.append(
-            f"  {t.resolution}: {t.changes} change{'s' if t.changes != 1 else ''}, frames "
+            f"  {t.resolution}{beside}: {t.changes} change{'s' if t.changes != 1 else ''}, frames "
             f"{t.frame_ms:.2f} ms at "
             f"{t.pace_hz:g} frames/s; extra worst {t.extra_worst_ms:.2f} ms, p90 "
             f"{t.extra_p90_ms:.2f} ms (without a change: worst {t.noise_worst_ms:.2f}, p90 "
             f"{t.noise_p90_ms:.2f} ms); build {t.build_ms:.0f} ms (one thread, no frames), "
             f"new mount served after {t.switch_frames:g} frames"
         )
+        if t.preempted >= 0:
+            worst = t.extra_running_worst_ms
+            others = "none" if worst is None else f"{worst:.2f} ms"
+            out.append(
+                f"    preempted: {t.preempted} of {t.frames} frames during the changes "
+                f"({t.noise_preempted} of {t.noise_frames} before them); worst extra of the "
+                f"frames not preempted {others}"
+            )
     return "\n".join(out)

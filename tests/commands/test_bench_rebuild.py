@@ -3,8 +3,12 @@ worker's build, and the report has its figures (reported, never asserted: no tim
 
 from __future__ import annotations
 
+import dataclasses
 import math
+import os
+import sys
 import threading
+from pathlib import Path
 
 import pytest
 
@@ -36,6 +40,13 @@ def test_every_change_is_built_off_the_frame_thread_and_then_served(
         for v in (t.frame_ms, t.extra_worst_ms, t.extra_p90_ms, t.noise_worst_ms, t.noise_p90_ms)
     )
     assert t.frame_ms > 0 and t.build_ms > 0 and t.extra_worst_ms >= t.extra_p90_ms
+    # every frame of a change and before it is timed once; preemptions are counted on Linux
+    assert t.noise_frames == 3 * 3 * 3 and t.frames >= 3 * bench_rebuild.AFTER_SWITCH
+    if sys.platform == "linux":
+        assert 0 <= t.preempted <= t.frames and 0 <= t.noise_preempted <= t.noise_frames
+        running = t.extra_running_worst_ms
+        assert (running is None) == (t.preempted == t.frames)
+        assert running is None or running <= t.extra_worst_ms
     me = threading.get_ident()
     # on this thread: the build timed alone (3 mounts) and the camera's first frame; the three
     # changes on the worker
@@ -49,3 +60,43 @@ def test_the_report_names_the_goal_and_every_figure() -> None:
     assert "640x480: 5 changes" in text and "extra worst 0.70 ms, p90 0.50 ms" in text
     assert "without a change: worst 0.60, p90 0.30 ms" in text
     assert "build 80 ms" in text and "served after 4 frames" in text
+
+
+def _running_children() -> set[int]:
+    """This process's children that are not zombies (from /proc: Linux)."""
+    out = set()
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except OSError:  # ended meanwhile
+            continue
+        if int(fields[1]) == os.getpid() and fields[0] != "Z":
+            out.add(int(stat.parent.name))
+    return out
+
+
+@pytest.mark.skipif(sys.platform != "linux", reason="reads /proc")
+def test_the_busy_processes_spin_while_the_block_runs_and_end_with_it() -> None:
+    before = _running_children()
+    started: set[int] = set()
+    with pytest.raises(RuntimeError), bench_rebuild.busy_processes(2):
+        started = _running_children() - before
+        raise RuntimeError("the timed block failed")  # the processes end all the same
+    assert len(started) == 2
+    assert not started & _running_children()
+
+
+def test_the_report_says_how_many_frames_were_preempted_and_the_load() -> None:
+    t = RebuildTiming(
+        "640x480", 5, 1.3, 5.7, 0.5, 0.6, 0.3, 80.0, 4.0, 30.0,
+        load=2, frames=36, preempted=2, extra_running_worst_ms=0.41, noise_frames=90,
+        noise_preempted=0,
+    )  # fmt: skip
+    text = format_rebuild([t])
+    assert "640x480 with 2 busy processes beside: 5 changes" in text
+    assert "preempted: 2 of 36 frames during the changes (0 of 90 before them)" in text
+    assert "worst extra of the frames not preempted 0.41 ms" in text
+    every = dataclasses.replace(t, preempted=36, extra_running_worst_ms=None)
+    assert "frames not preempted none" in format_rebuild([every])
+    unknown = dataclasses.replace(t, preempted=-1, noise_preempted=-1)
+    assert "preempted" not in format_rebuild([unknown])
