@@ -114,9 +114,10 @@ def _serve(tables: weakref.ref[StageTables], jobs: queue.SimpleQueue[_Job | None
     # inverts it through the interpreter lock: on a busy machine a niced worker is preempted while
     # it holds the lock (between two of its compiled kernels) and waits for its next turn, tens
     # of ms away, while the frame loop waits for the lock. With two busy processes beside it, the
-    # worst extra time of a frame that was not preempted during large changes was 39-77 ms with
-    # the worker at nice +10 (up to 7.6 ms at +3) and 0.1-3.9 ms at the same priority, and a new
-    # mount served after 22-62 frames instead of 5-10 (docs/benchmarks.md, 2026-12-02).
+    # worst extra time of a frame that was not preempted during large changes was up to 77 ms
+    # with the worker at nice +10 (39-43 ms in every run at 1280x720; up to 7.6 ms at +3) and
+    # 0.1-3.9 ms at the same priority, and a new mount served after 22-62 frames instead of 5-10
+    # (docs/benchmarks.md, 2026-12-02).
     while (job := jobs.get()) is not None:
         key, pkey, done = job
         owner = tables()
