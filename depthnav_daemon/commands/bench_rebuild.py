@@ -194,6 +194,18 @@ def build_time_ms(intr: Intrinsics, params: StageParams, mount: Mount, runs: int
     return statistics.median(out) * 1e3
 
 
+# a busy process spins in laps of ~10 ms and ends once its parent (given as its argument: one
+# killed before the child read its own parent would leave it spinning) is gone, so a bench killed
+# with SIGKILL leaves nothing spinning for ever
+_SPIN = """
+import os, sys
+parent = int(sys.argv[1])
+while os.getppid() == parent:
+    for _ in range(200000):
+        pass
+"""
+
+
 @contextlib.contextmanager
 def busy_processes(n: int) -> Iterator[None]:
     """``n`` processes that spin on the CPU until the block ends (a busy robot computer)."""
@@ -202,7 +214,7 @@ def busy_processes(n: int) -> Iterator[None]:
         for _ in range(n):
             procs.append(
                 subprocess.Popen(
-                    [sys.executable, "-c", "while True: pass"],
+                    [sys.executable, "-c", _SPIN, str(os.getpid())],
                     stdin=subprocess.DEVNULL,
                     stdout=subprocess.DEVNULL,
                     stderr=subprocess.DEVNULL,

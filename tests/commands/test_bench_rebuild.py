@@ -3,11 +3,15 @@ worker's build, and the report has its figures (reported, never asserted: no tim
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import math
 import os
+import signal
+import subprocess
 import sys
 import threading
+import time
 from pathlib import Path
 
 import pytest
@@ -62,17 +66,32 @@ def test_the_report_names_the_goal_and_every_figure() -> None:
     assert "build 80 ms" in text and "served after 4 frames" in text
 
 
-def _running_children() -> set[int]:
-    """This process's children that are not zombies (from /proc: Linux)."""
+def _stat(pid: int) -> list[str] | None:
+    """The fields of /proc/PID/stat after the command name (None: no such process)."""
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    except (OSError, IndexError):
+        return None
+
+
+def _alive(pid: int) -> bool:
+    fields = _stat(pid)
+    return fields is not None and fields[0] != "Z"
+
+
+def _children_of(parent: int) -> set[int]:
+    """The processes whose parent is ``parent`` and that are not zombies (Linux)."""
     out = set()
-    for stat in Path("/proc").glob("[0-9]*/stat"):
-        try:
-            fields = stat.read_text().rsplit(")", 1)[1].split()
-        except OSError:  # ended meanwhile
-            continue
-        if int(fields[1]) == os.getpid() and fields[0] != "Z":
-            out.add(int(stat.parent.name))
+    for entry in Path("/proc").iterdir():
+        if entry.name.isdigit():
+            fields = _stat(int(entry.name))
+            if fields is not None and int(fields[1]) == parent and fields[0] != "Z":
+                out.add(int(entry.name))
     return out
+
+
+def _running_children() -> set[int]:
+    return _children_of(os.getpid())
 
 
 @pytest.mark.skipif(sys.platform != "linux", reason="reads /proc")
@@ -84,6 +103,39 @@ def test_the_busy_processes_spin_while_the_block_runs_and_end_with_it() -> None:
         raise RuntimeError("the timed block failed")  # the processes end all the same
     assert len(started) == 2
     assert not started & _running_children()
+
+
+_KILLED_PARENT = """
+import sys, time
+from depthnav_daemon.commands.bench_rebuild import busy_processes
+with busy_processes(2):
+    print("spinning", flush=True)
+    time.sleep(120)
+"""
+
+
+@pytest.mark.skipif(sys.platform != "linux", reason="reads /proc")
+def test_the_busy_processes_end_when_the_bench_is_killed() -> None:
+    parent = subprocess.Popen(
+        [sys.executable, "-c", _KILLED_PARENT], stdout=subprocess.PIPE, text=True
+    )
+    try:
+        assert parent.stdout is not None and parent.stdout.readline() == "spinning\n"
+        spinners = _children_of(parent.pid)
+        assert len(spinners) == 2
+    finally:
+        parent.kill()  # no finally block runs in it
+        parent.wait()
+    deadline = time.monotonic() + 30.0  # each spinner looks at its parent every ~10 ms
+    try:
+        while spinners and time.monotonic() < deadline:
+            spinners = {pid for pid in spinners if _alive(pid)}
+            time.sleep(0.05)
+        assert not spinners
+    finally:  # never leave a spinner behind, even when the test fails
+        for pid in spinners:
+            with contextlib.suppress(OSError):
+                os.kill(pid, signal.SIGKILL)
 
 
 def test_the_report_says_how_many_frames_were_preempted_and_the_load() -> None:
