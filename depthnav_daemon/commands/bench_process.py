@@ -354,8 +354,15 @@ def cpu_at_30fps(seconds: float = 20.0, settle_s: float = 3.0) -> dict[str, floa
     The first ``settle_s`` (start-up, imports, table builds) are left out of the share.
     """
     drain = _UdpDrain()
+    # a bound on its frames (30 a second, 10 s to spare): a bench that is killed leaves no
+    # replay looping for ever; the bench stops it with SIGTERM long before
+    frames = int((settle_s + seconds + 10.0) * 30)
     cmd = _daemon_cmd(
-        f"replay:{FIXTURE}?rate=realtime&loop=1", "--sink", f"udp://127.0.0.1:{drain.port}"
+        f"replay:{FIXTURE}?rate=realtime&loop=1",
+        "--sink",
+        f"udp://127.0.0.1:{drain.port}",
+        "--max-frames",
+        str(frames),
     )
     proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
     try:
