@@ -69,6 +69,8 @@ class BenchReport:
     loop_vs_pipeline: dict[str, float] | None = None
     # the quartiles of those ratios over the blocks (this machine moves them from run to run)
     loop_vs_pipeline_iqr: dict[str, tuple[float, float]] | None = None
+    # inside the loop, median ms a frame: the stages' own timings, and each sink's write
+    loop_parts: dict[str, dict[str, float]] | None = None
     cpu_30fps: dict[str, float] | None = None
     startup: dict[str, float] | None = None
     resolutions: dict[str, list[Timing]] = field(default_factory=dict)
@@ -141,9 +143,12 @@ def run_bench(
     if latency_frames:
         report.latency = udp_latency(loop_spec, latency_frames)
         pipeline = stage_work(frames, floor)[-1]  # "pipeline per frame", the reference
-        report.loop_ms, report.loop_vs_pipeline, report.loop_vs_pipeline_iqr = loop_cost(
-            loop_spec, latency_frames, reference=pipeline
-        )
+        (
+            report.loop_ms,
+            report.loop_vs_pipeline,
+            report.loop_vs_pipeline_iqr,
+            report.loop_parts,
+        ) = loop_cost(loop_spec, latency_frames, reference=pipeline)
     views: list[tuple[str, Intrinsics, Mount | None]] = []  # synthetic frames to time as well
     if mount is not None:
         views.append(
@@ -215,6 +220,14 @@ def format_report(r: BenchReport) -> str:
             + ", ".join(
                 f"{k} {v:.3f} ms = {r.loop_vs_pipeline[k]:.2f}x{_quartiles(r, k)}"
                 for k, v in r.loop_ms.items()
+            )
+        )
+    if r.loop_parts:
+        out.append(
+            "  inside the loop, median per frame: "
+            + "; ".join(
+                f"{k}: " + ", ".join(f"{part} {v:.3f} ms" for part, v in p.items())
+                for k, p in r.loop_parts.items()
             )
         )
     for name, ts in r.resolutions.items():

@@ -188,7 +188,12 @@ LOOP_SINKS = {
 
 def loop_cost(
     spec: str, n_frames: int = 600, rounds: int = 5, reference: Work | None = None
-) -> tuple[dict[str, float], dict[str, float], dict[str, tuple[float, float]]]:
+) -> tuple[
+    dict[str, float],
+    dict[str, float],
+    dict[str, tuple[float, float]],
+    dict[str, dict[str, float]],
+]:
     """Per-frame wall time of the daemon's whole frame loop (read, stages, sinks), in-process.
 
     For each sink set of LOOP_SINKS the loop runs ``n_frames`` frames of ``spec`` at full speed
@@ -202,7 +207,9 @@ def loop_cost(
     Returns:
         (ms per frame: median block of the ``rounds`` runs; loop / reference: median over the
         blocks of block / its reference call; those ratios' quartiles, how far one run's median
-        may move), each keyed by the set's name; the ratios are empty without ``reference``.
+        may move; the parts of a frame inside the loop, median ms: "stages" (the stages' own
+        timings of the frame) and each sink's write, by its LOOP_SINKS name), each keyed by the
+        set's name; the ratios are empty without ``reference``.
     """
     import logging
 
@@ -218,6 +225,7 @@ def loop_cost(
     ms: dict[str, float] = {}
     ratio: dict[str, float] = {}
     spread: dict[str, tuple[float, float]] = {}
+    parts: dict[str, dict[str, float]] = {}
     try:
         with open(os.devnull, "w") as devnull:
 
@@ -234,19 +242,22 @@ def loop_cost(
                 cfg = Config(device=spec, sinks=sinks, daemon=DaemonParams(tilt_source="floor"))
                 blocks: list[float] = []
                 ratios: list[float] = []
+                inside: dict[str, list[float]] = {}
                 for i in range(rounds + 1):  # the first run builds the tables: not counted
                     clock = _Clock(reference)
 
                     def timed(name: str, clock: _Clock = clock) -> Any:
-                        sink = make(name)
-                        return clock.wrap(sink) if not clock.wrapped else sink
+                        return clock.wrap(make(name), name)
 
                     run(cfg, threading.Event(), n_frames, sink_factory=timed)
                     if i:
                         clock.finish()
                         blocks += [b / clock.block for b in clock.blocks]
                         ratios += clock.ratios()
+                        for part, times in clock.parts.items():
+                            inside.setdefault(part, []).extend(times)
                 ms[label] = float(np.median(blocks)) * 1e3
+                parts[label] = {k: float(np.median(v)) * 1e3 for k, v in inside.items() if v}
                 if ratios:
                     ratio[label] = float(np.median(ratios))
                     q1, q3 = np.percentile(ratios, [25, 75])
@@ -254,7 +265,7 @@ def loop_cost(
     finally:
         consumer.close()
         quiet.setLevel(level)
-    return ms, ratio, spread
+    return ms, ratio, spread, parts
 
 
 class _Clock:
@@ -279,17 +290,27 @@ class _Clock:
         self._cycles = 0
         self._block_s = 0.0
         self._last: float | None = None
+        self.parts: dict[str, list[float]] = {"stages": []}  # seconds, by part
 
-    def wrap(self, inner: Any) -> Any:
+    def wrap(self, inner: Any, part: str) -> Any:
+        """``inner`` with its writes timed as ``part``; the first sink wrapped also ticks the
+        clock and notes the stages' time of each frame."""
+        first = not self.wrapped
         self.wrapped = True
         clock = self
+        times = self.parts.setdefault(part, [])
+        stages = self.parts["stages"]
 
         class Timed:
             name = inner.name
 
             def write(self, frame: Frame, result: Any) -> None:
-                clock.tick()
+                if first:
+                    clock.tick()
+                    stages.append(sum(result.timings_s.values()))
+                t0 = time.perf_counter()
                 inner.write(frame, result)
+                times.append(time.perf_counter() - t0)
 
             def __getattr__(self, attr: str) -> Any:
                 return getattr(inner, attr)

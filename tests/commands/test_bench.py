@@ -56,6 +56,12 @@ def test_quick_bench_json_has_every_stage_latency_and_machine(
     assert all(v > 0 for v in report["loop_vs_pipeline"].values())
     for key, (q1, q3) in report["loop_vs_pipeline_iqr"].items():  # how far a run's median moves
         assert 0 < q1 <= report["loop_vs_pipeline"][key] <= q3, key
+    # where a frame's time goes inside the loop: the stages, and each sink of the set
+    parts = report["loop_parts"]
+    assert parts["null"].keys() == {"stages", "null"}
+    assert parts["stdout + udp"].keys() == {"stages", "stdout", "udp"}
+    assert parts["stdout to a pipe + udp"].keys() == {"stages", "pipe", "udp"}
+    assert all(v > 0 for p in parts.values() for k, v in p.items() if k == "stages")
     assert {"cpu", "cores", "loadavg", "numpy", "numba"} <= set(report["machine"])
     sinks = [t["name"] for t in report["sinks"]]  # each output's per-frame work
     for output in ("stdout/udp JSON line", "rosbag sink, ROS 2", "rosbag sink, ROS 1", "ros2 sink"):
@@ -72,6 +78,7 @@ def test_text_report_names_the_copy_reference_and_latency(
     assert "np.copy(frame)" in out and "x np.copy" in out
     assert "UDP datagram sent" in out and "p99" in out
     assert "whole loop per frame" in out and "/ in-process pipeline" in out
+    assert "inside the loop, median per frame: null: stages " in out and "udp " in out
     assert "outputs per frame" in out and "rosbag 1 ms, ros2 0.22 ms" in out
     assert "exact scan, synthetic corridor from the mounts" in out and "<= 6x np.copy" in out
 
