@@ -13,11 +13,11 @@ the machine and its load.
 A preempted frame (an involuntary context switch of the frame thread, Linux: another process, or
 the worker when every core is taken, ran in its place) is late by the machine's doing as much as
 the change's: such frames are counted, and the worst extra time of the frames that were not is
-reported beside the worst of all. A frame waiting for the
-interpreter lock held by the worker is not preempted: those waits stay in that figure. The 640x480
-case also runs with one busy process per core beside it (``load``): a robot's computer is busy,
-and a table worker at a lower priority than the frame loop, preempted while it held the lock,
-made frames wait for it tens of ms only then (stage_tables._serve).
+reported beside the worst of all. A frame waiting for the interpreter lock held by the worker is
+not preempted: those waits stay in that figure. The 640x480 case also runs with one busy process
+per core beside it (``load``): a robot's computer is busy, and a table worker at a lower priority
+than the frame loop, preempted while it held the lock, made frames wait for it tens of ms only
+then (stage_tables._serve).
 """
 
 from __future__ import annotations
@@ -137,8 +137,8 @@ def _switches() -> int | None:
 
 @dataclass
 class _Run:
-    """What :func:`_paced` saw: per-frame seconds, the mount each used, and whether another
-    process preempted it (None: not known)."""
+    """What :func:`_paced` saw: per-frame seconds, the mount each used, and whether the frame
+    was preempted (None: not known)."""
 
     times: list[float] = dataclasses.field(default_factory=list)
     used: list[Mount] = dataclasses.field(default_factory=list)

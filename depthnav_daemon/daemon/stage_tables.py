@@ -116,8 +116,9 @@ def _serve(tables: weakref.ref[StageTables], jobs: queue.SimpleQueue[_Job | None
     # of ms away, while the frame loop waits for the lock. With two busy processes beside it, the
     # worst extra time of a frame that was not preempted during large changes was up to 77 ms
     # with the worker at nice +10 (39-43 ms in every run at 1280x720; up to 7.6 ms at +3) and
-    # 0.1-3.9 ms at the same priority, and a new mount served after 22-62 frames instead of 5-10
-    # (docs/benchmarks.md, 2026-12-02).
+    # 0.1-1.7 ms at the same priority in most runs (9 ms in two of about ten: a worker at the same
+    # priority can still be preempted holding the lock, for one turn of a busy process), and a
+    # new mount served after 22-62 frames instead of 5-10 (docs/benchmarks.md, 2026-12-02).
     while (job := jobs.get()) is not None:
         key, pkey, done = job
         owner = tables()
