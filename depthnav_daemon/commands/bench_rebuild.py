@@ -128,11 +128,13 @@ class _FramePath:
         return used
 
 
+_THREAD = getattr(resource, "RUSAGE_THREAD", None) if resource is not None else None  # Linux
+
+
 def _switches() -> int | None:
-    """Involuntary context switches of this thread so far (None where Linux's RUSAGE_THREAD is
+    """Involuntary context switches of this thread so far (None where RUSAGE_THREAD is
     missing)."""
-    who = getattr(resource, "RUSAGE_THREAD", None) if resource is not None else None
-    return None if who is None else resource.getrusage(who).ru_nivcsw
+    return None if _THREAD is None else resource.getrusage(_THREAD).ru_nivcsw
 
 
 @dataclass
