@@ -313,18 +313,21 @@ def rebuild_timing(
 
 
 LOADED = "640x480"  # the resolution also timed with one busy process per core beside it
+# at most this many busy processes (an interpreter each, ~10 MB): enough to keep a robot's
+# computer busy, without starting dozens on a big machine
+MAX_LOAD = 16
 
 
 def rebuild_timings(
     changes: int = 5, pace_hz: float = 30.0, loaded: bool = True
 ) -> list[RebuildTiming]:
     """:func:`rebuild_timing` at every resolution of REBUILD_RESOLUTIONS, then (``loaded``) at
-    LOADED with one busy process per core beside the frames."""
+    LOADED with one busy process per core (at most MAX_LOAD) beside the frames."""
     out = [
         rebuild_timing(name, intr, changes, pace_hz) for name, intr in REBUILD_RESOLUTIONS.items()
     ]
     if loaded:
-        load = os.cpu_count() or 1
+        load = min(os.cpu_count() or 1, MAX_LOAD)
         out.append(rebuild_timing(LOADED, REBUILD_RESOLUTIONS[LOADED], changes, pace_hz, load=load))
     return out
 

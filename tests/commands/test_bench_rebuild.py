@@ -152,3 +152,22 @@ def test_the_report_says_how_many_frames_were_preempted_and_the_load() -> None:
     assert "frames not preempted none" in format_rebuild([every])
     unknown = dataclasses.replace(t, preempted=-1, noise_preempted=-1)
     assert "preempted" not in format_rebuild([unknown])
+
+
+@pytest.mark.parametrize(("cores", "load"), [(2, 2), (None, 1), (64, bench_rebuild.MAX_LOAD)])
+def test_the_loaded_run_has_a_busy_process_per_core_up_to_a_bound(
+    monkeypatch: pytest.MonkeyPatch, cores: int | None, load: int
+) -> None:
+    runs: list[tuple[str, int]] = []
+
+    def timing(name: str, intr: Intrinsics, *args: object, load: int = 0) -> str:
+        runs.append((name, load))  # what would be timed, not the timing (seconds each)
+        return name
+
+    monkeypatch.setattr(bench_rebuild, "rebuild_timing", timing)
+    monkeypatch.setattr(bench_rebuild.os, "cpu_count", lambda: cores)
+    bench_rebuild.rebuild_timings(changes=1)
+    assert runs == [("640x480", 0), ("1280x720", 0), (bench_rebuild.LOADED, load)]
+    runs.clear()
+    bench_rebuild.rebuild_timings(changes=1, loaded=False)
+    assert [n for _, n in runs] == [0, 0]
