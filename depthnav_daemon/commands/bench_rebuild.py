@@ -256,9 +256,9 @@ def rebuild_timing(
     hit: list[bool | None] = []  # preempted, for each frame of ``extra``
     hit_before: list[bool | None] = []
     switch: list[int] = []
-    quiet = logging.getLogger("depthnav_daemon")
-    level = quiet.level
-    quiet.setLevel(logging.WARNING)  # the tables' info line on a change is not the bench's output
+    logger = logging.getLogger("depthnav_daemon")
+    level = logger.level
+    logger.setLevel(logging.WARNING)  # the tables' info line on a change is not the bench's output
     try:
         with busy_processes(load):
             for k in range(changes):
@@ -287,7 +287,7 @@ def rebuild_timing(
                 mount = new
     finally:
         path.tables.close()
-        quiet.setLevel(level)
+        logger.setLevel(level)
     ex = np.array(extra) * 1e3
     quiet = np.array(noise) * 1e3
     known = all(h is not None for h in hit + hit_before)
