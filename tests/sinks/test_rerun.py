@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
 import signal
 import socket
@@ -315,7 +316,11 @@ def test_connect_to_a_real_grpc_server(tmp_path, pairs, context):
         while scan_rows(out) < 3 and time.monotonic() < deadline:
             time.sleep(0.2)
         server.send_signal(signal.SIGINT)  # Ctrl-C: the server closes the file
-        server.wait(timeout=30)
+        # ... usually at once; once in a loaded full suite it had not ended 30 s later, with all
+        # 3 frames in its (footer-less) file. Its shutdown is rerun's business: what is tested is
+        # that the frames reached it, which the file shows either way (read without a footer).
+        with contextlib.suppress(subprocess.TimeoutExpired):
+            server.wait(timeout=30)
     finally:
         if server.poll() is None:
             os.killpg(server.pid, signal.SIGKILL)
