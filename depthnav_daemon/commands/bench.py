@@ -216,7 +216,8 @@ def format_report(r: BenchReport) -> str:
         out.append(
             "whole loop per frame (read, stages, sinks) / in-process pipeline (interleaved: "
             "one call after every 30 frames of the loop, median of the pairs (quartiles); "
-            "targets: null <= 1.2x, stdout + udp <= 1.5x): "
+            'targets: null <= 1.2x, stdout + udp <= 1.5x; "datagrams not read": the same '
+            "sends, nobody woken by them): "
             + ", ".join(
                 f"{k} {v:.3f} ms = {r.loop_vs_pipeline[k]:.2f}x{_quartiles(r, k)}"
                 for k, v in r.loop_ms.items()

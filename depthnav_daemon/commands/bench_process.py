@@ -108,6 +108,11 @@ class _Consumer:
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         self.sock.bind(("127.0.0.1", 0))
         self.port = self.sock.getsockname()[1]
+        # a socket nobody reads (its buffer fills, then the kernel drops what comes): the same
+        # send, with no process woken by it (LOOP_SINKS, "not read")
+        self.unread = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.unread.bind(("127.0.0.1", 0))
+        self.unread_port = self.unread.getsockname()[1]
         r, w = os.pipe()
         fd = self.sock.fileno()
         self.proc = subprocess.Popen(
@@ -124,6 +129,7 @@ class _Consumer:
             self.proc.kill()
             self.proc.wait()
         self.sock.close()
+        self.unread.close()
 
 
 def udp_latency(spec: str, n_frames: int = 600) -> dict[str, float]:
@@ -179,9 +185,13 @@ def udp_latency(spec: str, n_frames: int = 600) -> dict[str, float]:
     }
 
 
+# The sets of sinks the whole loop is timed with. "not read" sends the same datagrams to a socket
+# nobody reads: beside "stdout + udp" it shows what the reader's wake-up and work cost the loop (on
+# a 2-vCPU VM the reader's work on the other vCPU slows this one: docs/benchmarks.md).
 LOOP_SINKS = {
     "null": ("null",),
     "stdout + udp": ("stdout", "udp"),
+    "stdout + udp, datagrams not read": ("stdout", "udp-unread"),
     "stdout to a pipe + udp": ("pipe", "udp"),
 }
 
@@ -197,7 +207,8 @@ def loop_cost(
     """Per-frame wall time of the daemon's whole frame loop (read, stages, sinks), in-process.
 
     For each sink set of LOOP_SINKS the loop runs ``n_frames`` frames of ``spec`` at full speed
-    (stdout goes to /dev/null, or to a pipe that another process reads; UDP to that process),
+    (stdout goes to /dev/null, or to a pipe that another process reads; UDP to that process, or
+    to a socket nobody reads),
     timed from one frame's output to the next (start-up and the end are left out), in blocks of
     ``reference.frames_per_call`` frames. ``reference`` (the in-process pipeline) runs inside the
     same run, one call (as many frames, one pose estimate, as a block) after every block, timed
@@ -236,6 +247,8 @@ def loop_cost(
                     return StdoutSink("stdout", stream=consumer.pipe)
                 if name == "udp":
                     return create_sink(f"udp://127.0.0.1:{consumer.port}")
+                if name == "udp-unread":
+                    return create_sink(f"udp://127.0.0.1:{consumer.unread_port}")
                 return create_sink(name)
 
             for label, sinks in LOOP_SINKS.items():

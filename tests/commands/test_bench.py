@@ -50,7 +50,12 @@ def test_quick_bench_json_has_every_stage_latency_and_machine(
     assert 0 < lat["p50_ms"] <= lat["p99_ms"] <= lat["max_ms"]
     assert lat["frames"] == 40
     # the whole loop, by sink set
-    assert set(report["loop_ms"]) == {"null", "stdout + udp", "stdout to a pipe + udp"}
+    assert set(report["loop_ms"]) == {
+        "null",
+        "stdout + udp",
+        "stdout + udp, datagrams not read",
+        "stdout to a pipe + udp",
+    }
     assert all(v > 0 for v in report["loop_ms"].values())
     assert set(report["loop_vs_pipeline"]) == set(report["loop_ms"])
     assert all(v > 0 for v in report["loop_vs_pipeline"].values())
@@ -60,6 +65,7 @@ def test_quick_bench_json_has_every_stage_latency_and_machine(
     parts = report["loop_parts"]
     assert parts["null"].keys() == {"stages", "null"}
     assert parts["stdout + udp"].keys() == {"stages", "stdout", "udp"}
+    assert parts["stdout + udp, datagrams not read"].keys() == {"stages", "stdout", "udp-unread"}
     assert parts["stdout to a pipe + udp"].keys() == {"stages", "pipe", "udp"}
     assert all(v > 0 for p in parts.values() for k, v in p.items() if k == "stages")
     assert {"cpu", "cores", "loadavg", "numpy", "numba"} <= set(report["machine"])
