@@ -207,7 +207,10 @@ def cliff_table(
     probe_code = (probe_col | (probe_bin << CODE_BITS)).astype(np.int32)
     block_ok = np.isfinite(block_xy[..., 0])
 
-    range32 = range_m.astype(np.float32)
+    # a ray that grazes the floor meets it beyond float32's range (t_floor near 1e300 at some
+    # mounts): +inf there, which is what +inf means here (no floor point in reach), not an error
+    with np.errstate(over="ignore"):
+        range32 = range_m.astype(np.float32)
     col_sel = _selector(cols)
     col_step = col_sel.step if isinstance(col_sel, slice) else 0
     table = CliffTable(
@@ -274,9 +277,10 @@ def _block_floor_points(
     bu = (np.arange(nbc) * bs + half)[None, :]
     bv = (intr.height - (np.arange(nbr) + 1) * bs + half)[:, None]
     bx, by, bz = _level_hits(rot, *_grid_coords(intr, bu, bv))
-    with np.errstate(divide="ignore", invalid="ignore"):
+    # a centre ray grazing the floor meets it beyond float32's range: +inf, not ok (block_ok)
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         bt = np.where(bz < 0, height_m / -bz, np.nan)
-    return np.stack([bt * bx, bt * by], axis=-1).astype(np.float32)
+        return np.stack([bt * bx, bt * by], axis=-1).astype(np.float32)
 
 
 def _selector(idx: npt.NDArray[np.intp]) -> slice | npt.NDArray[np.intp]:

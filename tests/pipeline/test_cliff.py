@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -184,6 +185,27 @@ def test_rays_above_the_horizon_never_count() -> None:
     depth = view.depth_mm.copy()
     depth[: int(ASYM_640.cy) + 1] = 60000  # 60 m readings at and above the horizon row
     assert len(run(view, CliffParams(used_depth_height=480), depth=depth).points_m) == 0
+
+
+@pytest.mark.parametrize(
+    "intr",
+    [ASYM_640, Intrinsics(640, 480, 575.0, 555.0, 331.0, 231.5)],
+    ids=["a sample row at cy", "a block centre at cy"],
+)
+def test_a_ray_grazing_the_floor_beyond_float32s_range_is_out_of_reach_without_warning(
+    intr: Intrinsics,
+) -> None:
+    """A tilt of 1e-40 deg puts the floor point of the ray through cy ~1e41 m out: beyond
+    float32, kept as out of reach with no RuntimeWarning (the daemon's stderr would carry it).
+    cy 228 is a sample row; 231.5 the centre row of the 16th block row from the bottom."""
+    mount = Mount(0.5, 1e-40, 0.0)  # the ray through cy looks down by ~1.7e-42 rad
+    view = render(Scene(), intr, mount)
+    params = CliffParams(used_depth_height=480, row_step=1, col_step=8)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        res = run(view, params)
+    assert len(res.points_m) == 0
+    assert not np.isnan(res.scan.ranges).all()
 
 
 def test_float_metres_equal_uint16_millimetres() -> None:
