@@ -207,8 +207,8 @@ def cliff_table(
     probe_code = (probe_col | (probe_bin << CODE_BITS)).astype(np.int32)
     block_ok = np.isfinite(block_xy[..., 0])
 
-    # a ray that grazes the floor meets it beyond float32's range (t_floor near 1e300 at some
-    # mounts): +inf there, which is what +inf means here (no floor point in reach), not an error
+    # a ray that grazes the floor meets it beyond float32's range (~1e41 m at 1e-40 deg tilt):
+    # +inf there, which is what +inf means here (no floor point in reach), not an error
     with np.errstate(over="ignore"):
         range32 = range_m.astype(np.float32)
     col_sel = _selector(cols)
