@@ -283,7 +283,7 @@ def _add_tool_commands(sub: Any) -> None:
     p.add_argument(
         "--quick", action="store_true", help="one short round (a smoke test, not a measurement)"
     )
-    p.set_defaults(handler="bench:cmd_bench")
+    p.set_defaults(handler="bench.command:cmd_bench")
 
 
 # syslog priorities (sd-daemon(3)): journald reads a "<N>" prefix as the line's priority
@@ -441,7 +441,7 @@ def _exit_now_if_a_viewer_is_stuck(code: int, force: bool = False) -> None:
     Every sink is closed by now; only the interpreter's teardown is skipped, which would wait 5 s
     for the gone viewer and could abort (SIGABRT, 'terminate called without an active exception').
     """
-    rerun_sink = sys.modules.get("depthnav_daemon.sinks.rerun")
+    rerun_sink = sys.modules.get("depthnav_daemon.sinks.rerun.rerun")
     stuck = rerun_sink is not None and rerun_sink.abandoned_viewers()
     if not (stuck or force):
         return

@@ -10,6 +10,10 @@
     foxglove://HOST:PORT | foxglove:FILE.mcap   Foxglove live view (127.0.0.1:8765) / file
     ros2[?domain=N]                      live ROS 2 topics (DDS): /scan, /cliff/*, /tf, pose
 
+Families with several modules have a subpackage: ``json/`` (stdout, udp and the line they
+share), ``rerun/``, ``ros/`` (rosbag, ros2 and their messages), ``mavlink/``; a sink of one module
+sits here (``text``, ``null``, ``foxglove``), beside ``base`` (the Sink protocol, spec parsing).
+
 The grammar is ``scheme[://target][?key=value&...]`` (``scheme:target`` is shorthand); each sink
 module's docstring gives its options. Modules are imported only when their sink is made, so
 rerun and pymavlink load only when asked for.
@@ -25,17 +29,17 @@ from depthnav_daemon.sinks.base import Sink, SinkContext, SinkSpec, parse_sink_s
 __all__ = ["SINKS", "Sink", "SinkContext", "SinkSpec", "create_sink", "parse_sink_spec"]
 
 SINKS: dict[str, tuple[str, str]] = {  # scheme -> (module, class); imported only when used
-    "stdout": ("depthnav_daemon.sinks.stdout", "StdoutSink"),
+    "stdout": ("depthnav_daemon.sinks.json.stdout", "StdoutSink"),
     "text": ("depthnav_daemon.sinks.text", "TextSink"),
-    "udp": ("depthnav_daemon.sinks.udp", "UdpSink"),
+    "udp": ("depthnav_daemon.sinks.json.udp", "UdpSink"),
     "null": ("depthnav_daemon.sinks.null", "NullSink"),
-    "rerun": ("depthnav_daemon.sinks.rerun", "RerunSink"),
-    "rerun+grpc": ("depthnav_daemon.sinks.rerun", "RerunSink"),
-    "mavlink": ("depthnav_daemon.sinks.mavlink", "MavlinkSink"),
-    "mavlink+udp": ("depthnav_daemon.sinks.mavlink", "MavlinkSink"),
-    "rosbag": ("depthnav_daemon.sinks.rosbag", "RosbagSink"),
+    "rerun": ("depthnav_daemon.sinks.rerun.rerun", "RerunSink"),
+    "rerun+grpc": ("depthnav_daemon.sinks.rerun.rerun", "RerunSink"),
+    "mavlink": ("depthnav_daemon.sinks.mavlink.mavlink", "MavlinkSink"),
+    "mavlink+udp": ("depthnav_daemon.sinks.mavlink.mavlink", "MavlinkSink"),
+    "rosbag": ("depthnav_daemon.sinks.ros.rosbag", "RosbagSink"),
     "foxglove": ("depthnav_daemon.sinks.foxglove", "FoxgloveSink"),
-    "ros2": ("depthnav_daemon.sinks.ros2", "Ros2Sink"),
+    "ros2": ("depthnav_daemon.sinks.ros.ros2", "Ros2Sink"),
 }
 
 

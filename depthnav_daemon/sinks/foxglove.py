@@ -6,7 +6,7 @@ Specs:
     ``foxglove:FILE.mcap``                    write the channels to FILE.mcap (Foxglove opens it)
 
 Options: ``image=0`` leaves out the depth image and its overlays; ``tf=0`` the transforms; the
-frame and topic names of the ROS sinks (sinks/ros_messages.py: ``base_frame``, ``scan_topic`` ...).
+frame and topic names of the ROS sinks (sinks/ros/messages.py: ``base_frame``, ``scan_topic`` ...).
 
 Channels (Foxglove's own protobuf schemas unless said):
     /depthnav/depth/image_raw     RawImage 16UC1 (mm), optical frame
@@ -39,15 +39,15 @@ import numpy as np
 
 from depthnav_daemon.errors import ConfigError, SinkError
 from depthnav_daemon.sinks.base import SinkContext, SinkSpec, check_options, parse_host_port
-from depthnav_daemon.sinks.jsonmsg import mount_trust_to_json
-from depthnav_daemon.sinks.ros_messages import (
+from depthnav_daemon.sinks.json.message import mount_trust_to_json
+from depthnav_daemon.sinks.ros.messages import (
     OPTIONS,
     RosNames,
     quaternion,
     scan_origin,
     sensor_placement,
 )
-from depthnav_daemon.sinks.ros_messages import stamp_ns as to_ns
+from depthnav_daemon.sinks.ros.messages import stamp_ns as to_ns
 
 if TYPE_CHECKING:
     from depthnav_daemon.pipeline import Result

@@ -23,7 +23,7 @@ import numpy as np
 
 from depthnav_daemon.errors import ConfigError
 from depthnav_daemon.sinks.base import SinkSpec, check_options, number_option
-from depthnav_daemon.sinks.stdout import StdoutSink
+from depthnav_daemon.sinks.json.stdout import StdoutSink
 
 if TYPE_CHECKING:
     from depthnav_daemon.pipeline import Result

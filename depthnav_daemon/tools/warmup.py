@@ -21,10 +21,10 @@ from depthnav_daemon.pipeline.lens import undistort
 from depthnav_daemon.pipeline.pose import PoseParams, estimate_pose
 from depthnav_daemon.pipeline.scan import ScanParams, depth_to_scan, scan_layout
 from depthnav_daemon.sim.synthetic import Box, Scene, render, step_down
-from depthnav_daemon.sinks.json_numbers import KERNELS as JSON_KERNELS
-from depthnav_daemon.sinks.json_numbers import mm_json
-from depthnav_daemon.sinks.json_template import FLAT, PAIRS, SECONDS, template_text
-from depthnav_daemon.sinks.json_template import KERNELS as TEMPLATE_KERNELS
+from depthnav_daemon.sinks.json.numbers import KERNELS as JSON_KERNELS
+from depthnav_daemon.sinks.json.numbers import mm_json
+from depthnav_daemon.sinks.json.template import FLAT, PAIRS, SECONDS, template_text
+from depthnav_daemon.sinks.json.template import KERNELS as TEMPLATE_KERNELS
 from drivers.base import Frame, Intrinsics
 
 # every scan / cliff configuration that gives its kernel a differently typed array:

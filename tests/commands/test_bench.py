@@ -7,7 +7,7 @@ import json
 import pytest
 
 from depthnav_daemon.cli import build_parser, main
-from depthnav_daemon.commands import bench_stages as bench
+from depthnav_daemon.commands.bench import stages as bench
 
 STAGES = (
     "scan exact",

@@ -5,8 +5,8 @@ from __future__ import annotations
 
 import pytest
 
-from depthnav_daemon.commands.bench_process import _Clock
-from depthnav_daemon.commands.bench_stages import Work
+from depthnav_daemon.commands.bench.process import _Clock
+from depthnav_daemon.commands.bench.stages import Work
 from depthnav_daemon.errors import DepthnavError
 
 

@@ -16,8 +16,8 @@ from pathlib import Path
 
 import pytest
 
-from depthnav_daemon.commands import bench_rebuild
-from depthnav_daemon.commands.bench_rebuild import RebuildTiming, format_rebuild, rebuild_timing
+from depthnav_daemon.commands.bench import rebuild as bench_rebuild
+from depthnav_daemon.commands.bench.rebuild import RebuildTiming, format_rebuild, rebuild_timing
 from depthnav_daemon.pipeline import scan_table
 from drivers.base import Intrinsics
 
@@ -107,7 +107,7 @@ def test_the_busy_processes_spin_while_the_block_runs_and_end_with_it() -> None:
 
 _KILLED_PARENT = """
 import sys, time
-from depthnav_daemon.commands.bench_rebuild import busy_processes
+from depthnav_daemon.commands.bench.rebuild import busy_processes
 with busy_processes(2):
     print("spinning", flush=True)
     time.sleep(120)

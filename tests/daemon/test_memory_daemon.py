@@ -21,7 +21,7 @@ from depthnav_daemon.pipeline import StageParams, process
 from depthnav_daemon.pipeline.cliff import CliffParams
 from depthnav_daemon.pipeline.scan import LaserScan, ScanParams
 from depthnav_daemon.sim.fixtures import DRIVE_MOUNT
-from depthnav_daemon.sinks.mavlink_sectors import memory_sectors, sectors_for
+from depthnav_daemon.sinks.mavlink.sectors import memory_sectors, sectors_for
 from drivers.formats.recording import read_recording
 from drivers.odometry import create_odometry
 from tests.daemon.test_loop import SPEC as CORRIDOR

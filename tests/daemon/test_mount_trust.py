@@ -16,8 +16,8 @@ from depthnav_daemon.daemon.loop import _status, run
 from depthnav_daemon.pipeline import Result
 from depthnav_daemon.pipeline.geometry import Mount
 from depthnav_daemon.sim.synthetic import Box, Scene, render, wall
-from depthnav_daemon.sinks import jsonmsg
 from depthnav_daemon.sinks.base import SinkContext
+from depthnav_daemon.sinks.json import message as jsonmsg
 from depthnav_daemon.sinks.text import TextSink
 from drivers.base import DeviceInfo, Frame
 from tests.pipeline.scenes import ASYM_640

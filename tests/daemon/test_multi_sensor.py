@@ -245,7 +245,7 @@ def test_a_silent_sensor_is_left_out_reported_once_and_taken_back(recordings, ca
 def test_json_lists_every_sensor_with_its_own_results(recordings) -> None:
     import json
 
-    from depthnav_daemon.sinks import jsonmsg
+    from depthnav_daemon.sinks.json import message as jsonmsg
 
     both_ok = lambda r: all(s.status == "ok" for s in r.sensors)  # noqa: E731
     sink = UntilSink(both_ok, 1)

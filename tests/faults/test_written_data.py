@@ -174,7 +174,7 @@ def test_stdout_writer_serves_its_own_queue_after_a_close_at_once(tmp_path: Path
     and fd when it is made; here it runs after the sink has let go of both."""
     import queue
 
-    from depthnav_daemon.sinks.stdout import StdoutSink, _lock_of
+    from depthnav_daemon.sinks.json.stdout import StdoutSink, _lock_of
 
     sink = StdoutSink()
     lines: queue.Queue[bytes | None] = queue.Queue()

@@ -27,7 +27,7 @@ from depthnav_daemon.sim.synthetic import (
     truth_drop_ranges,
     truth_obstacle_interval,
 )
-from depthnav_daemon.sinks.mavlink_sectors import obstacle_sectors
+from depthnav_daemon.sinks.mavlink.sectors import obstacle_sectors
 from drivers.base import Frame
 from tests.pipeline.scenes import ASYM_640
 

@@ -11,7 +11,7 @@ import numpy as np
 
 from depthnav_daemon.pipeline.geometry import Mount
 from depthnav_daemon.sim.synthetic import Box, Scene, render, step_down
-from depthnav_daemon.sinks.jsonmsg import decode_ranges
+from depthnav_daemon.sinks.json.message import decode_ranges
 from drivers.base import KINECT_V1, Frame, tilt_roll_to_accel
 from drivers.formats.recording_writer import write_recording
 

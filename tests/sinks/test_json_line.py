@@ -12,7 +12,8 @@ import pytest
 
 from depthnav_daemon.pipeline import MountTrust
 from depthnav_daemon.pipeline.merge import SensorState
-from depthnav_daemon.sinks import json_line, jsonmsg
+from depthnav_daemon.sinks.json import line as json_line
+from depthnav_daemon.sinks.json import message as jsonmsg
 from tests.sinks.conftest import with_memory
 
 DOUBT = MountTrust(

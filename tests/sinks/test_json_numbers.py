@@ -12,8 +12,9 @@ import numpy as np
 import orjson
 import pytest
 
-from depthnav_daemon.sinks import json_line, jsonmsg
-from depthnav_daemon.sinks.json_numbers import (
+from depthnav_daemon.sinks.json import line as json_line
+from depthnav_daemon.sinks.json import message as jsonmsg
+from depthnav_daemon.sinks.json.numbers import (
     _TEXTS,
     CHARS_PER_VALUE,
     TABLE_K,
@@ -204,7 +205,7 @@ def test_one_line_per_result_shared_by_the_sinks(pairs) -> None:
 
 
 def test_udp_mm_ranges_from_the_written_text(pairs) -> None:
-    from depthnav_daemon.sinks.udp import Content
+    from depthnav_daemon.sinks.json.udp import Content
 
     frame, result = pairs[0]
     data = json_line.fit_message(frame, result, "1", 1.0, 60000, Content(ranges_mm=True).shape)
@@ -250,9 +251,9 @@ def test_the_line_written_in_one_kernel_call_is_the_reference_encoders_line(pair
 
 WARM_THEN_WRITE = """
 from dataclasses import replace
-from depthnav_daemon.sinks import json_line
-from depthnav_daemon.sinks.json_numbers import _write_lists
-from depthnav_daemon.sinks.json_template import _write_template
+from depthnav_daemon.sinks.json import line as json_line
+from depthnav_daemon.sinks.json.numbers import _write_lists
+from depthnav_daemon.sinks.json.template import _write_template
 from depthnav_daemon.tools import warmup
 from tests.sinks.conftest import make_pair
 warmup.warm_up()

@@ -10,8 +10,8 @@ import numpy as np
 import orjson
 import pytest
 
-from depthnav_daemon.sinks.json_numbers import lists_json
-from depthnav_daemon.sinks.json_template import (
+from depthnav_daemon.sinks.json.numbers import lists_json
+from depthnav_daemon.sinks.json.template import (
     FLAT,
     INTEGER,
     MAX_SECONDS,

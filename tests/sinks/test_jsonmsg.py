@@ -14,7 +14,8 @@ from hypothesis import strategies as st
 
 from depthnav_daemon.pipeline import MountTrust
 from depthnav_daemon.pipeline.pose import PoseEstimate
-from depthnav_daemon.sinks import json_line, jsonmsg
+from depthnav_daemon.sinks.json import line as json_line
+from depthnav_daemon.sinks.json import message as jsonmsg
 from tests.sinks.conftest import make_pair, with_memory, with_ranges
 
 

@@ -22,8 +22,8 @@ from depthnav_daemon.pipeline.geometry import Mount
 from depthnav_daemon.pipeline.scan import LaserScan
 from depthnav_daemon.sim.synthetic import Box, Scene, render
 from depthnav_daemon.sinks import create_sink
-from depthnav_daemon.sinks.mavlink import MavlinkSink
-from depthnav_daemon.sinks.mavlink_sectors import (
+from depthnav_daemon.sinks.mavlink.mavlink import MavlinkSink
+from depthnav_daemon.sinks.mavlink.sectors import (
     UNKNOWN,
     Schedule,
     merge_cliff,

@@ -20,8 +20,8 @@ from depthnav_daemon.errors import ConfigError, SinkError
 from depthnav_daemon.pipeline.geometry import rot_x, rot_y
 from depthnav_daemon.pipeline.scan import obstacle_pixels
 from depthnav_daemon.sinks import create_sink
-from depthnav_daemon.sinks import rerun as rerun_sink
-from depthnav_daemon.sinks.rerun import RerunSink
+from depthnav_daemon.sinks.rerun import rerun as rerun_sink
+from depthnav_daemon.sinks.rerun.rerun import RerunSink
 from tests.drivers.driverkit import skip_without
 
 rrchunk = pytest.importorskip("rerun.chunk")
@@ -254,7 +254,7 @@ def test_grpc_spec_builds_proxy_url():
 def test_module_name_does_not_shadow_rerun():
     import rerun
 
-    # sinks/rerun.py does `import rerun as rr`: that must be the SDK, not the module itself
+    # sinks/rerun/rerun.py does `import rerun as rr`: that must be the SDK, not the module itself
     assert "depthnav_daemon" not in rerun.__file__ and hasattr(rerun, "RecordingStream")
 
 
@@ -380,7 +380,7 @@ def rgba(rgb) -> int:
 
 def test_untrusted_dropoffs_are_amber_and_the_trust_is_logged(tmp_path, pairs, context):
     from depthnav_daemon.pipeline import MountTrust
-    from depthnav_daemon.sinks.rerun_topdown import CLIFF_RGB, UNTRUSTED_CLIFF_RGB
+    from depthnav_daemon.sinks.rerun.topdown import CLIFF_RGB, UNTRUSTED_CLIFF_RGB
 
     good = MountTrust(source="config", floor="confirmed")
     bad = MountTrust(
@@ -433,7 +433,7 @@ def test_a_viewer_that_goes_away_is_not_claimed_delivered(tmp_path, pairs, conte
 
 
 def test_check_viewer_refuses_a_silent_listener_and_a_closed_port():
-    from depthnav_daemon.sinks.rerun_viewer import check_viewer
+    from depthnav_daemon.sinks.rerun.viewer import check_viewer
 
     with socket.socket() as listener:  # accepts connections (backlog) but never answers
         listener.bind(("127.0.0.1", 0))

@@ -28,7 +28,7 @@ import pytest
 
 from depthnav_daemon.errors import ConfigError
 from depthnav_daemon.sinks import create_sink
-from depthnav_daemon.sinks.jsonmsg import decode_ranges
+from depthnav_daemon.sinks.json.message import decode_ranges
 from tests.drivers.driverkit import skip_without
 from tests.faults.kit import FAST, ROOT, depthnav, json_lines
 from tests.sinks.conftest import make_pair
@@ -270,8 +270,8 @@ def test_our_cdr_is_what_cyclonedds_makes_of_the_same_message(pairs):
     """rosbags' CDR (what goes on the wire) read by cyclonedds' own decoder into the IDL types the
     sink declares, and written back by cyclonedds, gives the same bytes: for every message."""
     require_cyclonedds()
-    from depthnav_daemon.sinks.ros2 import IdlTypes, dds_type_name
-    from depthnav_daemon.sinks.ros_messages import NAME_OPTIONS, MessageBuilder, RosNames, typestore
+    from depthnav_daemon.sinks.ros.messages import NAME_OPTIONS, MessageBuilder, RosNames, typestore
+    from depthnav_daemon.sinks.ros.ros2 import IdlTypes, dds_type_name
 
     store = typestore(ros1=False)
     builder = MessageBuilder(store, RosNames(dict(NAME_OPTIONS), image=True))

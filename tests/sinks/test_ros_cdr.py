@@ -1,4 +1,4 @@
-"""The ros2 sink's template CDR (sinks/ros_cdr.py) is, byte for byte, rosbags' CDR of the messages
+"""The ros2 sink's template CDR (sinks/ros/cdr.py) is, byte for byte, rosbags' CDR of the messages
 ``MessageBuilder`` makes (padded as DDS wants): over frames whose mount, cliff, ranges (NaN,
 +inf, -inf) and point counts change, with other frame names, without /tf, with the image."""
 
@@ -13,8 +13,8 @@ import pytest
 
 from depthnav_daemon.pipeline.cliff import CliffResult
 from depthnav_daemon.pipeline.geometry import Mount
-from depthnav_daemon.sinks.ros_cdr import CdrEncoder, dds_bytes
-from depthnav_daemon.sinks.ros_messages import NAME_OPTIONS, MessageBuilder, RosNames, typestore
+from depthnav_daemon.sinks.ros.cdr import CdrEncoder, dds_bytes
+from depthnav_daemon.sinks.ros.messages import NAME_OPTIONS, MessageBuilder, RosNames, typestore
 from tests.sinks.conftest import make_pair
 
 NAMES = {

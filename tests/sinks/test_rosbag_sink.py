@@ -253,7 +253,7 @@ def test_tf_and_pose_place_the_sensor_on_the_robot(ros1: bool) -> None:
     # asymmetric placement: 0.2 m forward, 0.1 m right, turned 30 deg left, 20 deg down, 5 deg
     # roll. The optical frame sits where the sensor is; the scan frame (whose ranges are from
     # the base origin) stays above the base origin with the base's axes
-    from depthnav_daemon.sinks.ros_messages import NAME_OPTIONS, MessageBuilder, RosNames, typestore
+    from depthnav_daemon.sinks.ros.messages import NAME_OPTIONS, MessageBuilder, RosNames, typestore
 
     mount = Mount(0.6, 20.0, 5.0, x_m=0.2, y_m=-0.1, yaw_deg=30.0)
     builder = MessageBuilder(typestore(ros1=ros1), RosNames(dict(NAME_OPTIONS)))

@@ -15,7 +15,7 @@ import pytest
 
 from depthnav_daemon.errors import SinkError
 from depthnav_daemon.sinks import create_sink
-from depthnav_daemon.sinks.stdout import StdoutSink
+from depthnav_daemon.sinks.json.stdout import StdoutSink
 
 ROOT = Path(__file__).resolve().parents[2]
 

@@ -11,8 +11,9 @@ import numpy as np
 import pytest
 
 from depthnav_daemon.errors import ConfigError
-from depthnav_daemon.sinks import create_sink, jsonmsg
-from depthnav_daemon.sinks.udp import UdpSink
+from depthnav_daemon.sinks import create_sink
+from depthnav_daemon.sinks.json import message as jsonmsg
+from depthnav_daemon.sinks.json.udp import UdpSink
 
 
 @pytest.fixture
@@ -106,7 +107,7 @@ def test_lost_receiver_is_counted_never_raised(pairs, context, caplog):
         sink.open(context)
         frame, result = pairs[0]
         caplog.clear()
-        with caplog.at_level(logging.WARNING, logger="depthnav_daemon.sinks.udp"):
+        with caplog.at_level(logging.WARNING, logger="depthnav_daemon.sinks.json.udp"):
             for seq in range(20):
                 sink.write(frame, replace(result, seq=seq))  # must not raise
         sink.close()
@@ -115,7 +116,7 @@ def test_lost_receiver_is_counted_never_raised(pairs, context, caplog):
         break
     assert sink.send_errors >= 1
     # at most one warning per 10 s, however many datagrams were lost
-    lines = [r for r in caplog.records if r.name == "depthnav_daemon.sinks.udp"]
+    lines = [r for r in caplog.records if r.name == "depthnav_daemon.sinks.json.udp"]
     assert len(lines) == 1 and "ConnectionRefusedError" in lines[0].getMessage()
 
 
@@ -229,7 +230,7 @@ def test_bad_slimming_options_are_one_line_config_errors(option):
 def test_frames_too_big_for_max_bytes_are_summed_up_at_close(receiver, pairs, context, caplog):
     port = receiver.getsockname()[1]
     sink = create_sink(f"udp://:{port}?max_bytes=512")
-    with caplog.at_level(logging.INFO, logger="depthnav_daemon.sinks.udp"):
+    with caplog.at_level(logging.INFO, logger="depthnav_daemon.sinks.json.udp"):
         sent = _datagrams(receiver, sink, pairs, context)
     assert sent == [] and sink.sent == 0
     text = caplog.text

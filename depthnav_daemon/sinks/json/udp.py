@@ -31,7 +31,6 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 from depthnav_daemon.errors import SinkError
-from depthnav_daemon.sinks import json_line, jsonmsg
 from depthnav_daemon.sinks.base import (
     RateLimitedLog,
     SinkContext,
@@ -42,6 +41,8 @@ from depthnav_daemon.sinks.base import (
     number_option,
     parse_host_port,
 )
+from depthnav_daemon.sinks.json import line as json_line
+from depthnav_daemon.sinks.json import message as jsonmsg
 
 if TYPE_CHECKING:
     from depthnav_daemon.pipeline import Result

@@ -1,7 +1,7 @@
 """``ros2``: publish every frame's scans, cliff points, transforms and pose as live ROS 2 topics.
 
 Spec: ``ros2[:][?domain=N&tf=0|1&image=0|1&<names>]``. The topics and messages are the
-``rosbag`` sink's (sinks/ros_messages.py: ``/scan``, ``/cliff/scan``, ``/cliff/points``, ``/tf``,
+``rosbag`` sink's (sinks/ros/messages.py: ``/scan``, ``/cliff/scan``, ``/cliff/points``, ``/tf``,
 ``/depth_sensor_pose``, and with ``image=1`` the depth image and its CameraInfo), published
 straight on DDS with Cyclone DDS (the ``cyclonedds`` package: ``pip install 'depthnav[ros2]'``),
 so no ROS installation is needed and any ROS 2 node on the same domain subscribes as to another
@@ -45,8 +45,8 @@ from depthnav_daemon.sinks.base import (
     check_options,
     number_option,
 )
-from depthnav_daemon.sinks.ros_cdr import CdrEncoder
-from depthnav_daemon.sinks.ros_messages import (
+from depthnav_daemon.sinks.ros.cdr import CdrEncoder
+from depthnav_daemon.sinks.ros.messages import (
     NAME_OPTIONS,
     OPTIONS,
     MessageBuilder,
@@ -257,7 +257,7 @@ class Ros2Sink:
         """Serialise and publish the frame's messages; never waits for a subscriber."""
         if self._encoder is None or self._write is None:
             raise SinkError(f"sink {self.name!r} is not open")
-        # rosbags' CDR of the messages, padded to whole 4-byte words (sinks/ros_cdr.py)
+        # rosbags' CDR of the messages, padded to whole 4-byte words (sinks/ros/cdr.py)
         for topic, data in self._encoder.encode(frame, result, t_ns=time.time_ns()):
             # cyclonedds' DataWriter.write serialises a sample in Python and hands the bytes to
             # this call: we hand it rosbags' CDR of the same layout (checked in the tests)

@@ -22,7 +22,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import orjson
 
-from depthnav_daemon.sinks.json_numbers import lists_json, mm_json
+from depthnav_daemon.sinks.json.numbers import lists_json, mm_json
 
 if TYPE_CHECKING:
     from depthnav_daemon.pipeline import Result

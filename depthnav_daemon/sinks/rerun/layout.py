@@ -4,8 +4,8 @@ The layout puts depthnav's results first: a top-down view (the paper's costmap f
 image with strong colours over a grey palette, a 3-D view from behind and above the robot without
 rerun's point cloud of the whole depth image (hidden, one toggle away in the blueprint panel), and
 plots of the mount against its configured value and of the stage timings after the warm-up frame.
-The entity paths are listed in ``sinks/rerun.py``; every rerun call of depthnav lives in these two
-modules (the API moves between releases).
+The entity paths are listed in ``sinks/rerun/rerun.py``; every rerun call of depthnav lives in
+these two modules (the API moves between releases).
 """
 
 from __future__ import annotations
@@ -16,8 +16,8 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from depthnav_daemon.pipeline.geometry import rot_x, rot_y, rot_z
-from depthnav_daemon.sinks import rerun_topdown as topdown
-from depthnav_daemon.sinks.rerun_depth import CLASS_CLIFF, CLASS_OBSTACLE, CLIFF_RGBA, log_depth
+from depthnav_daemon.sinks.rerun import topdown
+from depthnav_daemon.sinks.rerun.depth import CLASS_CLIFF, CLASS_OBSTACLE, CLIFF_RGBA, log_depth
 
 if TYPE_CHECKING:
     from depthnav_daemon.pipeline import MountTrust, Result

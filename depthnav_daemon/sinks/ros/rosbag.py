@@ -11,7 +11,7 @@ Options:
     image: 1 also writes the depth image (16UC1) and its CameraInfo (~0.6 MB a frame at 640x480),
         so ``replay:PATH`` reads the run back.
     tf: 0 leaves out ``/tf`` (when the robot's URDF already places the sensor).
-    names: frame ids and topics, see sinks/ros_messages.py (``base_frame=base_footprint``,
+    names: frame ids and topics, see sinks/ros/messages.py (``base_frame=base_footprint``,
         ``scan_topic=/depth/scan``, ...).
 
 The bag is written under ``PATH.partial`` and renamed to PATH when the sink closes (a stop with
@@ -31,7 +31,7 @@ from typing import TYPE_CHECKING, Any
 
 from depthnav_daemon.errors import ConfigError, SinkError
 from depthnav_daemon.sinks.base import SinkContext, SinkSpec, check_options
-from depthnav_daemon.sinks.ros_messages import OPTIONS, MessageBuilder, RosNames, typestore
+from depthnav_daemon.sinks.ros.messages import OPTIONS, MessageBuilder, RosNames, typestore
 
 if TYPE_CHECKING:
     from depthnav_daemon.pipeline import Result

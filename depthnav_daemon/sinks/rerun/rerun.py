@@ -58,21 +58,21 @@ from depthnav_daemon.sinks.base import (
     number_option,
     parse_host_port,
 )
-from depthnav_daemon.sinks.rerun_file import (
+from depthnav_daemon.sinks.rerun.file import (
     disconnect,
     file_problem,
     lock_rrd,
     trim_partial_message,
 )
-from depthnav_daemon.sinks.rerun_layout import (
+from depthnav_daemon.sinks.rerun.layout import (
     LayoutState,
     blueprint,
     log_frame,
     log_static,
     scan_points,
 )
-from depthnav_daemon.sinks.rerun_topdown import DEFAULT_FOOTPRINT_M
-from depthnav_daemon.sinks.rerun_viewer import DEFAULT_GRPC, check_viewer
+from depthnav_daemon.sinks.rerun.topdown import DEFAULT_FOOTPRINT_M
+from depthnav_daemon.sinks.rerun.viewer import DEFAULT_GRPC, check_viewer
 
 if TYPE_CHECKING:
     from depthnav_daemon.pipeline import Result
@@ -136,7 +136,7 @@ def _import_rerun() -> Any:
     if quiet:
         os.environ["RUST_LOG"] = "off"
     try:
-        import rerun as rr  # absolute: this module is depthnav_daemon.sinks.rerun, not rerun
+        import rerun as rr  # absolute: this module is depthnav_daemon.sinks.rerun.rerun, not rerun
     finally:
         if quiet:
             os.environ.pop("RUST_LOG", None)

@@ -9,11 +9,11 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from depthnav_daemon.plots.overlays import scan_source_pixels
-from depthnav_daemon.sinks.rerun_topdown import CLIFF_RGB, SCAN_RGB
+from depthnav_daemon.sinks.rerun.topdown import CLIFF_RGB, SCAN_RGB
 
 if TYPE_CHECKING:
     from depthnav_daemon.pipeline import Result
-    from depthnav_daemon.sinks.rerun_layout import LayoutState
+    from depthnav_daemon.sinks.rerun.layout import LayoutState
     from drivers.base import Frame
 
 DEPTH = "/world/sensor/depth"

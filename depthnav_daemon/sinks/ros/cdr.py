@@ -23,7 +23,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from depthnav_daemon.sinks.ros_messages import MessageBuilder, sensor_placement, stamp_ns
+from depthnav_daemon.sinks.ros.messages import MessageBuilder, sensor_placement, stamp_ns
 
 if TYPE_CHECKING:
     from depthnav_daemon.pipeline import Result

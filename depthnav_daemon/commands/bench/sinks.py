@@ -4,7 +4,7 @@ writes one).
 
 - the JSON line of the stdout and udp sinks (made once a frame and shared by both);
 - the rosbag sink writing a ROS 2 ``.mcap`` and a ROS 1 ``.bag`` (issue 13's budget: ~1 ms);
-- the ros2 sink's encoding: its messages' CDR (sinks/ros_cdr.py), padded as it hands them to DDS
+- the ros2 sink's encoding: its messages' CDR (sinks/ros/cdr.py), padded as it hands them to DDS
   (issue 13's budget: 0.22 ms; the DDS write itself is cyclonedds' and left out);
 - the foxglove sink writing its channels to an ``.mcap``, without and with the depth image.
 
@@ -23,15 +23,17 @@ from pathlib import Path
 import orjson
 
 from depthnav_daemon import __version__
-from depthnav_daemon.commands.bench_stages import Work
+from depthnav_daemon.commands.bench.stages import Work
 from depthnav_daemon.config.loader import Config
 from depthnav_daemon.errors import SinkError
 from depthnav_daemon.pipeline import Result, StageParams, process
 from depthnav_daemon.pipeline.geometry import Mount
-from depthnav_daemon.sinks import create_sink, json_line, jsonmsg
+from depthnav_daemon.sinks import create_sink
 from depthnav_daemon.sinks.base import Sink, SinkContext
-from depthnav_daemon.sinks.ros_cdr import CdrEncoder
-from depthnav_daemon.sinks.ros_messages import NAME_OPTIONS, MessageBuilder, RosNames, typestore
+from depthnav_daemon.sinks.json import line as json_line
+from depthnav_daemon.sinks.json import message as jsonmsg
+from depthnav_daemon.sinks.ros.cdr import CdrEncoder
+from depthnav_daemon.sinks.ros.messages import NAME_OPTIONS, MessageBuilder, RosNames, typestore
 from drivers.base import DeviceInfo, Frame
 
 BUDGETS_MS = {"rosbag": 1.0, "ros2": 0.22}  # issue 13
@@ -135,7 +137,7 @@ def _writes(sink: Sink, pairs: Sequence[tuple[Frame, Result]]) -> Callable[[], o
 
 
 def _ros2_encode(pairs: Sequence[tuple[Frame, Result]]) -> Callable[[], object]:
-    """What sinks/ros2.py does per frame before cyclonedds' write: its CdrEncoder (templates
+    """What sinks/ros/ros2.py does per frame before cyclonedds' write: its CdrEncoder (templates
     made on the first frame, as the sink makes them)."""
     builder = MessageBuilder(typestore(ros1=False), RosNames(dict(NAME_OPTIONS)))
     store = builder.store

@@ -27,8 +27,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import orjson
 
-from depthnav_daemon.sinks.json_template import FLAT, INTEGER, PAIRS, SECONDS, template_text
-from depthnav_daemon.sinks.jsonmsg import (
+from depthnav_daemon.sinks.json.message import (
     SCHEMA_VERSION,
     _mount_json,
     _pose_to_json,
@@ -38,6 +37,7 @@ from depthnav_daemon.sinks.jsonmsg import (
     frame_message,
     memory_to_json,
 )
+from depthnav_daemon.sinks.json.template import FLAT, INTEGER, PAIRS, SECONDS, template_text
 
 if TYPE_CHECKING:
     from depthnav_daemon.pipeline import Result

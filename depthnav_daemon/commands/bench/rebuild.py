@@ -241,7 +241,7 @@ def rebuild_timing(
 ) -> RebuildTiming:
     """Time ``changes`` large mount changes at the resolution of ``intr``, with ``load`` busy
     processes beside the frames from the first change on (module docstring)."""
-    from depthnav_daemon.commands.bench_stages import synthetic_frames
+    from depthnav_daemon.commands.bench.stages import synthetic_frames
 
     frames, mount = synthetic_frames(intr, n=n_frames, mount=START_MOUNT)
     params = StageParams(scan=ScanParams(), cliff=CliffParams())

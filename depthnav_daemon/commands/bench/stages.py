@@ -28,7 +28,7 @@ from depthnav_daemon.pipeline.scan import ScanParams, depth_to_scan, scan_layout
 from depthnav_daemon.sim.synthetic import Box, KinectNoise, Scene, render, step_down
 from drivers.base import KINECT_V1, Frame, Intrinsics
 
-FIXTURE = Path(__file__).resolve().parents[2] / "fixtures" / "corridor_step"
+FIXTURE = Path(__file__).resolve().parents[3] / "fixtures" / "corridor_step"
 MAX_FRAMES = 64
 POSE_EVERY = 30  # the daemon's default pose_every_frames
 # the resolutions of the table; intrinsics of the typical sensor at each (approximate)

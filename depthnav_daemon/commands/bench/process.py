@@ -15,7 +15,7 @@ from typing import Any
 
 import numpy as np
 
-from depthnav_daemon.commands.bench_stages import FIXTURE, Work
+from depthnav_daemon.commands.bench.stages import FIXTURE, Work
 from depthnav_daemon.errors import DepthnavError
 from drivers.base import Frame
 
@@ -227,7 +227,7 @@ def loop_cost(
     from depthnav_daemon.config.loader import Config, DaemonParams
     from depthnav_daemon.daemon.loop import run
     from depthnav_daemon.sinks import create_sink
-    from depthnav_daemon.sinks.stdout import StdoutSink
+    from depthnav_daemon.sinks.json.stdout import StdoutSink
 
     consumer = _Consumer()
     quiet = logging.getLogger("depthnav_daemon")

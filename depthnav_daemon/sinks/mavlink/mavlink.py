@@ -62,11 +62,11 @@ from depthnav_daemon.sinks.base import (
     number_option,
     parse_host_port,
 )
-from depthnav_daemon.sinks.mavlink_sectors import Schedule, sectors_for, trust_statustext
+from depthnav_daemon.sinks.mavlink.sectors import Schedule, sectors_for, trust_statustext
 
 if TYPE_CHECKING:
     from depthnav_daemon.pipeline import Result
-    from depthnav_daemon.sinks.mavlink_sectors import Sectors
+    from depthnav_daemon.sinks.mavlink.sectors import Sectors
     from drivers.base import Frame
 
 log = logging.getLogger(__name__)

@@ -24,15 +24,15 @@ from typing import Any
 
 import numpy as np
 
-from depthnav_daemon.commands.bench_process import (
+from depthnav_daemon.commands.bench.process import (
     cpu_at_30fps,
     loop_cost,
     startup_time,
     udp_latency,
 )
-from depthnav_daemon.commands.bench_rebuild import RebuildTiming, format_rebuild, rebuild_timings
-from depthnav_daemon.commands.bench_sinks import BUDGETS_MS, sink_work
-from depthnav_daemon.commands.bench_stages import (
+from depthnav_daemon.commands.bench.rebuild import RebuildTiming, format_rebuild, rebuild_timings
+from depthnav_daemon.commands.bench.sinks import BUDGETS_MS, sink_work
+from depthnav_daemon.commands.bench.stages import (
     FIXTURE,
     RESOLUTIONS,
     SCAN_TARGET,
@@ -287,7 +287,7 @@ if __name__ == "__main__":
 
 
 def cmd_bench(args: argparse.Namespace) -> int:
-    from depthnav_daemon.commands.bench import main as bench_main
+    from depthnav_daemon.commands.bench.command import main as bench_main
 
     if args.rounds < 1:
         raise ConfigError(f"--rounds={args.rounds} is out of range (accepted: 1 or more)")

@@ -23,7 +23,7 @@ seconds with ``orjson.dumps(round(v, 6))`` on random values, ties and the domain
 from __future__ import annotations
 
 # importing json_numbers first sets numba's cache folder (pipeline/_jit.py) before numba loads
-from depthnav_daemon.sinks.json_numbers import (
+from depthnav_daemon.sinks.json.numbers import (
     _EMPTY,
     _F32,
     _F64,

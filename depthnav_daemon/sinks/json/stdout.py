@@ -38,8 +38,8 @@ import weakref
 from typing import TYPE_CHECKING, TextIO
 
 from depthnav_daemon.errors import ConfigError, SinkError
-from depthnav_daemon.sinks import json_line
 from depthnav_daemon.sinks.base import RateLimitedLog, SinkContext, SinkSpec, check_options
+from depthnav_daemon.sinks.json import line as json_line
 
 if TYPE_CHECKING:
     from depthnav_daemon.pipeline import Result
