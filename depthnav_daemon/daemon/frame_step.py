@@ -17,7 +17,7 @@ import numpy as np
 from depthnav_daemon.config.loader import Config
 from depthnav_daemon.daemon.mount_tracker import MountTracker, TrackerParams
 from depthnav_daemon.daemon.stage_tables import SmallChange, StageTables
-from depthnav_daemon.pipeline import MountTrust, Result, StageParams, prepare, process
+from depthnav_daemon.pipeline import MountState, MountTrust, Result, StageParams, prepare, process
 from depthnav_daemon.pipeline.geometry import MAX_MOUNT_HEIGHT_M, MAX_ROLL_DEG, MAX_TILT_DEG, Mount
 from depthnav_daemon.pipeline.pose import (
     PoseEstimate,
@@ -83,8 +83,7 @@ class FrameStep:
         if accel or self._tilt_source is not None:
             self._read_tilt_source(frame)  # (a call that finds nothing to read cost ~0.5 %)
         want_pose = self._pose_due(frame)
-        pose = None
-        timings: dict[str, float] = {}
+        pose, pose_s = None, None
         if want_pose:
             # a new prior window's table is built on the worker: meanwhile the estimate searches
             # the last window (whose table exists) rather than this frame building it
@@ -93,7 +92,7 @@ class FrameStep:
             )
             t0 = time.perf_counter()
             pose = estimate_pose(frame.depth_mm, frame.intrinsics, prior, self._rng)
-            timings["pose"] = time.perf_counter() - t0
+            pose_s = time.perf_counter() - t0
             _apply_pose(self._tracker, pose, self._daemon.tilt_source)
         # a new mount serves the frames once its tables exist (built on a worker by StageTables,
         # with the pose stage's window around it; a camera's first frame builds them itself);
@@ -103,16 +102,10 @@ class FrameStep:
         trust = _pending(self._tracker.trust(), used, wanted)
         if trust.dropoffs_trusted != self._trusted:
             self._say_trust(trust)
-        result = process(
-            frame,
-            used,
-            self.params,
-            mount_source=self._tracker.source,
-            pose=pose,
-            clock=time.perf_counter,
-            timings_s=timings,
-            mount_trust=trust,
+        state = MountState(
+            mount=used, source=self._tracker.source, trust=trust, pose=pose, pose_s=pose_s
         )
+        result = process(frame, state, self.params, time.perf_counter)
         if want_pose:
             self._since_pose, self._last_pose_t = 0, frame.timestamp_s
         self._since_pose += 1

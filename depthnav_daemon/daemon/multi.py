@@ -163,9 +163,10 @@ class Merger:
             for r in live
             if r.mount_trust is not None and not r.mount_trust.dropoffs_trusted
         ]
+        trust = doubtful[0] if doubtful else arriving.mount_trust
         return dataclasses.replace(
             arriving,
-            mount_trust=doubtful[0] if doubtful else arriving.mount_trust,
+            mount_state=dataclasses.replace(arriving.mount_state, trust=trust),
             seq=self.seq - 1,
             scan=scan,
             cliff=cliff,

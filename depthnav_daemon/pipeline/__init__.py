@@ -89,6 +89,28 @@ class MountTrust:
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
+class MountState:
+    """The mount a frame is processed with and what the daemon knows of it, as one value: the
+    daemon builds it before the stages run, :func:`process` carries it into the Result.
+
+    Attributes:
+        mount: the sensor's height, tilt and roll the stages use, and its placement on the robot.
+        source: where the mount's values came from ("default", "config", "accel", "serial" or
+            "floor"; see :class:`MountTrust`).
+        trust: the daemon's verdict on the mount, or None when nobody assessed it (``process``
+            called outside the daemon with a bare Mount).
+        pose: the floor pose estimate made on this frame, or None when none ran.
+        pose_s: seconds that estimate took (the Result's ``timings_s["pose"]``), or None.
+    """
+
+    mount: Mount
+    source: str = "config"
+    trust: MountTrust | None = None
+    pose: PoseEstimate | None = None
+    pose_s: float | None = None
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
 class Result:
     """Everything depthnav computed for one frame.
 
@@ -96,9 +118,10 @@ class Result:
         seq: the frame's sequence number.
         timestamp_s: the frame's timestamp, seconds.
         intrinsics: intrinsics of the frame.
-        mount: the sensor height/tilt/roll the stages used for this frame, and its placement on
-            the robot (x_m, y_m, yaw_deg).
-        mount_source: where that mount came from ("config", "accel", "serial" or "floor").
+        mount_state: the mount the stages used for this frame (height/tilt/roll and placement
+            on the robot), where it came from, its trust and the floor estimate made on this
+            frame; read through the ``mount``, ``mount_source``, ``mount_trust`` and ``pose``
+            properties.
         scan: obstacles per bearing in the robot's base frame (ranges from the base origin,
             bearings from the robot's forward axis; REP 117). With the default placement (x = y =
             yaw = 0) the base frame is the level frame at the sensor.
@@ -112,25 +135,20 @@ class Result:
             or None: a 360 deg memory scan, cell counts and the grid for a viewer.
         sensors: several sensors: each one's name, status, age and latest Result (``scan`` and
             ``cliff`` are then the merge of those in it); () with one sensor.
-        pose: a floor pose estimate made on this frame, or None when none ran.
         obstacle_mask: (H, W) bool, the pixels the exact scan counts as obstacles, when asked for
             (StageParams.obstacle_mask) and the method is exact; else None.
         timings_s: seconds spent per stage on this frame ("pose", "scan", "cliff").
         warning: a one-line note about this frame (e.g. "no valid depth", or why its
             drop-offs are not trusted), or None.
-        mount_trust: how far the mount can be trusted (the daemon sets it); None when nobody
-            assessed it (``process`` called outside the daemon).
     """
 
     seq: int
     timestamp_s: float
     intrinsics: Intrinsics
-    mount: Mount
-    mount_source: str
+    mount_state: MountState
     scan: LaserScan
     scan_band: tuple[int, int] = (0, 0)
     cliff: CliffResult | None = None
-    pose: PoseEstimate | None = None
     obstacle_mask: npt.NDArray[np.bool_] | None = None
     timings_s: dict[str, float] = field(default_factory=dict)
     warning: str | None = None
@@ -138,7 +156,26 @@ class Result:
     sensor_cliff: CliffResult | None = None
     memory: MemoryResult | None = None
     sensors: tuple[SensorState, ...] = ()
-    mount_trust: MountTrust | None = None
+
+    @property
+    def mount(self) -> Mount:
+        """The mount the stages used for this frame."""
+        return self.mount_state.mount
+
+    @property
+    def mount_source(self) -> str:
+        """Where that mount came from."""
+        return self.mount_state.source
+
+    @property
+    def mount_trust(self) -> MountTrust | None:
+        """How far the mount can be trusted, or None when nobody assessed it."""
+        return self.mount_state.trust
+
+    @property
+    def pose(self) -> PoseEstimate | None:
+        """The floor pose estimate made on this frame, or None when none ran."""
+        return self.mount_state.pose
 
     @property
     def level_scan(self) -> LaserScan:
@@ -153,35 +190,32 @@ class Result:
 
 def process(
     frame: Frame,
-    mount: Mount,
+    mount_state: MountState | Mount,
     params: StageParams,
-    *,
-    mount_source: str = "config",
-    pose: PoseEstimate | None = None,
     clock: Callable[[], float] | None = None,
-    timings_s: dict[str, float] | None = None,
-    mount_trust: MountTrust | None = None,
 ) -> Result:
     """Run the scan and cliff stages on one frame with a given mount.
 
     Args:
         frame: the depth frame.
-        mount: sensor height, tilt and roll the stages use.
+        mount_state: the mount the stages use, with its source, trust and the floor estimate
+            made on this frame (all carried into the Result); a bare Mount is a configured
+            mount nobody assessed (source "config", no trust, no estimate).
         params: which stages run and their parameters.
-        mount_source: where ``mount`` came from, copied into the result.
-        pose: a floor pose estimate the caller made on this frame, copied into the result.
-        clock: a monotonic clock (seconds) to time the stages with, or None for no timings.
-        timings_s: timings the caller already took on this frame (e.g. "pose"), kept in the
-            result's ``timings_s``.
-        mount_trust: the daemon's verdict on ``mount``, copied into the result; while drop-offs
-            are not trusted its note is the frame's warning (unless the frame has a worse one).
+        clock: a monotonic clock (seconds) to time the stages with, or None for no timings
+            (the estimate's ``pose_s`` is kept either way).
 
     Returns:
-        The frame's Result; a frame without any valid reading gives all-NaN scans and a warning.
+        The frame's Result; a frame without any valid reading gives all-NaN scans and a warning;
+        while drop-offs are not trusted the trust's note is the frame's warning (unless the frame
+        has a worse one).
     """
+    state = mount_state if isinstance(mount_state, MountState) else MountState(mount=mount_state)
+    mount, mount_trust = state.mount, state.trust
     depth, intr = frame.depth_mm, frame.intrinsics
     tick = clock or (lambda: 0.0)
-    timings: dict[str, float] = dict(timings_s or {})
+    timings: dict[str, float] = {} if state.pose_s is None else {"pose": state.pose_s}
+    given = dict(timings)
     level = mount.level_part()
     t0 = tick()
     scan = depth_to_scan(depth, intr, level, params.scan)
@@ -210,18 +244,15 @@ def process(
         seq=frame.seq,
         timestamp_s=frame.timestamp_s,
         intrinsics=intr,
-        mount=mount,
-        mount_source=mount_source,
+        mount_state=state,
         scan=base_scan,
         scan_band=(rows.start, min(rows.stop, intr.height)),
         cliff=base_cliff,
-        pose=pose,
         obstacle_mask=mask,
-        timings_s=timings if clock else dict(timings_s or {}),
+        timings_s=timings if clock else given,
         warning=warning,
         sensor_scan=scan if mount.placed else None,
         sensor_cliff=cliff if mount.placed else None,
-        mount_trust=mount_trust,
     )
 
 

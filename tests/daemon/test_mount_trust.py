@@ -209,7 +209,7 @@ def test_a_merge_is_as_trusted_as_its_least_trusted_sensor() -> None:
     doubtful = replace(
         good.mount_trust, floor="contradicted", dropoffs_trusted=False, note="the floor says..."
     )
-    bad = replace(good, mount_trust=doubtful)
+    bad = replace(good, mount_state=replace(good.mount_state, trust=doubtful))
     merger = Merger(["left", "right"], 1.0)
     states = [SensorState("left", "ok", 0.0, good), SensorState("right", "ok", 0.0, bad)]
     merged = merger.merged(good, states)

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from depthnav_daemon import __version__
-from depthnav_daemon.pipeline import Result, StageParams, process
+from depthnav_daemon.pipeline import MountState, Result, StageParams, process
 from depthnav_daemon.pipeline.cliff import CliffParams
 from depthnav_daemon.pipeline.geometry import Mount
 from depthnav_daemon.pipeline.pose import PoseEstimate
@@ -45,9 +45,9 @@ def make_pair(
     view = render(scene, intr, mount)
     frame = Frame(seq, 100.0 + seq / 30.0, view.depth_mm, intr)
     params = StageParams(scan=SCAN, cliff=CLIFF if cliff else None, obstacle_mask=True)
+    result = process(frame, MountState(mount=mount, pose=pose), params)
     result = replace(
-        process(frame, mount, params),
-        pose=pose,
+        result,
         timings_s={"scan": 0.004 + seq * 1e-4, "cliff": 0.002},
         warning=warning,
     )

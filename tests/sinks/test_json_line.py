@@ -46,8 +46,10 @@ def _variants(pairs):
         frame,
         replace(result, cliff=replace(cliff, points_m=np.zeros((0, 2), np.float32))),
     )
-    yield "trusted", frame, replace(result, mount_trust=MountTrust(floor="confirmed"))
-    yield "not trusted", frame, replace(result, mount_trust=DOUBT, warning=DOUBT.note)
+    trusted = replace(result.mount_state, trust=MountTrust(floor="confirmed"))
+    yield "trusted", frame, replace(result, mount_state=trusted)
+    doubtful = replace(result.mount_state, trust=DOUBT)
+    yield "not trusted", frame, replace(result, mount_state=doubtful, warning=DOUBT.note)
     yield "memory", frame, with_memory(result)
     yield (
         "more timings",
@@ -80,7 +82,7 @@ def test_the_cached_pieces_follow_the_mount_and_the_trust(pairs) -> None:
     assert r0.mount != r1.mount  # the pairs' mount height changes frame to frame
     for trust in (MountTrust(floor="confirmed"), DOUBT, MountTrust(floor="confirmed")):
         for frame, result in ((f0, r0), (f1, r1), (f0, r0)):
-            res = replace(result, mount_trust=trust)
+            res = replace(result, mount_state=replace(result.mount_state, trust=trust))
             want = orjson.dumps(jsonmsg.frame_message(frame, res, "1", 2.0))
             assert json_line._line(res, "1", 2.0) == want + b"\n"
 
@@ -162,9 +164,16 @@ def test_the_kept_template_follows_what_it_is_made_of(pairs) -> None:
             )
             variants.append((f"{name} {field}", "1", res))
     variants += [
-        ("mount", "1", replace(flat, mount=replace(flat.mount, height_m=0.734))),
-        ("source", "1", replace(flat, mount_source="serial")),
-        ("verdict", "1", replace(flat, mount_trust=DOUBT)),
+        (
+            "mount",
+            "1",
+            replace(
+                flat,
+                mount_state=replace(flat.mount_state, mount=replace(flat.mount, height_m=0.734)),
+            ),
+        ),
+        ("source", "1", replace(flat, mount_state=replace(flat.mount_state, source="serial"))),
+        ("verdict", "1", replace(flat, mount_state=replace(flat.mount_state, trust=DOUBT))),
         ("timing order", "1", replace(flat, timings_s={"cliff": 2e-4, "scan": 0.002})),
         ("timing keys", "1", replace(flat, timings_s={"scan": 0.002})),
         ("version", "2.0", flat),

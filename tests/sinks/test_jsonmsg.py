@@ -122,7 +122,7 @@ def test_no_cliff_and_failed_estimate_are_null_not_nan(pairs):
     bad = PoseEstimate(
         False, math.nan, math.nan, math.nan, 3, 0.01, math.nan, 300, "too few floor points"
     )
-    result = replace(result, cliff=None, pose=bad)
+    result = replace(result, cliff=None, mount_state=replace(result.mount_state, pose=bad))
     msg = json.loads(jsonmsg.dumps(jsonmsg.frame_message(frame, result, "0.1.0", 1.0)))
     assert msg["cliff"] is None
     est = msg["pose"]["estimate"]
@@ -181,7 +181,8 @@ def test_documented_example_has_exactly_the_real_fields(pairs):
     example = json.loads(block.replace("\n", ""))
     frame, result = pairs[2]  # a frame with cliff and a floor estimate
     result = with_memory(result)  # and the obstacle memory on
-    result = replace(result, mount_trust=MountTrust(source="config", floor="confirmed"))
+    confirmed = MountTrust(source="config", floor="confirmed")
+    result = replace(result, mount_state=replace(result.mount_state, trust=confirmed))
     real = json.loads(jsonmsg.dumps(jsonmsg.frame_message(frame, result, "0.1.0", 1.0)))
 
     def fixed(keys: set[str]) -> set[str]:
@@ -198,7 +199,7 @@ def test_documented_example_has_exactly_the_real_fields(pairs):
 def test_the_mount_parts_made_once_follow_every_change_and_are_not_shared(pairs):
     frame, result = pairs[0]
     trusted = MountTrust(source="config", floor="confirmed")
-    first = replace(result, mount_trust=trusted)
+    first = replace(result, mount_state=replace(result.mount_state, trust=trusted))
     jsonmsg.frame_message(frame, first, "0.1.0", 1.0)  # makes the parts
     msg = jsonmsg.frame_message(frame, first, "0.1.0", 1.0)  # reuses them
     # a caller changing its message changes no later frame's (the parts are made once)
@@ -210,11 +211,12 @@ def test_the_mount_parts_made_once_follow_every_change_and_are_not_shared(pairs)
     doubt = MountTrust(
         source="config", floor="contradicted", floor_height_m=0.9, dropoffs_trusted=False
     )
-    moved = replace(first, mount_trust=doubt, mount=replace(first.mount, height_m=0.61))
+    moved_mount = replace(first.mount, height_m=0.61)
+    moved = replace(first, mount_state=replace(first.mount_state, trust=doubt, mount=moved_mount))
     later = jsonmsg.frame_message(frame, moved, "0.1.0", 1.0)
     assert later["mount"]["floor"] == "contradicted" and later["mount"]["floor_height_m"] == 0.9
     assert later["pose"]["height_m"] == 0.61
     # another source with the same mount object as the last frame's
     jsonmsg.frame_message(frame, first, "0.1.0", 1.0)
-    other = replace(first, mount_source="floor")
+    other = replace(first, mount_state=replace(first.mount_state, source="floor"))
     assert jsonmsg.frame_message(frame, other, "0.1.0", 1.0)["pose"]["source"] == "floor"

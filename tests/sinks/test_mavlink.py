@@ -17,7 +17,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from depthnav_daemon.errors import ConfigError, SinkError
-from depthnav_daemon.pipeline import MountTrust, Result, StageParams, process
+from depthnav_daemon.pipeline import MountState, MountTrust, Result, StageParams, process
 from depthnav_daemon.pipeline.geometry import Mount
 from depthnav_daemon.pipeline.scan import LaserScan
 from depthnav_daemon.sim.synthetic import Box, Scene, render
@@ -367,7 +367,7 @@ def wrong_mount_pair(seq: int, trust: MountTrust) -> tuple[Frame, Result]:
     view = render(FLOOR_ONLY, ASYM_640, Mount(0.5, 12.0, 0.0))
     frame = Frame(seq, seq / 30.0, view.depth_mm, ASYM_640)
     params = StageParams(scan=SCAN, cliff=CLIFF)
-    return frame, process(frame, Mount(0.3, 12.0, 0.0), params, mount_trust=trust)
+    return frame, process(frame, MountState(mount=Mount(0.3, 12.0, 0.0), trust=trust), params)
 
 
 @pytest.mark.parametrize("policy", ["send", "drop"])

@@ -177,7 +177,11 @@ def test_sensor_transform_places_the_sensor_on_the_robot(tmp_path, pairs, contex
     m = result.mount
     placed = replace(m, x_m=0.2, y_m=-0.1, yaw_deg=30.0)
     path = tmp_path / "placed.rrd"
-    record(path, [(frame, replace(result, mount=placed))], context)
+    record(
+        path,
+        [(frame, replace(result, mount_state=replace(result.mount_state, mount=placed)))],
+        context,
+    )
     ent = temporal(path)
     t = column(ent["/world/sensor"], "Transform3D:translation")[0][0]
     assert t == pytest.approx([0.2, -0.1, m.height_m])
@@ -394,7 +398,10 @@ def test_untrusted_dropoffs_are_amber_and_the_trust_is_logged(tmp_path, pairs, c
         note="the floor says height 0.70 m ...: drop-offs are not trusted",
     )
     trusts = [good, bad, bad, good]
-    flagged = [replace(r, mount_trust=t) for (_, r), t in zip(pairs, trusts, strict=False)]
+    flagged = [
+        replace(r, mount_state=replace(r.mount_state, trust=t))
+        for (_, r), t in zip(pairs, trusts, strict=False)
+    ]
     path = tmp_path / "run.rrd"
     record(path, [(f, r) for (f, _), r in zip(pairs, flagged, strict=False)], context)
     ent = temporal(path)

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from depthnav_daemon.pipeline import StageParams, process
+from depthnav_daemon.pipeline import MountState, StageParams, process
 from depthnav_daemon.pipeline.cliff import CliffParams, detect_cliffs
 from depthnav_daemon.pipeline.geometry import MAX_MOUNT_HEIGHT_M, Mount
 from depthnav_daemon.pipeline.pose import (
@@ -392,10 +392,10 @@ def _pipeline_fn(
         frame = nxt()
         t0 = time.perf_counter()
         est = estimate_pose(frame.depth_mm, frame.intrinsics, pose, rng)
-        timings = {"pose": time.perf_counter() - t0}
-        process(frame, mount, params, pose=est, clock=time.perf_counter, timings_s=timings)
+        state = MountState(mount=mount, pose=est, pose_s=time.perf_counter() - t0)
+        process(frame, state, params, time.perf_counter)
         for _ in range(POSE_EVERY - 1):
-            process(nxt(), mount, params, clock=time.perf_counter)
+            process(nxt(), mount, params, time.perf_counter)
 
     return run
 
