@@ -9,7 +9,6 @@ every kernel is run here with each kind of array the stages can hand it.
 from __future__ import annotations
 
 import time
-from array import array
 from collections.abc import Callable
 
 import numpy as np
@@ -21,10 +20,6 @@ from depthnav_daemon.pipeline.lens import undistort
 from depthnav_daemon.pipeline.pose import PoseParams, estimate_pose
 from depthnav_daemon.pipeline.scan import ScanParams, depth_to_scan, scan_layout
 from depthnav_daemon.sim.synthetic import Box, Scene, render, step_down
-from depthnav_daemon.sinks.json.numbers import KERNELS as JSON_KERNELS
-from depthnav_daemon.sinks.json.numbers import mm_json
-from depthnav_daemon.sinks.json.template import FLAT, PAIRS, SECONDS, template_text
-from depthnav_daemon.sinks.json.template import KERNELS as TEMPLATE_KERNELS
 from drivers.base import Frame, Intrinsics
 
 # every scan / cliff configuration that gives its kernel a differently typed array:
@@ -67,12 +62,6 @@ def warm_up() -> float:
     # and the whole per-frame path once, as the daemon calls it
     estimate_pose(frame.depth_mm, intr, pose, rng)
     process(frame, mount, StageParams(scan=ScanParams(), cliff=CliffParams(used_depth_height=100)))
-    for dtype in (np.float64, np.float32):  # the stdout/udp sinks' number writers
-        mm_json(np.zeros(2, dtype))
-        zeros = np.zeros(2, dtype)
-        template_text(
-            FLAT + PAIRS + FLAT + SECONDS, zeros, zeros.reshape(1, 2), zeros, array("d", [0])
-        )
     return time.perf_counter() - t0
 
 
@@ -87,7 +76,7 @@ def watch_compiles(progress: Callable[[int, int], None]) -> None:
 
     from depthnav_daemon.pipeline._jit import KERNELS
 
-    ours = {id(k) for k in (*KERNELS, *JSON_KERNELS, *TEMPLATE_KERNELS)}
+    ours = {id(k) for k in KERNELS}
     done: set[int] = set()
 
     class _Listener(event.Listener):

@@ -1,6 +1,6 @@
-"""The JSON line written from a template (json_line._line) is the message's line, byte for byte:
-``orjson.dumps(jsonmsg.frame_message(...))`` and a newline, for every kind of frame the daemon
-sends."""
+"""The JSON line the stdout and udp sinks share (json_line.frame_line) is the message's line, byte
+for byte: ``orjson.dumps(jsonmsg.frame_message(...))`` and a newline, for every kind of frame the
+daemon sends; it is made once per Result."""
 
 from __future__ import annotations
 
@@ -8,7 +8,6 @@ from dataclasses import replace
 
 import numpy as np
 import orjson
-import pytest
 
 from depthnav_daemon.pipeline import MountTrust
 from depthnav_daemon.pipeline.merge import SensorState
@@ -68,29 +67,41 @@ def _variants(pairs):
     )
 
 
-def test_the_line_from_text_is_the_messages_line(pairs) -> None:
+def test_the_line_is_the_messages_line_for_every_kind_of_frame(pairs) -> None:
     for name, frame, result in _variants(pairs):
-        line = json_line._line(result, "1.2.3", 1796194456.0331335)
-        assert line is not None, name  # every one of these takes the text path
+        line = json_line.frame_line(frame, result, "1.2.3", 1796194456.0331335)
         want = orjson.dumps(jsonmsg.frame_message(frame, result, "1.2.3", 1796194456.0331335))
         assert line == want + b"\n", name
+        assert json_line.frame_json(frame, result, "1.2.3", 0.0) == want, name
+        assert b"NaN" not in line and b"Infinity," not in line  # strict JSON: codes are strings
 
 
-def test_the_cached_pieces_follow_the_mount_and_the_trust(pairs) -> None:
-    """The pose and trust texts are kept per object: a new mount or verdict is a new text."""
+def test_special_ranges_keep_their_codes_in_the_line(pairs) -> None:
+    frame, result = pairs[1]
+    ranges = np.array([np.nan, np.inf, -np.inf, -0.0, 1.23449, 1.2355, 1e13], np.float64)
+    res = replace(result, scan=replace(result.scan, ranges=ranges))
+    got = orjson.loads(json_line.frame_line(frame, res, "1", 2.0))["scan"]["ranges"]
+    assert got == [None, "Infinity", "-Infinity", -0.0, 1.234, 1.236, 1e13]
+    assert got == jsonmsg.encode_ranges(ranges)
+    back = jsonmsg.decode_ranges(got)
+    assert np.isnan(back[0]) and back[1] == np.inf and back[2] == -np.inf
+
+
+def test_the_line_is_made_once_per_result_and_shared(pairs) -> None:
+    """The sinks of one frame get the same bytes (and so the same wall_s); the next Result or
+    another version makes a new line."""
     (f0, r0), (f1, r1) = pairs[0], pairs[1]
-    assert r0.mount != r1.mount  # the pairs' mount height changes frame to frame
-    for trust in (MountTrust(floor="confirmed"), DOUBT, MountTrust(floor="confirmed")):
-        for frame, result in ((f0, r0), (f1, r1), (f0, r0)):
-            res = replace(result, mount_state=replace(result.mount_state, trust=trust))
-            want = orjson.dumps(jsonmsg.frame_message(frame, res, "1", 2.0))
-            assert json_line._line(res, "1", 2.0) == want + b"\n"
+    first = json_line.frame_line(f0, r0, "1", 2.0)
+    assert json_line.frame_line(f0, r0, "1", 9.0) is first  # the second sink of the frame
+    assert orjson.loads(first)["wall_s"] == 2.0
+    other = json_line.frame_line(f1, r1, "1", 3.0)
+    assert orjson.loads(other)["seq"] == r1.seq and orjson.loads(other)["wall_s"] == 3.0
+    assert json_line.frame_line(f1, r1, "2", 4.0) != other
 
 
-def test_what_text_cannot_make_goes_through_the_message(pairs) -> None:
-    """Several sensors, cliff points the kernel cannot write (not finite), a timing that is not a
-    number or a time too large to round exactly: the message's own dicts make the line, which is
-    still the message's line."""
+def test_frames_the_numbers_cannot_describe_plainly_still_make_strict_json(pairs) -> None:
+    """Several sensors, cliff points that are not finite, a timing that is not a number, a time
+    of 2**33 s: the line is still the message's and strict JSON."""
     frame, result = pairs[1]
     assert result.cliff is not None
     bad = np.array(result.cliff.points_m, dtype=np.float32)
@@ -102,83 +113,13 @@ def test_what_text_cannot_make_goes_through_the_message(pairs) -> None:
         replace(result, timings_s={"scan": None, "cliff": 0.001}),
         replace(result, timestamp_s=2.0**33),
     ):
-        assert json_line._line(res, "1", 2.0) is None
         line = json_line.frame_line(frame, res, "1", 2.0)
         assert line == orjson.dumps(jsonmsg.frame_message(frame, res, "1", 2.0)) + b"\n"
-        assert json_line.frame_json(frame, res, "1", 2.0) == line[:-1]
-
-
-@pytest.mark.parametrize("n_bins", [1, 640, 4000])
-def test_the_kept_buffer_grows_and_the_texts_stay_apart(pairs, n_bins: int) -> None:
-    """The buffer the lists are written into is kept between calls: a longer scan after a short
-    one grows it, and a line made earlier is not changed by a later one."""
-    frame, result = pairs[1]
-    rng = np.random.default_rng(n_bins)
-    ranges = rng.uniform(0.4, 5.0, n_bins).astype(np.float32)
-    res = replace(result, scan=replace(result.scan, ranges=ranges))
-    first = json_line._line(res, "1", 2.0)
-    again = json_line._line(replace(result, cliff=None), "1", 2.0)  # reuses the buffer
-    assert first == orjson.dumps(jsonmsg.frame_message(frame, res, "1", 2.0)) + b"\n"
-    assert again != first and len(orjson.loads(first)["scan"]["ranges"]) == n_bins
-
-
-def test_a_plain_frame_reuses_the_last_template(pairs, monkeypatch: pytest.MonkeyPatch) -> None:
-    """Frames that differ only in their numbers (the daemon's usual frame) make their template
-    once; each line is still the message's."""
-    frame, result = pairs[1]
-    built = []
-    new_shape = json_line._new_shape
-    monkeypatch.setattr(json_line, "_last_shape", None)
-    monkeypatch.setattr(
-        json_line, "_new_shape", lambda *args: built.append(args[0]) or new_shape(*args)
-    )
-    rng = np.random.default_rng(5)
-    for seq in range(6):
-        res = replace(
-            result,
-            seq=seq,
-            timestamp_s=1000.0 + seq / 30,
-            scan=replace(result.scan, ranges=rng.uniform(0.5, 4.0, 640).astype(np.float32)),
-            timings_s={"scan": 0.001 * seq, "cliff": 5e-5},
+        msg = orjson.loads(line)
+        assert msg["seq"] == result.seq
+    dropped = orjson.loads(
+        json_line.frame_line(
+            frame, replace(result, cliff=replace(result.cliff, points_m=bad)), "1", 2.0
         )
-        want = orjson.dumps(jsonmsg.frame_message(frame, res, "1", 2.0 + seq)) + b"\n"
-        assert json_line._line(res, "1", 2.0 + seq) == want
-    assert len(built) == 1
-
-
-def test_the_kept_template_follows_what_it_is_made_of(pairs) -> None:
-    """Each thing the template is made of, changed alone, makes a new one, and the next plain
-    frame its own again."""
-    frame, flat = pairs[1]
-    assert flat.cliff is not None and flat.pose is None and flat.warning is None
-    assert flat.mount_source != "serial" and flat.mount_trust != DOUBT
-    cliff = flat.cliff
-    variants = []
-    for field in ("angle_min", "angle_max", "angle_increment", "range_min", "range_max"):
-        for name, scan in (("scan", flat.scan), ("cliff scan", cliff.scan)):
-            moved = replace(scan, **{field: getattr(scan, field) + 0.0123})
-            res = (
-                replace(flat, scan=moved)
-                if name == "scan"
-                else replace(flat, cliff=replace(cliff, scan=moved))
-            )
-            variants.append((f"{name} {field}", "1", res))
-    variants += [
-        (
-            "mount",
-            "1",
-            replace(
-                flat,
-                mount_state=replace(flat.mount_state, mount=replace(flat.mount, height_m=0.734)),
-            ),
-        ),
-        ("source", "1", replace(flat, mount_state=replace(flat.mount_state, source="serial"))),
-        ("verdict", "1", replace(flat, mount_state=replace(flat.mount_state, trust=DOUBT))),
-        ("timing order", "1", replace(flat, timings_s={"cliff": 2e-4, "scan": 0.002})),
-        ("timing keys", "1", replace(flat, timings_s={"scan": 0.002})),
-        ("version", "2.0", flat),
-    ]
-    for name, version, res in variants:
-        for v, r in ((version, res), ("1", flat)):
-            want = orjson.dumps(jsonmsg.frame_message(frame, r, v, 3.5)) + b"\n"
-            assert json_line._line(r, v, 3.5) == want, name
+    )["cliff"]
+    assert dropped["points_dropped"] == 1 and len(dropped["points_m"]) == len(bad) - 1

@@ -30,7 +30,6 @@ from depthnav_daemon.pipeline import Result, StageParams, process
 from depthnav_daemon.pipeline.geometry import Mount
 from depthnav_daemon.sinks import create_sink
 from depthnav_daemon.sinks.base import Sink, SinkContext
-from depthnav_daemon.sinks.json import line as json_line
 from depthnav_daemon.sinks.json import message as jsonmsg
 from depthnav_daemon.sinks.ros.cdr import CdrEncoder
 from depthnav_daemon.sinks.ros.messages import NAME_OPTIONS, MessageBuilder, RosNames, typestore
@@ -116,17 +115,14 @@ def _cycle(pairs: Sequence[tuple[Frame, Result]]) -> Callable[[], tuple[Frame, R
 
 
 def _json_line(pairs: Sequence[tuple[Frame, Result]]) -> Callable[[], object]:
-    """How frame_line makes a frame's line (from a template; the message's dicts where it must),
-    made anew each call: frame_line itself returns the line it made for a Result."""
+    """How frame_line makes a frame's line (the message's dicts, orjson), made anew each call:
+    frame_line itself returns the line it made for a Result."""
     nxt = _cycle(pairs)
 
     def line() -> bytes:
         frame, result = nxt()
-        data = json_line._line(result, __version__, time.time())
-        if data is None:
-            data = orjson.dumps(jsonmsg.frame_message(frame, result, __version__, time.time()))
-            data += b"\n"
-        return data
+        data = orjson.dumps(jsonmsg.frame_message(frame, result, __version__, time.time()))
+        return data + b"\n"
 
     return line
 

@@ -6,9 +6,8 @@ obstacle within range_max) is the string ``"Infinity"`` and -inf (an obstacle cl
 range_min) is ``"-Infinity"``. Python's ``float()`` and JavaScript's ``Number()`` both read those
 strings; :func:`decode_ranges` is the reference decoder.
 
-Arrays of metres are written as JSON text at once (json_numbers.py, ``orjson.Fragment`` in the
-message dict): the same bytes as :func:`encode_ranges` + orjson, several times faster. A frame's
-line is made once and shared by the sinks that send the same object (json_line.py).
+Arrays go through numpy (rounded to 1 mm, ``tolist``) and the object through orjson, one call per
+message. A frame's line is made once and shared by the sinks that send the same object (line.py).
 """
 
 from __future__ import annotations
@@ -21,8 +20,6 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import orjson
-
-from depthnav_daemon.sinks.json.numbers import lists_json, mm_json
 
 if TYPE_CHECKING:
     from depthnav_daemon.pipeline import Result
@@ -52,35 +49,18 @@ def _num(value: float | None, decimals: int) -> float | None:
 def encode_ranges(ranges: np.ndarray) -> list[float | str | None]:
     """REP 117 ranges (N,) metres -> JSON list: numbers (1 mm), null, "Infinity", "-Infinity"."""
     r = np.asarray(ranges, dtype=np.float64)
+    finite = np.isfinite(r)
+    if finite.all():  # nearly every bin of a frame with obstacles all around
+        out: list[float | str | None] = np.round(r, MM).tolist()
+        return out
     # an object array takes the special values by mask: most bins of a corridor are +inf, and a
     # Python loop over them cost twice as much per frame
-    out = np.round(r, MM).astype(object)
-    out[np.isposinf(r)] = POS_INF
-    out[np.isneginf(r)] = NEG_INF
-    out[np.isnan(r)] = None
-    result: list[float | str | None] = out.tolist()
-    return result
-
-
-def ranges_json(ranges: np.ndarray) -> orjson.Fragment:
-    """REP 117 ranges (N,) metres as the JSON text of :func:`encode_ranges` (a Fragment for the
-    message dict): written by the compiled loop, the reference path for what it cannot write."""
-    text = mm_json(ranges) if np.ndim(ranges) == 1 else None
-    return orjson.Fragment(text if text is not None else orjson.dumps(encode_ranges(ranges)))
-
-
-def points_json(points: np.ndarray) -> orjson.Fragment:
-    """(N, 2) finite metres as the JSON text of ``np.round(points, 3).tolist()`` (a Fragment)."""
-    text = mm_json(points, pairs=True)
-    return orjson.Fragment(
-        text if text is not None else orjson.dumps(np.round(points, MM).tolist())
-    )
-
-
-def fragment_value(value: Any) -> Any:
-    """A Fragment's JSON value as Python objects (the list :func:`encode_ranges` gives); any other
-    value as it is. For a sink that reshapes the message (udp ``ranges=mm``)."""
-    return orjson.loads(orjson.dumps(value)) if isinstance(value, orjson.Fragment) else value
+    obj = np.round(r, MM).astype(object)
+    obj[np.isposinf(r)] = POS_INF
+    obj[np.isneginf(r)] = NEG_INF
+    obj[np.isnan(r)] = None
+    out = obj.tolist()
+    return out
 
 
 def decode_ranges(values: Sequence[float | str | None]) -> np.ndarray:
@@ -104,9 +84,8 @@ def decode_ranges(values: Sequence[float | str | None]) -> np.ndarray:
     return out
 
 
-def scan_to_json(scan: LaserScan, ranges: orjson.Fragment | None = None) -> dict[str, Any]:
-    """A LaserScan as a dict with sensor_msgs/LaserScan field names (radians, metres);
-    ``ranges``: its ranges' JSON when already written."""
+def scan_to_json(scan: LaserScan) -> dict[str, Any]:
+    """A LaserScan as a dict with sensor_msgs/LaserScan field names (radians, metres)."""
     a_min, a_max, a_inc, r_min, r_max = _scan_geometry(
         scan.angle_min, scan.angle_max, scan.angle_increment, scan.range_min, scan.range_max
     )
@@ -116,7 +95,7 @@ def scan_to_json(scan: LaserScan, ranges: orjson.Fragment | None = None) -> dict
         "angle_increment": a_inc,
         "range_min": r_min,
         "range_max": r_max,
-        "ranges": ranges_json(scan.ranges) if ranges is None else ranges,
+        "ranges": encode_ranges(scan.ranges),
     }
 
 
@@ -135,41 +114,13 @@ def _scan_geometry(
     )
 
 
-def _frame_lists(result: Result) -> tuple[orjson.Fragment, ...] | None:
-    """The JSON of the scan's ranges, and of the cliff's points and ranges, written by one
-    kernel call (one call per list cost microseconds each); None when the kernel cannot write
-    them (a cliff point that is not finite, a range beyond 1e12 m): then they are written one by
-    one."""
-    scan, cliff = result.scan, result.cliff
-    if np.ndim(scan.ranges) != 1:
-        return None
-    if cliff is None:
-        texts = lists_json(scan.ranges)
-        return None if texts is None else (orjson.Fragment(texts[0]),)
-    if np.ndim(cliff.scan.ranges) != 1:
-        return None
-    texts = lists_json(scan.ranges, np.asarray(cliff.points_m).reshape(-1, 2), cliff.scan.ranges)
-    return None if texts is None else tuple(orjson.Fragment(t) for t in texts)
-
-
 def _cliff_to_json(
     cliff: Any,
     max_points: int | None,
     trusted: bool = True,
-    lists: tuple[orjson.Fragment, ...] | None = None,
 ) -> dict[str, Any]:
     """The cliff object; keeps the ``max_points`` floor points nearest the sensor when capped.
-    ``trusted`` False flags its drop-offs (the mount they rest on is not trusted). ``lists``:
-    its points' and ranges' JSON when already written (all points finite, not capped)."""
-    if lists is not None:
-        total = np.size(cliff.points_m) // 2
-        return {
-            "points_m": lists[0],
-            "points_total": total,
-            "points_dropped": 0,
-            "scan": scan_to_json(cliff.scan, lists[1]),
-            "trusted": trusted,
-        }
+    ``trusted`` False flags its drop-offs (the mount they rest on is not trusted)."""
     pts = np.asarray(cliff.points_m, dtype=np.float64).reshape(-1, 2)
     total = int(pts.shape[0])
     if max_points is not None and total > max_points:
@@ -179,7 +130,7 @@ def _cliff_to_json(
     if not np.isfinite(pts).all():  # the row-wise test costs more: only when one is needed
         pts = pts[np.isfinite(pts).all(axis=1)]
     return {
-        "points_m": points_json(pts),
+        "points_m": np.round(pts, MM).tolist(),
         "points_total": total,
         "points_dropped": total - int(pts.shape[0]),
         "scan": scan_to_json(cliff.scan),
@@ -337,23 +288,16 @@ def frame_message(
     Returns:
         A dict ready for :func:`dumps`.
     """
-    # every list in one kernel call, unless points are capped
-    lists = _frame_lists(result) if max_cliff_points is None else None
     return {
         "v": SCHEMA_VERSION,
         "version": version,
         "seq": int(result.seq),
         "t_s": _num(result.timestamp_s, SEC),
         "wall_s": _num(wall_time_s, SEC),
-        "scan": scan_to_json(result.scan, None if lists is None else lists[0]),
+        "scan": scan_to_json(result.scan),
         "cliff": None
         if result.cliff is None
-        else _cliff_to_json(
-            result.cliff,
-            max_cliff_points,
-            dropoffs_trusted(result),
-            None if lists is None else lists[1:],
-        ),
+        else _cliff_to_json(result.cliff, max_cliff_points, dropoffs_trusted(result)),
         "pose": _pose_to_json(result),
         "mount": mount_trust_to_json(result),
         "memory": memory_to_json(result.memory),

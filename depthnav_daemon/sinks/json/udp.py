@@ -42,7 +42,6 @@ from depthnav_daemon.sinks.base import (
     parse_host_port,
 )
 from depthnav_daemon.sinks.json import line as json_line
-from depthnav_daemon.sinks.json import message as jsonmsg
 
 if TYPE_CHECKING:
     from depthnav_daemon.pipeline import Result
@@ -255,7 +254,7 @@ class Content:
         if self.ranges_mm:
             for scan in (msg.get("scan"), (cliff or {}).get("scan") if cliff else None):
                 if isinstance(scan, dict):
-                    scan["ranges"] = [_mm(r) for r in jsonmsg.fragment_value(scan["ranges"])]
+                    scan["ranges"] = [_mm(r) for r in scan["ranges"]]
                     scan["ranges_unit"] = "mm"
         return msg
 
