@@ -23,8 +23,11 @@ import numpy as np
 from depthnav_daemon import __version__
 from depthnav_daemon.config.loader import Config, SensorConfig
 from depthnav_daemon.daemon.frame_step import FrameStep
+from depthnav_daemon.daemon.frames import frames_of
 from depthnav_daemon.daemon.memory_keeper import MemoryKeeper, open_odometry
 from depthnav_daemon.daemon.notify import ServiceNotifier
+from depthnav_daemon.daemon.outputs import close_outputs, fan_out, open_sinks, with_memory
+from depthnav_daemon.daemon.report import RunReport
 from depthnav_daemon.daemon.source import DeviceSource
 from depthnav_daemon.errors import DepthnavError, FrameError
 from depthnav_daemon.pipeline import Result, StageParams
@@ -76,8 +79,6 @@ class SensorWorker:
             return None
 
     def _run(self) -> None:
-        from depthnav_daemon.daemon.loop import RunReport, frames_of
-
         report = RunReport()
         try:
             for frame, arrival in frames_of(self.source, self.cfg, self.halt, report):
@@ -181,10 +182,8 @@ def run_sensors(
     max_frames: int | None,
     driver_factory: Callable[[str], Driver],
     sink_factory: Callable[[str], Sink],
-) -> object:
+) -> RunReport:
     """The frame loop for several sensors (module docstring); returns the loop's RunReport."""
-    from depthnav_daemon.daemon.loop import RunReport, close_outputs, open_sinks
-
     report = RunReport()
     halt = threading.Event()
     inbox: queue.Queue[Item] = queue.Queue(maxsize=4 * len(cfg.sensors))
@@ -231,12 +230,10 @@ def _serve(
     sinks: list[Sink],
     stop: threading.Event,
     max_frames: int | None,
-    report: object,
+    report: RunReport,
     notifier: ServiceNotifier,
 ) -> None:
     """Merge and fan out every sensor result until every sensor ends, ``max_frames`` or ``stop``."""
-    from depthnav_daemon.daemon.loop import fan_out, with_memory
-
     by_name = {w.name: w for w in workers}
     running = {w.name for w in started}
 
@@ -258,13 +255,13 @@ def _serve(
         out.timings_s["merge"] = time.perf_counter() - t0
         if not keeper.idle_for(frame):
             out = with_memory(keeper, frame, arrival, [(result, by_name[name].params)], out)
-        fan_out(sinks, frame, out, report)  # type: ignore[arg-type]
-        report.frames += 1  # type: ignore[attr-defined]
-        report.last_result = out  # type: ignore[attr-defined]
+        fan_out(sinks, frame, out, report)
+        report.frames += 1
+        report.last_result = out
         sensors = len(running)
         notifier.frame(
-            report.frames,  # type: ignore[attr-defined]
+            report.frames,
             lambda fps, n=sensors: f"{fps:.1f} frames/s from {n} sensors",
         )
-        if max_frames is not None and report.frames >= max_frames:  # type: ignore[attr-defined]
+        if max_frames is not None and report.frames >= max_frames:
             return

@@ -31,68 +31,21 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
-from depthnav_daemon.errors import ConfigError
 from depthnav_daemon.pipeline.cliff_kernels import cliff_kernel
 from depthnav_daemon.pipeline.cliff_table import cliff_table
 from depthnav_daemon.pipeline.geometry import (
     F32,
     Mount,
     check_int,
-    check_order,
     check_range,
     depth_to_mm,
 )
-from depthnav_daemon.pipeline.scan import LaserScan
+from depthnav_daemon.pipeline.laser_scan import LaserScan
+
+# CliffParams lives apart for cliff_table; importable here as before
+from depthnav_daemon.pipeline.params import CliffParams
 from depthnav_daemon.pipeline.scan_kernels import MAX_CODE_INDEX
 from drivers.base import Intrinsics
-
-METHODS = ("exact", "paper")
-
-
-@dataclass(frozen=True, slots=True)
-class CliffParams:
-    """Cliff detector parameters; defaults are cliff_detector's shipped params.yaml values.
-
-    Attributes:
-        method: "exact" (per-pixel floor with tilt and roll, the default) or "paper" (eq. 6).
-        range_min_m, range_max_m: exact: horizontal range of the pixel's floor point, metres;
-            paper: optical depth of the reading, metres (as the original).
-        used_depth_height: rows used, counted from the image bottom (clamped to the image height).
-        block_size: side of the square blocks, pixels.
-        block_points_thresh: drop-off samples a block needs to be a negative obstacle (eq. 8).
-        row_step, col_step: sample strides inside a block, pixels.
-        ground_margin_m: e_g; exact: metres below the floor plane; paper: metres of optical depth.
-    """
-
-    method: str = "exact"
-    range_min_m: float = 0.5
-    range_max_m: float = 5.0
-    used_depth_height: int = 400
-    block_size: int = 16
-    block_points_thresh: int = 3
-    row_step: int = 8
-    col_step: int = 8
-    ground_margin_m: float = 0.05
-
-    def __post_init__(self) -> None:
-        if self.method not in METHODS:
-            raise ConfigError(
-                f"cliff.method={self.method!r} is not known (accepted: {', '.join(METHODS)})"
-            )
-        check_range("cliff.range_min_m", self.range_min_m, 0.0, 100.0, " m")
-        check_range("cliff.range_max_m", self.range_max_m, 0.01, 100.0, " m")
-        check_order("cliff.range_min_m", self.range_min_m, "cliff.range_max_m", self.range_max_m)
-        check_int("cliff.used_depth_height", self.used_depth_height, 1, 8192)
-        check_int("cliff.block_size", self.block_size, 1, 256)
-        check_int("cliff.row_step", self.row_step, 1, self.block_size)
-        check_int("cliff.col_step", self.col_step, 1, self.block_size)
-        check_int("cliff.block_points_thresh", self.block_points_thresh, 1, self.samples_per_block)
-        check_range("cliff.ground_margin_m", self.ground_margin_m, 0.0, 10.0, " m")
-
-    @property
-    def samples_per_block(self) -> int:
-        """Samples one block holds: ceil(bs / row_step) * ceil(bs / col_step)."""
-        return -(-self.block_size // self.row_step) * -(-self.block_size // self.col_step)
 
 
 @dataclass(frozen=True, slots=True)

@@ -7,7 +7,6 @@ from __future__ import annotations
 import functools
 import math
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
 import numpy as np
 import numpy.typing as npt
@@ -23,6 +22,7 @@ from depthnav_daemon.pipeline.geometry import (
     paper_floor_depth_m,
     paper_row_angles_rad,
 )
+from depthnav_daemon.pipeline.params import CliffParams
 from depthnav_daemon.pipeline.scan_kernels import (
     CODE_BITS,
     CODE_MASK,
@@ -30,9 +30,6 @@ from depthnav_daemon.pipeline.scan_kernels import (
     run_flush_codes,
 )
 from drivers.base import Intrinsics
-
-if TYPE_CHECKING:
-    from depthnav_daemon.pipeline.cliff import CliffParams
 
 MAX_SPAN_BINS = 64  # a sample looking almost straight down covers many bearings; cap its footprint
 NEVER_MM = 65535  # a lower bound no uint16 reading exceeds: the sample never counts

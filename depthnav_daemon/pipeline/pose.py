@@ -26,15 +26,10 @@ import numpy as np
 import numpy.typing as npt
 
 from depthnav_daemon.errors import ConfigError
-from depthnav_daemon.pipeline.geometry import (
-    F64,
-    MAX_MOUNT_HEIGHT_M,
-    MAX_ROLL_DEG,
-    MAX_TILT_DEG,
-    check_int,
-    check_order,
-    check_range,
-)
+from depthnav_daemon.pipeline.geometry import F64
+
+# PoseParams lives apart for pose_fit; importable here as before
+from depthnav_daemon.pipeline.params import PoseParams
 from depthnav_daemon.pipeline.pose_fit import (
     PLANE_POINTS,
     _pose_table,
@@ -47,81 +42,6 @@ from drivers.base import Intrinsics
 
 PRIOR_SLACK_DEG = 2.0  # fitted angles may exceed the prior by this much (noise at its edges)
 PRIOR_SLACK_M = 0.02
-
-
-@dataclass(frozen=True, slots=True)
-class PoseParams:
-    """Floor pose estimator parameters (names after depth_sensor_pose, units in the names).
-
-    Attributes:
-        height_min_m, height_max_m: prior on the mount height, metres.
-        tilt_min_deg, tilt_max_deg: prior on the tilt, degrees, positive = pitched down.
-        roll_max_deg: prior bound on |roll|, degrees.
-        range_min_m, range_max_m: accepted optical depth of candidates, metres.
-        used_depth_height: rows used, counted from the image bottom (clamped to the image height).
-        row_step, col_step: pixel strides of the candidate grid.
-        max_points: cap on candidates; more are thinned evenly over the image.
-        ransac_iterations: RANSAC hypotheses.
-        inlier_dist_m: RANSAC inlier distance to the plane, metres.
-        min_inliers, min_inlier_ratio: a result is confident (ok) only with at least this many
-            inliers and this share of the candidates.
-    """
-
-    height_min_m: float = 0.1
-    height_max_m: float = 1.5
-    tilt_min_deg: float = -10.0
-    tilt_max_deg: float = 60.0
-    roll_max_deg: float = 10.0
-    range_min_m: float = 0.5
-    range_max_m: float = 5.0
-    used_depth_height: int = 400
-    row_step: int = 4
-    col_step: int = 4
-    max_points: int = 3000
-    ransac_iterations: int = 500
-    inlier_dist_m: float = 0.02
-    min_inliers: int = 300
-    min_inlier_ratio: float = 0.2
-
-    def __post_init__(self) -> None:
-        check_range("pose.height_min_m", self.height_min_m, 0.01, MAX_MOUNT_HEIGHT_M, " m")
-        check_range("pose.height_max_m", self.height_max_m, 0.01, MAX_MOUNT_HEIGHT_M, " m")
-        check_order(
-            "pose.height_min_m",
-            self.height_min_m,
-            "pose.height_max_m",
-            self.height_max_m,
-            strict=False,
-        )
-        check_range("pose.tilt_min_deg", self.tilt_min_deg, -MAX_TILT_DEG, MAX_TILT_DEG, " deg")
-        check_range("pose.tilt_max_deg", self.tilt_max_deg, -MAX_TILT_DEG, MAX_TILT_DEG, " deg")
-        check_order(
-            "pose.tilt_min_deg",
-            self.tilt_min_deg,
-            "pose.tilt_max_deg",
-            self.tilt_max_deg,
-            strict=False,
-        )
-        check_range("pose.roll_max_deg", self.roll_max_deg, 0.0, MAX_ROLL_DEG, " deg")
-        check_range("pose.range_min_m", self.range_min_m, 0.0, 100.0, " m")
-        check_range("pose.range_max_m", self.range_max_m, 0.01, 100.0, " m")
-        check_order("pose.range_min_m", self.range_min_m, "pose.range_max_m", self.range_max_m)
-        check_int("pose.used_depth_height", self.used_depth_height, 1, 8192)
-        check_int("pose.row_step", self.row_step, 1, 256)
-        check_int("pose.col_step", self.col_step, 1, 256)
-        check_int("pose.max_points", self.max_points, 3, 1_000_000)
-        check_int("pose.ransac_iterations", self.ransac_iterations, 1, 100_000)
-        check_range("pose.inlier_dist_m", self.inlier_dist_m, 1e-4, 1.0, " m")
-        check_int("pose.min_inliers", self.min_inliers, 3, 1_000_000)
-        check_order(
-            "pose.min_inliers",
-            self.min_inliers,
-            "pose.max_points",
-            self.max_points,
-            strict=False,
-            why="the estimate could never be confident",
-        )
-        check_range("pose.min_inlier_ratio", self.min_inlier_ratio, 0.0, 1.0)
 
 
 @dataclass(frozen=True, slots=True)

@@ -7,7 +7,6 @@ from __future__ import annotations
 import functools
 import math
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
 import numpy as np
 import numpy.typing as npt
@@ -20,6 +19,7 @@ from depthnav_daemon.pipeline.geometry import (
     frozen_table,
     pixel_rays,
 )
+from depthnav_daemon.pipeline.params import PoseParams
 from depthnav_daemon.pipeline.pose_kernels import (
     candidates_kernel,
     count_candidates_kernel,
@@ -29,9 +29,6 @@ from depthnav_daemon.pipeline.pose_kernels import (
 )
 from depthnav_daemon.pipeline.table_kernels import pose_envelope_kernel
 from drivers.base import Intrinsics
-
-if TYPE_CHECKING:
-    from depthnav_daemon.pipeline.pose import PoseParams
 
 SCORE_CHUNK = 32  # RANSAC hypotheses scored per batch
 RANSAC_CONFIDENCE = 0.999

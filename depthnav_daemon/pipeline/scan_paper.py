@@ -24,7 +24,8 @@ from depthnav_daemon.pipeline.geometry import (
     paper_floor_depth_m,
     paper_row_angles_rad,
 )
-from depthnav_daemon.pipeline.scan import LaserScan, ScanParams
+from depthnav_daemon.pipeline.laser_scan import LaserScan
+from depthnav_daemon.pipeline.params import ScanParams
 from depthnav_daemon.pipeline.scan_kernels import paper_scan_kernel
 from depthnav_daemon.pipeline.scan_table import scan_rows
 from drivers.base import UINT16_MAX, Intrinsics

@@ -6,7 +6,6 @@ from __future__ import annotations
 import functools
 import math
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
 import numpy as np
 import numpy.typing as npt
@@ -20,13 +19,11 @@ from depthnav_daemon.pipeline.geometry import (
     frozen_table,
     normalized_coords,
 )
+from depthnav_daemon.pipeline.params import ScanParams
 from depthnav_daemon.pipeline.scan_blocks import block_tables
 from depthnav_daemon.pipeline.scan_kernels import MAX_CODE_INDEX
 from depthnav_daemon.pipeline.table_kernels import bin_map_kernel, exact_codes_kernel
 from drivers.base import Intrinsics
-
-if TYPE_CHECKING:
-    from depthnav_daemon.pipeline.scan import ScanParams
 
 MAX_BINS = 32000  # bins fit the kernels' packed codes (below 32768), with a scratch slot
 

@@ -115,6 +115,10 @@ def assert_exact_table_equal(intr: Intrinsics, mount: Mount, params: ScanParams)
         if isinstance(w, np.ndarray):
             assert g.dtype == w.dtype, name
             np.testing.assert_array_equal(g, w, err_msg=name)
+        elif isinstance(w, float):
+            # the kernel's bearings come from libm's atan2, the reference's from numpy's arctan2,
+            # which numpy 2.4 computes with its own SIMD code: they differ by up to 1 ulp
+            assert abs(g - w) <= 2 * np.spacing(abs(w)), name
         else:
             assert g == w, name
 
