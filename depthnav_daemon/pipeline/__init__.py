@@ -2,8 +2,15 @@
 
 Stages are pure functions over numpy arrays (no I/O, no clock, no globals). The daemon owns the
 state: it decides when to run the floor pose stage (``pose.estimate_pose``), updates the mount
-from it, then calls :func:`process` with that mount. Whatever a sink shows (the scan's row band,
-the obstacle mask) is on the Result, so sinks never call stage code.
+from it, then calls :func:`process` with a :class:`MountState` (the mount, its source, its trust
+and the frame's floor estimate). Whatever a sink shows (the scan's row band, the obstacle mask) is
+on the Result, so sinks never call stage code.
+
+Modules: ``geometry`` (the frame conventions), ``params`` (each stage's parameters),
+``laser_scan``; the stages ``scan`` (+ ``scan_table``, ``scan_paper``, ``scan_blocks``),
+``cliff`` (+ ``cliff_table``), ``pose`` (+ ``pose_fit``), ``mount_planner``; the robot's view
+``placement`` (base frame), ``merge`` (several sensors), ``memory`` (the obstacle memory);
+``lens`` (distortion); ``*_kernels`` the compiled loops.
 """
 
 from __future__ import annotations
