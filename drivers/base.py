@@ -13,11 +13,14 @@ from __future__ import annotations
 
 import functools
 import math
+import numbers
 from dataclasses import dataclass, field
-from typing import Protocol
+from typing import Any, Protocol
 
 import numpy as np
 import numpy.typing as npt
+
+from drivers.values import short_repr
 
 DepthMM = npt.NDArray[np.uint16]  # (H, W) millimetres, 0 = no reading
 STANDARD_GRAVITY_MPS2 = 9.80665  # the accelerometer convention's g (m/s^2)
@@ -245,6 +248,82 @@ class TiltState:
     status: str  # "stopped", "at_limit", "moving", or "unknown"
 
 
+# Odometry bounds: every pose the obstacle memory may use passes check_odom_pose (and every
+# source's sample check_odom_time too). The limits refuse what no wheeled robot's odometry says,
+# with a wide margin to what the memory's grid handles: positions stay float64 and cells int64
+# (at the smallest 5 mm cell, 1e7 m is 2e9 cells; float64 resolves 2e-9 m there), so a UTM-sized
+# coordinate (northing up to 1e7 m) is still taken.
+ODOM_POSITION_LIMIT_M = 1e7  # |x_m|, |y_m|: 10,000 km, a quarter of the Earth's circumference
+ODOM_YAW_LIMIT_RAD = 1e6  # |yaw_rad| before wrapping: 160,000 turns of an unwrapping source
+ODOM_TIME_LIMIT_S = 1e10  # |t_s|: Unix time to the year 2286, any boot or monotonic clock
+ODOM_REFUSAL_KINDS = ("malformed", "not_finite", "out_of_range", "out_of_order")
+
+
+@dataclass(frozen=True, slots=True)
+class OdomRefusal:
+    """Why an odometry sample is refused.
+
+    Attributes:
+        kind: one of ODOM_REFUSAL_KINDS (malformed: not a number or not readable; not_finite: NaN
+            or infinite; out_of_range: beyond the limits; out_of_order: time going back).
+        reason: a short message naming the field and its (shortened) value.
+    """
+
+    kind: str
+    reason: str
+
+    def __str__(self) -> str:
+        return self.reason
+
+
+def _odom_number(name: str, value: Any, limit: float, unit: str) -> float | OdomRefusal:
+    """``value`` as a float within +-``limit``, or why not (an integer of any size is compared
+    exactly, never converted first: 10**400 is out of range, not an OverflowError)."""
+    number: int | float
+    if type(value) is float:  # the usual case, without the cost of the ABC checks (~1 us each)
+        if -limit <= value <= limit:
+            return value
+        number = value
+    elif isinstance(value, (bool, np.bool_)) or not isinstance(value, numbers.Real):
+        return OdomRefusal("malformed", f"{name}={short_repr(value)} is not a number")
+    elif isinstance(value, numbers.Integral):
+        number = int(value)
+    else:
+        try:
+            number = float(value)
+        except (OverflowError, TypeError, ValueError):  # e.g. a Fraction of huge parts
+            return OdomRefusal(
+                "out_of_range", f"{name}={short_repr(value)} is beyond +-{limit:g}{unit}"
+            )
+    if isinstance(number, float) and not math.isfinite(number):
+        return OdomRefusal("not_finite", f"{name}={short_repr(number)} is not finite")
+    if abs(number) > limit:
+        return OdomRefusal(
+            "out_of_range", f"{name}={short_repr(number)} is beyond +-{limit:g}{unit}"
+        )
+    return float(number)
+
+
+def check_odom_pose(x_m: Any, y_m: Any, yaw_rad: Any) -> tuple[float, float, float] | OdomRefusal:
+    """One odometry pose checked against the limits above: (x_m, y_m, yaw_rad) as floats with the
+    yaw wrapped to [-pi, pi], or the refusal (the first bad field)."""
+    x = _odom_number("x_m", x_m, ODOM_POSITION_LIMIT_M, " m")
+    if isinstance(x, OdomRefusal):
+        return x
+    y = _odom_number("y_m", y_m, ODOM_POSITION_LIMIT_M, " m")
+    if isinstance(y, OdomRefusal):
+        return y
+    yaw = _odom_number("yaw_rad", yaw_rad, ODOM_YAW_LIMIT_RAD, " rad")
+    if isinstance(yaw, OdomRefusal):
+        return yaw
+    return x, y, math.remainder(yaw, 2.0 * math.pi)
+
+
+def check_odom_time(t_s: Any) -> float | OdomRefusal:
+    """An odometry sample's time (seconds, the source's clock) as a float, or the refusal."""
+    return _odom_number("t_s", t_s, ODOM_TIME_LIMIT_S, " s")
+
+
 @dataclass(frozen=True, slots=True)
 class Frame:
     """One depth frame. The depth array is read-only once constructed.
@@ -257,7 +336,8 @@ class Frame:
         accel_mps2: specific force in the camera frame (m/s^2), or None without an accelerometer.
         tilt: motor state of a motorised mount, or None.
         odom: the robot's pose (x_m, y_m, yaw_rad) in the odometry frame at this frame, when the
-            source has it (a recording with ``odom``), else None.
+            source has it (a recording with ``odom``), else None. As the source gave it: the
+            memory takes only a pose that passes :func:`check_odom_pose`.
     """
 
     seq: int

@@ -170,6 +170,11 @@ def test_signals_stop_the_run_cleanly(sig: int, code: int) -> None:
             "carrier-pigeon",
         ),
         (["run", "--device", f"replay:{FIXTURE}", "--max-frames", "0"], 2, "--max-frames=0"),
+        (
+            ["run", "--device", f"replay:{FIXTURE}", "--odometry", "odom+udp://127.0.0.1:0"],
+            2,
+            "needs a port 1..65535",
+        ),
         (["run"], 2, "no device given"),
         (["frobnicate"], 2, "invalid choice"),
         (["mount", "--height-m", "0.5", "--tilt-deg", "200"], 2, "tilt_deg=200"),

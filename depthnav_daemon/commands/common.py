@@ -14,6 +14,8 @@ import threading
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
+from depthnav_daemon.errors import ConfigError
+
 if TYPE_CHECKING:
     from depthnav_daemon.config.loader import Config
 
@@ -48,8 +50,13 @@ def overrides(args: argparse.Namespace, device: str | None = None) -> dict[str, 
         out["device"] = device
     if getattr(args, "sink", None):
         out["sinks"] = args.sink
-    if getattr(args, "odometry", None):
-        out["odometry"] = {"source": args.odometry}
+    odometry = getattr(args, "odometry", None)
+    if odometry is not None:
+        if not odometry.strip():  # "" in a config file means none; typed, it is a mistake
+            raise ConfigError(
+                "--odometry needs a spec", hint="e.g. --odometry odom+udp://127.0.0.1:5700"
+            )
+        out["odometry"] = {"source": odometry}
     return out
 
 

@@ -71,6 +71,13 @@ def _check_out(args: argparse.Namespace) -> None:
             f"--odometry is stored by --format depthnav only, not {fmt}",
             hint="record with --format depthnav",
         )
+    if args.odometry is not None:  # a bad spec is a usage error, as in run (a source that
+        # cannot open is not: the recording is then made without it, said in one line)
+        from drivers.odometry import create_odometry  # light: no I/O, no compiled stages
+
+        if not args.odometry.strip():
+            raise ConfigError("--odometry needs a spec", hint="e.g. odom+udp://127.0.0.1:5700")
+        create_odometry(args.odometry)  # DeviceSpecError: exit 2
 
 
 def _export(args: argparse.Namespace, frames: Iterator[Any], took: Callable[[int], None]) -> int:

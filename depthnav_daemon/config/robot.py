@@ -53,7 +53,8 @@ class OdometrySettings:
     Attributes:
         source: an odometry spec (drivers.odometry: odom+udp://127.0.0.1:PORT for JSON lines,
             mavlink+udp://HOST:PORT or mavlink:SERIALPORT for an autopilot), or "" for none; a
-            recording whose frames carry odometry gives it without a source.
+            recording whose frames carry odometry gives it without a source. Checked here: a
+            bad spec is a ConfigError (exit 2).
         timeout_s: a source that has sent nothing for this long is reported (once) and the memory
             stays off until it speaks.
         stale_s: odometry older than this at a frame freezes the memory (reported).
@@ -72,6 +73,14 @@ class OdometrySettings:
         check_range("odometry.stale_s", self.stale_s, 0.01, 60.0, " s")
         check_range("odometry.max_jump_m", self.max_jump_m, 0.001, 100.0, " m")
         check_range("odometry.max_jump_deg", self.max_jump_deg, 0.1, 180.0, " deg")
+        if self.source:  # "" is no source; any other text must be a spec (no I/O here)
+            from drivers.errors import DeviceSpecError
+            from drivers.odometry import create_odometry
+
+            try:
+                create_odometry(self.source)
+            except DeviceSpecError as exc:
+                raise ConfigError(str(exc), hint=exc.hint) from None
 
 
 SENSOR_KEYS = ("name", "device", "mount")

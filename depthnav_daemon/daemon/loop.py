@@ -67,7 +67,12 @@ def run(
     source = DeviceSource(cfg.device, cfg.daemon, stop, driver_factory)
     info = source.open()
     sinks: list[Sink] = []
-    odometry = open_odometry(cfg.odometry) if cfg.memory.enabled is not False else None
+    try:
+        odometry = open_odometry(cfg.odometry) if cfg.memory.enabled is not False else None
+    except BaseException:  # it cannot open: nothing else is left open
+        source.close()
+        step.close()
+        raise
     keeper = MemoryKeeper(cfg.memory, cfg.odometry, odometry)
     notifier = ServiceNotifier()
     try:
@@ -100,6 +105,7 @@ def run(
         step.close()
         if odometry is not None:
             odometry.stop()
+        keeper.refusals.flush()
         report.memory_resets = keeper.resets
         report.reconnects = source.reconnects
         report.rejected_pose_jumps = step.rejected_pose_jumps

@@ -10,7 +10,10 @@ lets a doubtful pose in:
   continuous, so what it holds is still right);
 - odometry that moves more than ``max_jump_m`` / ``max_jump_deg`` between two frames: the memory
   is forgotten and restarted with the frame (a relocalisation or a restarted odometry is not
-  motion), said every time.
+  motion), said every time;
+- a pose outside the odometry limits (drivers.base.check_odom_pose: a recording's NaN or 1e19,
+  or anything a source let through): the memory is frozen for that frame; refusals are counted
+  per kind with the source's own and go out with every frame (``odometry_rejected``).
 """
 
 from __future__ import annotations
@@ -32,8 +35,9 @@ from depthnav_daemon.pipeline.memory import (
     update,
 )
 from depthnav_daemon.pipeline.scan_table import scan_rows
-from drivers.base import Frame
-from drivers.odometry import OdometrySource
+from drivers.base import Frame, OdomRefusal, check_odom_pose
+from drivers.odometry import OdometrySource, OdomRefusals
+from drivers.values import short_repr
 
 log = logging.getLogger(__name__)
 
@@ -88,6 +92,8 @@ class MemoryKeeper:
         self._stale = False
         self.resets = 0
         self.frozen_frames = 0
+        # poses refused here: the frames' own (recordings, drives), or a source's past its checks
+        self.refusals = OdomRefusals("in the frames (odom)" if source is None else source.name)
 
     @property
     def enabled(self) -> bool:
@@ -123,6 +129,7 @@ class MemoryKeeper:
                 p.size_m,
                 p.cell_m,
                 got,
+                self.rejected(),
             )
         status, note = "on", None
         if self._last_pose is not None:
@@ -150,7 +157,16 @@ class MemoryKeeper:
             p.size_m,
             p.cell_m,
             note,
+            self.rejected(),
         )
+
+    def rejected(self) -> dict[str, int]:
+        """Odometry samples refused so far, per kind: the source's and the frames' together."""
+        counts = self.refusals.counts()
+        if self.source is not None:
+            for kind, n in self.source.refusals.counts().items():
+                counts[kind] = counts.get(kind, 0) + n
+        return counts
 
     def _say_once(self, key: str, message: str, level: int = logging.WARNING) -> None:
         if key not in self._said:
@@ -158,9 +174,10 @@ class MemoryKeeper:
             log.log(level, "memory: %s", message)
 
     def _pose(self, frame: Frame, arrival_s: float) -> Pose | str | None:
-        """The frame's odometry pose; a note (str) when it is stale; None when there is none."""
+        """The frame's odometry pose; a note (str) when it is stale or refused; None when there is
+        none."""
         if frame.odom is not None:
-            return frame.odom
+            return self._checked(frame.odom, frame)
         src = self.source
         if src is None:
             level = logging.WARNING if self.settings.enabled is True else logging.INFO
@@ -173,10 +190,12 @@ class MemoryKeeper:
             return None
         if src.buffer.count == 0:
             if self._clock() - self._started > self.odometry.timeout_s:
+                refused = src.refusals.total
                 self._say_once(
                     "silent",
-                    f"odometry {src.name} has sent nothing for {self.odometry.timeout_s:g} s; "
-                    "the memory is off until it speaks",
+                    f"odometry {src.name} has sent nothing"
+                    + (f" usable ({refused} samples refused)" if refused else "")
+                    + f" for {self.odometry.timeout_s:g} s; the memory is off until it speaks",
                 )
             return None
         if "silent" in self._said and "spoke" not in self._said:
@@ -195,7 +214,19 @@ class MemoryKeeper:
         if self._stale:
             log.info("memory: odometry %s is fresh again; the memory resumes", src.name)
             self._stale = False
-        return pose
+        return self._checked(pose, frame)
+
+    def _checked(self, pose: Pose, frame: Frame) -> Pose | str:
+        """``pose`` within the odometry limits (yaw wrapped), or a note: refused, so the memory
+        is frozen for this frame (counted; the first of each kind said)."""
+        try:
+            checked = check_odom_pose(*pose)
+        except TypeError:  # not three values
+            checked = OdomRefusal("malformed", f"odom={short_repr(pose)} is not x_m, y_m, yaw_rad")
+        if isinstance(checked, OdomRefusal):
+            self.refusals.note(checked, f"frame {frame.seq}")
+            return f"odometry refused ({checked.reason}); the memory is frozen for this frame"
+        return checked
 
 
 def _jump(a: Pose, b: Pose) -> tuple[float, float]:
@@ -205,23 +236,17 @@ def _jump(a: Pose, b: Pose) -> tuple[float, float]:
 
 
 def open_odometry(settings: OdometrySettings) -> OdometrySource | None:
-    """Start the configured odometry source, or None when there is none or it cannot start (said
-    in one line: the daemon runs on without the memory)."""
+    """Start the configured odometry source, or None when there is none.
+
+    The spec was checked with the configuration (a bad one is a usage error, exit 2); a source
+    that cannot open (a busy port, a path that is no serial port) ends the start-up like a device
+    or a serial tilt source that cannot (DeviceOpenError, exit 1): the robot asked for the memory.
+    """
     if not settings.source:
         return None
-    from drivers.errors import DriverError
     from drivers.odometry import create_odometry
 
-    try:
-        source = create_odometry(settings.source)
-        source.start()
-    except DriverError as exc:
-        log.error(
-            "odometry %s cannot start: %s; going on without the memory%s",
-            settings.source,
-            exc,
-            f" ({exc.hint})" if exc.hint else "",
-        )
-        return None
+    source = create_odometry(settings.source)
+    source.start()
     log.info("odometry from %s", source.name)
     return source

@@ -195,7 +195,13 @@ def run_sensors(
             "no sensor could be opened", hint="check the [[sensor]] device specs and cables"
         )
     sinks: list[Sink] = []
-    odometry = open_odometry(cfg.odometry) if cfg.memory.enabled is not False else None
+    try:
+        odometry = open_odometry(cfg.odometry) if cfg.memory.enabled is not False else None
+    except BaseException:  # it cannot open: nothing else is left open (no thread started yet)
+        for w in workers:
+            w.source.close()
+            w.step.close()
+        raise
     keeper = MemoryKeeper(cfg.memory, cfg.odometry, odometry)
     notifier = ServiceNotifier()
     try:
@@ -215,6 +221,7 @@ def run_sensors(
             w.close()
         if odometry is not None:
             odometry.stop()
+        keeper.refusals.flush()
         report.lost_sensors = [w.name for w in workers if w.status == "lost"]
         report.memory_resets = keeper.resets
         report.reconnects = sum(w.source.reconnects for w in workers)

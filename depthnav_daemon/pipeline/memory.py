@@ -26,7 +26,7 @@ from __future__ import annotations
 import functools
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import numpy.typing as npt
@@ -48,7 +48,7 @@ from depthnav_daemon.pipeline.memory_kernels import (
 )
 from depthnav_daemon.pipeline.near_kernels import near_limits_kernel
 from depthnav_daemon.pipeline.scan import LaserScan
-from drivers.base import Intrinsics
+from drivers.base import Intrinsics, OdomRefusal, check_odom_pose
 
 MAX_CELLS = 2048  # cells per side
 NEAR_STRIDE = 2  # pixels between the samples of the near-limit table
@@ -157,11 +157,13 @@ class SensorView:
 
 @dataclass(frozen=True, slots=True)
 class UpdateReport:
-    """What one update did: cells cleared, marked and expired."""
+    """What one update did: cells cleared, marked and expired; ``refused`` says why the pose was
+    not used (outside the odometry limits: nothing changed), else None."""
 
     cleared: int = 0
     marked: int = 0
     expired: int = 0
+    refused: str | None = None
 
 
 @functools.lru_cache(maxsize=32)
@@ -227,10 +229,14 @@ def update(
             fifth of a cell), or the floor spanned by the view's margin rows if that is more.
 
     Returns:
-        Cells cleared, marked and expired.
+        Cells cleared, marked and expired; a pose outside the odometry limits
+        (drivers.base.check_odom_pose) leaves the memory as it is and says why (``refused``).
     """
     p = state.params
-    x, y, yaw = pose
+    checked = check_odom_pose(*pose)
+    if isinstance(checked, OdomRefusal):  # the caller checks first; this keeps the grid safe
+        return UpdateReport(refused=checked.reason)
+    x, y, yaw = checked
     if state.epoch_s is None:
         state.epoch_s = t_s
     _recentre(state, x, y)
@@ -299,24 +305,19 @@ class MemoryScan:
 
 
 def read_scan(state: MemoryState, pose: tuple[float, float, float]) -> MemoryScan:
-    """The nearest remembered point per bearing around the robot at ``pose`` (odometry frame)."""
+    """The nearest remembered point per bearing around the robot at ``pose`` (odometry frame);
+    every bearing NaN (unknown) for a pose outside the odometry limits."""
     p = state.params
     nb = p.scan_bins
     out = np.empty(nb, np.float32)
     counts = np.zeros(3, np.int64)
-    memory_scan(
-        state.grid,
-        state.offx,
-        state.offy,
-        state.wx0,
-        state.wy0,
-        p.cell_m,
-        float(pose[0]),
-        float(pose[1]),
-        float(pose[2]),
-        out,
-        counts,
-    )
+    checked = check_odom_pose(*pose)
+    if isinstance(checked, OdomRefusal):
+        out[:] = np.nan
+        counts[1:] = np.bincount(state.grid.reshape(-1), minlength=3)[1:3]  # as the kernel
+    else:
+        g = state
+        memory_scan(g.grid, g.offx, g.offy, g.wx0, g.wy0, p.cell_m, *checked, out, counts)
     inc = 2.0 * math.pi / nb
     scan = LaserScan(-math.pi, -math.pi + (nb - 1) * inc, inc, 0.0, p.size_m * math.sqrt(0.5), out)
     return MemoryScan(scan, int(counts[OBSTACLE]), int(counts[CLIFF]))
@@ -376,6 +377,8 @@ class MemoryResult:
         grid: the grid for a viewer (window order, origin, cell), or None when frozen.
         size_m, cell_m: the grid's side and cell, metres.
         note: why the status is not "on", or None.
+        odometry_rejected: odometry samples refused so far, per kind (drivers.base
+            ODOM_REFUSAL_KINDS).
     """
 
     status: str
@@ -387,3 +390,4 @@ class MemoryResult:
     size_m: float
     cell_m: float
     note: str | None = None
+    odometry_rejected: dict[str, int] = field(default_factory=dict)

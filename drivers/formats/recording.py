@@ -3,7 +3,8 @@
 ``frames.npz`` holds ``depth_mm`` (N, H, W) uint16, ``intrinsics`` float64 [fx, fy, cx, cy],
 ``timestamp_s`` (N,) float64 and, when every frame had one, ``accel_mps2`` (N, 3) float64 and
 ``odom`` (N, 3) float64 ``[x_m, y_m, yaw_rad]`` (the robot's pose in its odometry frame at each
-frame).
+frame; rows outside the odometry limits of drivers.base are read as they are and refused by the
+memory, frame by frame).
 ``recording.toml`` holds ``format_version``, ``description``, ``device``, an ``[intrinsics]``
 table (width, height, fx, fy, cx, cy and, for a distorting lens, plumb_bob k1, k2, p1, p2, k3; 0
 when absent) and an optional ``[truth]`` table. A bare ``.npz`` with the same arrays is also
@@ -269,10 +270,11 @@ def _checked_odom(
             f"{npz_path}: 'odom' must be ({n}, 3) numbers [x_m, y_m, yaw_rad] (one row per "
             f"frame), got {odom.dtype} {odom.shape}"
         )
-    odom = odom.astype(np.float64)
-    if not np.all(np.isfinite(odom)):
-        raise RecordingError(f"{npz_path}: 'odom' has non-finite values")
-    return odom
+    # rows outside the odometry limits (NaN, 1e19, a uint64's maximum) are kept as they are: the
+    # memory refuses those frames' poses, one warning per kind (drivers.base.check_odom_pose),
+    # and the rest of the recording plays on
+    with np.errstate(over="ignore", invalid="ignore"):
+        return odom.astype(np.float64)
 
 
 def _locate(path: str | os.PathLike[str]) -> tuple[Path, dict[str, Any], Path]:

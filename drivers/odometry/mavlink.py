@@ -8,7 +8,9 @@ Messages: ``ODOMETRY`` (331) in MAV_FRAME_LOCAL_NED (1), LOCAL_FRD (20) or LOCAL
 frames are NED/FRD (x north or forward, y east or right, yaw clockwise); depthnav's odometry frame
 is REP 103 (y left, yaw counter-clockwise), so y and yaw change sign (FLU is taken as is).
 Samples are timed by their arrival on this host (the autopilot's boot clock is another clock).
-A message with non-finite fields or from another frame is counted as bad and ignored.
+A message with values outside the odometry limits (drivers.base: |x|, |y| <= 1e7 m, |yaw| <= 1e6
+rad, finite), from another frame or that cannot be read is refused and counted per kind
+(drivers.odometry.OdomRefusals); the reader goes on with the next message.
 """
 
 from __future__ import annotations
@@ -18,9 +20,11 @@ import math
 import threading
 from typing import Any
 
+from drivers.base import check_odom_pose
 from drivers.errors import DeviceOpenError, DeviceSpecError, OpenFailure
-from drivers.odometry import OdomBuffer, now_s
+from drivers.odometry import OdomBuffer, OdomRefusal, OdomRefusals, now_s
 from drivers.spec import check_options, int_option, parse_spec
+from drivers.values import short_repr, short_text
 
 log = logging.getLogger(__name__)
 
@@ -50,7 +54,7 @@ class MavlinkOdometry:
         self.baud = baud
         self.name = name or connection
         self.buffer = OdomBuffer()
-        self.bad_messages = 0
+        self.refusals = OdomRefusals(self.name)
         self._yaw: tuple[float, float] | None = None  # (yaw NED rad, arrival s)
         self._conn: Any = None
         self._stop = threading.Event()
@@ -103,19 +107,31 @@ class MavlinkOdometry:
                 if not self._stop.is_set():
                     log.warning("odometry %s stopped: %s", self.name, exc)
                 return
-            if msg is not None:
+            if msg is None:
+                continue
+            try:  # each message in its own guard: nothing the autopilot sends ends the reader
                 self.take(msg, now_s())
+            except Exception as exc:
+                self._refuse("malformed", f"cannot be read ({type(exc).__name__})", msg)
+
+    @property
+    def bad_messages(self) -> int:
+        """Messages refused so far, every kind."""
+        return self.refusals.total
 
     def take(self, msg: Any, arrival: float) -> None:
         """Fold one decoded message into the buffer."""
         kind = msg.get_type()
         if kind == "ATTITUDE":
-            if math.isfinite(msg.yaw):
-                self._yaw = (float(msg.yaw), arrival)
+            checked = check_odom_pose(0.0, 0.0, msg.yaw)
+            if isinstance(checked, OdomRefusal):
+                self._refuse(checked.kind, checked.reason, msg)
+            else:
+                self._yaw = (checked[2], arrival)
             return
         if kind == "ODOMETRY":
             if msg.frame_id not in (MAV_FRAME_LOCAL_NED, MAV_FRAME_LOCAL_FRD, MAV_FRAME_LOCAL_FLU):
-                self._bad(f"ODOMETRY in frame {msg.frame_id}")
+                self._refuse("malformed", f"frame {short_repr(msg.frame_id)} is not local", msg)
                 return
             yaw = quaternion_yaw(*msg.q)
             pose = (msg.x, msg.y, yaw)
@@ -125,15 +141,16 @@ class MavlinkOdometry:
             if self._yaw is None or arrival - self._yaw[1] > ATTITUDE_MAX_AGE_S:
                 return  # no heading yet: wait for ATTITUDE
             pose = ned_to_flu(msg.x, msg.y, self._yaw[0])
-        if not self.buffer.add(arrival, *(float(v) for v in pose)):
-            self._bad(f"{kind} with non-finite values")
+        refused = self.buffer.offer(arrival, *pose)
+        if refused is not None:
+            self.refusals.note(OdomRefusal(refused.kind, f"{kind}: {refused.reason}"))
 
-    def _bad(self, what: str) -> None:
-        self.bad_messages += 1
-        if self.bad_messages % 100 == 1:
-            log.warning(
-                "odometry %s: ignoring %s [%d bad so far]", self.name, what, self.bad_messages
-            )
+    def _refuse(self, kind: str, reason: str, msg: Any) -> None:
+        try:
+            name = short_text(str(msg.get_type()), 40)
+        except Exception:  # a message that cannot even name itself
+            name = "a message"
+        self.refusals.note(OdomRefusal(kind, f"{name}: {reason}"))
 
     def stop(self) -> None:
         """Stop the thread and close the link. Safe to call twice."""
@@ -147,3 +164,4 @@ class MavlinkOdometry:
             except Exception:  # closing must not raise
                 log.debug("closing %s failed", self.name, exc_info=True)
             self._conn = None
+        self.refusals.flush()

@@ -17,11 +17,13 @@ import pytest
 from depthnav_daemon.config.loader import MemorySettings, OdometrySettings, build_config
 from depthnav_daemon.daemon.loop import run
 from depthnav_daemon.daemon.memory_keeper import MemoryKeeper
+from depthnav_daemon.daemon.source import DeviceSource
 from depthnav_daemon.pipeline import StageParams, process
 from depthnav_daemon.pipeline.cliff import CliffParams
 from depthnav_daemon.pipeline.scan import LaserScan, ScanParams
 from depthnav_daemon.sim.fixtures import DRIVE_MOUNT
 from depthnav_daemon.sinks.mavlink.sectors import memory_sectors, sectors_for
+from drivers.errors import DeviceOpenError
 from drivers.formats.recording import read_recording
 from drivers.odometry import create_odometry
 from tests.daemon.test_loop import SPEC as CORRIDOR
@@ -106,15 +108,18 @@ def test_a_source_that_never_speaks_is_one_line_and_the_daemon_runs_on(caplog) -
     assert len(said) == 1 and "\n" not in said[0]
 
 
-def test_a_source_that_cannot_start_is_one_line_and_the_daemon_runs_on(caplog) -> None:
+def test_a_source_that_cannot_open_ends_the_start_up_and_closes_the_device(monkeypatch) -> None:
+    """As a device or a serial tilt port that cannot open: the robot asked for the memory."""
+    closed = []
+    real_close = DeviceSource.close
+    monkeypatch.setattr(DeviceSource, "close", lambda self: closed.append(1) or real_close(self))
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as busy:
         busy.bind(("127.0.0.1", 0))
         spec = f"odom+udp://127.0.0.1:{busy.getsockname()[1]}"
-        with caplog.at_level(logging.ERROR):
-            results = _run(CORRIDOR, f'odometry.source="{spec}"', frames=2).results
-    assert len(results) == 2
-    said = [r.getMessage() for r in caplog.records if "cannot start" in r.getMessage()]
-    assert len(said) == 1 and "going on without the memory" in said[0]
+        with pytest.raises(DeviceOpenError, match="cannot listen") as info:
+            _run(CORRIDOR, f'odometry.source="{spec}"', frames=2)
+    assert "\n" not in str(info.value) and info.value.hint
+    assert closed  # the depth device opened before it is closed again
 
 
 @pytest.fixture(scope="module")

@@ -248,3 +248,53 @@ def test_a_sensor_placed_on_the_robot_marks_the_world_where_it_looks() -> None:
     j = int(np.nanargmin(scan.ranges))
     assert abs(math.degrees(scan.angles[j]) - 84.0) < 5.0
     assert scan.ranges[j] == pytest.approx(math.hypot(1.9, 0.2) - 0.15, abs=0.05)
+
+
+@pytest.mark.parametrize(
+    "pose",
+    [
+        (1e19, 0.0, 0.0),
+        (1e308, 0.0, 0.0),
+        (0.0, math.nan, 0.0),
+        (0.0, 0.0, math.inf),
+        (10**400, 0, 0),
+    ],
+    ids=["1e19", "1e308", "nan", "inf-yaw", "400-digit"],
+)
+def test_a_pose_outside_the_odometry_limits_leaves_the_memory_as_it_is(step_drive, pose) -> None:
+    """The memory's own guard (the daemon checks first): no OverflowError in the window's
+    recentring, no numba TypingError, nothing changed; read back as unknown (NaN)."""
+    _poses, results = step_drive
+    state = new_state(MemoryParams())
+    update(state, (0.0, 0.0, 0.0), 0.0, [view_of(results[0])])
+    before = (state.grid.copy(), state.wx0, state.wy0, state.updates)
+    report = update(state, pose, 0.1, [view_of(results[1])])
+    assert report.refused is not None
+    assert "beyond" in report.refused or "not finite" in report.refused
+    assert (report.cleared, report.marked) == (0, 0)
+    assert np.array_equal(state.grid, before[0])
+    assert (state.wx0, state.wy0, state.updates) == before[1:]
+    read = read_scan(state, pose)
+    assert np.isnan(read.scan.ranges).all()
+    good = read_scan(state, (0.0, 0.0, 0.0))
+    assert (read.obstacle_cells, read.cliff_cells) == (good.obstacle_cells, good.cliff_cells)
+    assert good.cliff_cells > 0
+
+
+@pytest.mark.parametrize("offset_m", [9.9e6, -9.9e6])
+def test_poses_near_the_odometry_limit_remember_as_poses_near_the_origin(
+    step_drive, offset_m: float
+) -> None:
+    """The limits are what the memory handles: the same drive with its odometry frame moved to
+    9,900 km away (a UTM-sized coordinate) reads back the same memory scan, to 1 mm."""
+    poses, results = step_drive
+    near, far = new_state(MemoryParams()), new_state(MemoryParams())
+    for k, (pose, r) in enumerate(zip(poses, results, strict=True)):
+        t = 0.1 * k
+        update(near, pose, t, [view_of(r)])
+        update(far, (pose[0] + offset_m, pose[1] - offset_m, pose[2]), t, [view_of(r)])
+    last = poses[-1]
+    a = read_scan(near, last).scan.ranges
+    b = read_scan(far, (last[0] + offset_m, last[1] - offset_m, last[2])).scan.ranges
+    assert np.isfinite(a).sum() > 10
+    np.testing.assert_allclose(b, a, atol=1e-3, equal_nan=True)

@@ -139,7 +139,8 @@ def _cliff_to_json(
 
 
 def memory_to_json(memory: Any) -> dict[str, Any] | None:
-    """The memory object (docs/json_schema.md): status, the 360 deg memory scan, cell counts."""
+    """The memory object (docs/json_schema.md): status, the 360 deg memory scan, cell counts, the
+    odometry samples refused per kind."""
     if memory is None:
         return None
     pose = memory.pose
@@ -153,6 +154,7 @@ def memory_to_json(memory: Any) -> dict[str, Any] | None:
         "size_m": _num(memory.size_m, MM),
         "cell_m": _num(memory.cell_m, MM),
         "note": memory.note,
+        "odometry_rejected": {k: int(v) for k, v in memory.odometry_rejected.items()},
     }
 
 
