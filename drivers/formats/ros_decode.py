@@ -1,4 +1,4 @@
-"""Decoding ROS messages of depth cameras (sensor_msgs Image, CameraInfo; tf rotations).
+"""Decoding ROS messages of depth cameras (sensor_msgs Image, CompressedImage, CameraInfo; tf).
 
 Duck-typed over the message objects of the ``rosbags`` library, ROS 1 or ROS 2 field names alike.
 """
@@ -15,10 +15,12 @@ import numpy.typing as npt
 
 from drivers.base import Intrinsics
 from drivers.errors import RecordingError
+from drivers.formats.compressed_depth import codec_of, decode_compressed_depth, is_compressed_depth
 
 log = logging.getLogger(__name__)
 
-DEPTH_ENCODINGS = {"16UC1": "u2", "32FC1": "f4"}  # encoding -> numpy kind (mm, m)
+# encoding -> numpy kind (mm, m); mono16 is millimetres in the drivers that publish depth as it
+DEPTH_ENCODINGS = {"16UC1": "u2", "mono16": "u2", "32FC1": "f4"}
 MAX_MM = 65535  # the largest depth a uint16 millimetre image holds
 HINT_BROKEN = "the bag is truncated or damaged: re-record it, or repair it (rosbag reindex)"
 
@@ -58,8 +60,47 @@ def stamp_s(msg: Any, log_time_ns: int) -> float:
     return sec + nsec * 1e-9
 
 
+def image_kind(msg: Any) -> str:
+    """What an Image or CompressedImage holds, as listed to the user: "16UC1", "jpeg",
+    "16UC1 compressedDepth png"."""
+    if not hasattr(msg, "format"):
+        return str(msg.encoding).strip()
+    fmt = str(msg.format).strip()
+    if not is_compressed_depth(fmt):
+        return fmt
+    try:
+        encoding, codec = codec_of(fmt)
+    except RecordingError:
+        return fmt
+    return f"{encoding} compressedDepth {codec}"
+
+
+def is_depth_kind(kind: str) -> bool:
+    """True for an :func:`image_kind` depthnav reads as depth."""
+    return kind in DEPTH_ENCODINGS or kind.endswith(("compressedDepth png", "compressedDepth rvl"))
+
+
+def decode_image(msg: Any, where: str) -> npt.NDArray[np.uint16]:
+    """An Image (see :func:`decode_depth`) or a compressedDepth CompressedImage as (H, W) uint16
+    millimetres, 0 = no reading.
+
+    Raises:
+        RecordingError: not depth, or damaged.
+    """
+    if not hasattr(msg, "format"):
+        return decode_depth(msg, where)
+    fmt = str(msg.format).strip()
+    if not is_compressed_depth(fmt):
+        raise RecordingError(
+            f"{where}: a CompressedImage of format {fmt!r} is not depth",
+            hint="compressed depth is image_transport's compressedDepth (png or rvl); "
+            "pick the depth topic with ?topic=",
+        )
+    return decode_compressed_depth(msg, where)
+
+
 def decode_depth(msg: Any, where: str) -> npt.NDArray[np.uint16]:
-    """A sensor_msgs/Image (16UC1 mm or 32FC1 m) as (H, W) uint16 millimetres, 0 = no reading.
+    """A sensor_msgs/Image (16UC1 or mono16 mm, 32FC1 m) as (H, W) uint16 millimetres, 0 = none.
 
     Raises:
         RecordingError: another encoding, or data shorter than ``height * step``.
@@ -68,7 +109,8 @@ def decode_depth(msg: Any, where: str) -> npt.NDArray[np.uint16]:
     if encoding not in DEPTH_ENCODINGS:
         raise RecordingError(
             f"{where}: image encoding {encoding!r} is not depth",
-            hint="depth images are 16UC1 (millimetres) or 32FC1 (metres); pick one with ?topic=",
+            hint="depth images are 16UC1 or mono16 (millimetres) or 32FC1 (metres); "
+            "pick one with ?topic=",
         )
     kind = DEPTH_ENCODINGS[encoding]
     height, width, step = int(msg.height), int(msg.width), int(msg.step)

@@ -4,9 +4,13 @@ Paths: a ROS 1 ``.bag``; a ROS 2 bag folder (``metadata.yaml`` with sqlite3 ``.d
 storage); a bare ROS 2 ``.mcap`` or ``.db3`` file.
 
 What is read:
-- depth from ``sensor_msgs/Image`` with encoding ``16UC1`` (millimetres) or ``32FC1`` (metres),
-  big- or little-endian, rows ``step`` bytes apart (padding skipped). With no ``topic`` the only
-  such topic is used (the first message of each Image topic tells its encoding).
+- depth from ``sensor_msgs/Image`` with encoding ``16UC1`` or ``mono16`` (millimetres) or
+  ``32FC1`` (metres), big- or little-endian, rows ``step`` bytes apart (padding skipped); or from
+  ``sensor_msgs/CompressedImage`` of image_transport's ``compressedDepth`` (png or rvl, see
+  compressed_depth.py). With no ``topic`` the only such topic is used (the first message of each
+  image topic tells its encoding); a mono16 topic only when no other depth topic is there (mono16
+  is infrared's encoding too), and ``X`` rather than its own ``X/compressedDepth``. Of a topic
+  with connections of several types, only the image connections are read.
 - intrinsics from the first ``sensor_msgs/CameraInfo`` on ``info_topic`` (default: the
   ``camera_info`` beside the depth topic, or the bag's only CameraInfo topic): fx, fy, cx, cy
   from K, scaled when the info's size differs from the image's. The distortion model and
@@ -19,8 +23,7 @@ What is read:
 - timestamps from the image headers (the bag's receive time where a header stamp is 0).
 
 Known traps of ``rosbags``: a ROS 2 folder whose ``metadata.yaml`` QoS differs from its storage
-file reads no message through the folder, so the storage files are then read directly; images
-from ``image_transport``'s ``compressedDepth`` are not decoded yet (a clear error says so).
+file reads no message through the folder, so the storage files are then read directly.
 Frames are streamed: one storage chunk is decompressed at a time, never the whole bag.
 """
 
@@ -37,12 +40,13 @@ import numpy.typing as npt
 
 from drivers.errors import RecordingError
 from drivers.formats.ros_decode import (
-    DEPTH_ENCODINGS,
     HINT_BROKEN,
     CameraModel,
     camera_model,
-    decode_depth,
+    decode_image,
     frame_rotation,
+    image_kind,
+    is_depth_kind,
     quat_matrix,
     stamp_s,
 )
@@ -153,8 +157,10 @@ class DepthBag:
             if first is None:
                 raise RecordingError(f"{self.path}: topic {depth} holds no message")
             image = first[0]
-            shape = (int(image.height), int(image.width))
-            decode_depth(image, f"{self.path} {depth}")  # checks the encoding and the size
+            depth_mm = decode_image(image, f"{self.path} {depth}")  # checks encoding and size
+            shape = (int(depth_mm.shape[0]), int(depth_mm.shape[1]))
+            if image_kind(image) == "mono16":
+                log.info("%s %s: mono16 images read as depth in millimetres", self.path, depth)
             info_topic, camera = self._camera(reader, topics, depth, shape, intrinsics_given)
             imu_topic, imu_rot = self._imu(reader, topics, str(image.header.frame_id))
             self._probe = BagProbe(
@@ -193,21 +199,24 @@ class DepthBag:
 
     @staticmethod
     def _topics(reader: Any) -> dict[str, tuple[str, list[Any], int]]:
-        """topic -> (message type, connections, message count)."""
-        out: dict[str, tuple[str, list[Any], int]] = {}
+        """topic -> (message type, its connections, message count).
+
+        A topic with connections of several types (a CameraInfo published on the depth topic)
+        keeps its image connections (Image, else CompressedImage), else its busiest type's.
+        """
+        by_type: dict[str, dict[str, tuple[list[Any], int]]] = {}
         for conn in reader.connections:
-            msgtype, conns, count = out.get(conn.topic, (conn.msgtype, [], 0))
-            out[conn.topic] = (msgtype, [*conns, conn], count + max(conn.msgcount, 0))
+            types = by_type.setdefault(conn.topic, {})
+            conns, count = types.get(conn.msgtype, ([], 0))
+            types[conn.msgtype] = ([*conns, conn], count + max(conn.msgcount, 0))
+        out: dict[str, tuple[str, list[Any], int]] = {}
+        for topic, types in by_type.items():
+            images = [t for t in (IMAGE, COMPRESSED) if t in types]
+            msgtype = images[0] if images else max(types, key=lambda t: types[t][1])
+            out[topic] = (msgtype, *types[msgtype])
         return out
 
     def _depth_topic(self, reader: Any, topics: dict[str, tuple[str, list[Any], int]]) -> str:
-        def compressed_error(names: list[str]) -> RecordingError:
-            return RecordingError(
-                f"{self.path}: compressed depth images ({', '.join(names)}) are not supported yet",
-                hint="record the raw depth topic, or convert the bag first "
-                "(image_transport republish compressedDepth in, raw out)",
-            )
-
         if self.topic is not None:
             if self.topic not in topics:
                 images = [t for t, v in topics.items() if v[0] in (IMAGE, COMPRESSED)]
@@ -216,31 +225,38 @@ class DepthBag:
                     hint=f"image topics: {', '.join(sorted(images)) or 'none'}",
                 )
             msgtype = topics[self.topic][0]
-            if msgtype == COMPRESSED:
-                raise compressed_error([self.topic])
-            if msgtype != IMAGE:
+            if msgtype not in (IMAGE, COMPRESSED):
                 raise RecordingError(f"{self.path}: {self.topic} is a {msgtype}, not an {IMAGE}")
             return self.topic
-        encodings: dict[str, str] = {}
+        kinds: dict[str, str] = {}  # image topic -> what its first message holds
+        empty: list[str] = []  # image topics without a message
         for name, (msgtype, conns, count) in sorted(topics.items()):
-            if msgtype == IMAGE and count > 0:
-                first = self._first(reader, conns)
-                encodings[name] = "" if first is None else str(first[0].encoding).strip()
-        depth = [t for t, e in encodings.items() if e in DEPTH_ENCODINGS]
+            if msgtype in (IMAGE, COMPRESSED):
+                first = self._first(reader, conns) if count > 0 else None
+                if first is None:
+                    empty.append(name)
+                else:
+                    kinds[name] = image_kind(first[0])
+        depth = [t for t, k in kinds.items() if is_depth_kind(k)]
+        # a bag recorded with every transport: X and X/compressedDepth are the same images
+        suffix = "/compressedDepth"
+        depth = [t for t in depth if not (t.endswith(suffix) and t[: -len(suffix)] in depth)]
+        if len(depth) > 1 and any(kinds[t] != "mono16" for t in depth):
+            depth = [t for t in depth if kinds[t] != "mono16"]  # mono16: infrared's encoding too
         if len(depth) == 1:
             return depth[0]
         if len(depth) > 1:
-            listed = ", ".join(f"{t} ({encodings[t]})" for t in depth)
+            listed = ", ".join(f"{t} ({kinds[t]})" for t in depth)
             raise RecordingError(
                 f"{self.path}: {len(depth)} depth image topics: {listed}",
                 hint=f"choose one with ?topic={depth[0]}",
             )
-        packed = sorted(t for t, v in topics.items() if v[0] == COMPRESSED and "depth" in t.lower())
-        if packed:
-            raise compressed_error(packed)
-        others = ", ".join(f"{t} ({e or 'empty'})" for t, e in encodings.items())
+        others = ", ".join([f"{t} ({k or 'empty'})" for t, k in kinds.items()] +
+                           [f"{t} (no messages)" for t in empty])  # fmt: skip
+        none = f"; {', '.join(empty)} {'holds' if len(empty) == 1 else 'hold'} no message"
         raise RecordingError(
-            f"{self.path}: no depth image topic (sensor_msgs/Image 16UC1 or 32FC1)",
+            f"{self.path}: no depth image topic (Image 16UC1, mono16 or 32FC1; CompressedImage "
+            f"compressedDepth){none if empty else ''}",
             hint=f"image topics: {others}" if others else f"topics: {', '.join(sorted(topics))}",
         )
 
@@ -343,7 +359,7 @@ class DepthBag:
                 if conn.topic != probe.depth_topic:
                     accel = self._accel(msg, probe)
                     continue
-                depth = decode_depth(msg, where)
+                depth = decode_image(msg, where)
                 if depth.shape != probe.shape:
                     raise RecordingError(
                         f"{where}: image {count} is {depth.shape[1]}x{depth.shape[0]}, "

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import math
 import shutil
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -35,6 +35,9 @@ class BagSpec:
         extra_images: more Image topics: name -> encoding (written with the same frames).
         distortion: D coefficients of the CameraInfo.
         distortion_model: its distortion_model.
+        depth_topic: the topic of the depth images.
+        compress: writes CompressedImage depth instead of Image: frame -> (format, data bytes).
+        info_on_depth: also write a CameraInfo on the depth topic, before its first image.
     """
 
     kind: str = "ros1"
@@ -47,6 +50,9 @@ class BagSpec:
     extra_images: dict[str, str] = field(default_factory=dict)
     distortion: tuple[float, ...] = (0.0, 0.0, 0.0, 0.0, 0.0)
     distortion_model: str = "plumb_bob"
+    depth_topic: str = DEPTH_TOPIC
+    compress: Callable[[Frame], tuple[str, bytes]] | None = None
+    info_on_depth: bool = False
 
 
 def _typestore(kind: str) -> Any:
@@ -84,6 +90,13 @@ def image_msg(ts: Any, frame: Frame, stamp: Any, spec: BagSpec, encoding: str) -
         is_bigendian=int(spec.bigendian),
         step=data.shape[1],
         data=data.reshape(-1),
+    )
+
+
+def compressed_msg(ts: Any, stamp: Any, fmt: str, data: bytes) -> Any:
+    """A sensor_msgs/CompressedImage of ``format`` ``fmt`` holding ``data``."""
+    return ts.types["sensor_msgs/msg/CompressedImage"](
+        header=header(ts, stamp, OPTICAL), format=fmt, data=np.frombuffer(data, dtype=np.uint8)
     )
 
 
@@ -165,15 +178,14 @@ class _Out:
         self.conns: dict[str, Any] = {}
 
     def write(self, topic: str, msg: Any, t_ns: int) -> None:
-        if topic not in self.conns:
-            self.conns[topic] = self.writer.add_connection(
-                topic, msg.__msgtype__, typestore=self.ts
-            )
+        key = f"{topic} {msg.__msgtype__}"  # a topic may carry several types
+        if key not in self.conns:
+            self.conns[key] = self.writer.add_connection(topic, msg.__msgtype__, typestore=self.ts)
         if self.kind == "ros1":
             data = self.ts.serialize_ros1(msg, msg.__msgtype__)
         else:
             data = self.ts.serialize_cdr(msg, msg.__msgtype__)
-        self.writer.write(self.conns[topic], t_ns, data)
+        self.writer.write(self.conns[key], t_ns, data)
 
 
 def write_bag(path: Path, frames: Sequence[Frame], spec: BagSpec) -> Path:
@@ -188,7 +200,13 @@ def write_bag(path: Path, frames: Sequence[Frame], spec: BagSpec) -> Path:
         stamp = ts.types["builtin_interfaces/msg/Time"](sec=t_ns // 10**9, nanosec=t_ns % 10**9)
         if spec.imu_frame is not None and frame.accel_mps2 is not None:
             out.write(IMU_TOPIC, imu_msg(ts, frame.accel_mps2, stamp, spec.imu_frame), t_ns)
-        out.write(DEPTH_TOPIC, image_msg(ts, frame, stamp, spec, spec.encoding), t_ns + 1)
+        if spec.info_on_depth:
+            out.write(spec.depth_topic, info_msg(ts, frame, stamp, spec), t_ns)
+        if spec.compress is not None:
+            depth = compressed_msg(ts, stamp, *spec.compress(frame))
+        else:
+            depth = image_msg(ts, frame, stamp, spec, spec.encoding)
+        out.write(spec.depth_topic, depth, t_ns + 1)
         for topic, encoding in spec.extra_images.items():
             out.write(topic, image_msg(ts, frame, stamp, spec, encoding), t_ns + 2)
         if spec.info:

@@ -245,7 +245,7 @@ def test_truncated_bags(tmp_path: Path) -> None:
         assert "not a readable ROS bag" in str(err) and err.hint
 
 
-def test_compressed_depth_is_not_supported_yet(tmp_path: Path) -> None:
+def test_compressed_depth_of_zeros_is_one_error(tmp_path: Path) -> None:
     from rosbags.rosbag2 import Writer
     from rosbags.typesys import Stores, get_typestore
 
@@ -263,7 +263,7 @@ def test_compressed_depth_is_not_supported_yet(tmp_path: Path) -> None:
         )
         writer.write(conn, 1, ts.serialize_cdr(msg, msg.__msgtype__))
     err = _error(f"replay:{path}")
-    assert "compressed depth images" in str(err) and "not supported yet" in str(err)
+    assert "the compressedDepth payload is not a PNG" in str(err)  # see test_ros_compressed_depth
 
 
 def test_the_cli_says_one_line(tmp_path: Path) -> None:
