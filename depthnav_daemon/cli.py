@@ -142,9 +142,14 @@ def _add_run_commands(sub: Any) -> None:
         help="recording folder, .npz, .npy, PNG/PGM folder, fakenect folder, .oni file or ROS bag",
     )
     p.add_argument(
-        "--rate", choices=("realtime", "max"), default="max", help="pacing (default max)"
+        "--rate",
+        choices=("realtime", "max"),
+        default=None,
+        help="pacing (default max; PATH?rate=.. works too)",
     )
-    p.add_argument("--loop", action="store_true", help="start again at the end")
+    p.add_argument(
+        "--loop", action="store_true", help="start again at the end (PATH?loop=1 works too)"
+    )
     _add_run_args(p, device_required=False)
     p.set_defaults(handler="run:cmd_replay")
 

@@ -17,10 +17,14 @@ PATH is one of (detected when opened):
   ``topic`` picks the depth image topic, ``info_topic`` its CameraInfo).
 
 Options: ``rate`` realtime (default; sleep to the recorded timestamps) or max (no sleeping);
-``loop`` 1 to start again at the end (timestamps keep increasing); ``fps`` frame rate for sources
-without timestamps (default 30); ``fx, fy, cx, cy`` override the intrinsics (pixels); ``start``
-skips that many frames when opening (a seek done by reading, as OpenNI2's own seek hangs; a loop
-restarts at frame 0); ``glob`` (image folders) a pattern relative to PATH naming the depth images.
+``loop`` 1 to start again at the end (time goes on from the pass before: drivers/replay_clock.py);
+``fps`` frame rate for sources without timestamps (default 30); ``fx, fy, cx, cy`` override the
+intrinsics (pixels); ``start`` skips that many frames when opening (a seek done by reading, as
+OpenNI2's own seek hangs; a loop restarts at frame 0); ``glob`` (image folders) a pattern relative
+to PATH naming the depth images.
+
+Times handed out always increase: a stamp not after the last one is moved just past it, warned
+once (drivers/replay_clock.py).
 
 A depthnav recording whose decoded frames fit in ``CACHE_MAX_BYTES`` is decompressed once and kept
 for looping; a larger one is decompressed one frame at a time, again on every loop pass.
@@ -52,6 +56,7 @@ from drivers.formats.recording import (
     recording_depth_nbytes,
 )
 from drivers.kinect.axes import accel_counts_to_camera, tilt_status_name
+from drivers.replay_clock import ReplayClock
 from drivers.spec import (
     INTRINSICS_OPTIONS,
     Spec,
@@ -116,8 +121,7 @@ class ReplayDriver:
         self._inner: Driver | None = None
         self._intrinsics: Intrinsics | None = None
         self._seq = 0
-        self._t_offset_s = 0.0
-        self._last_t_s = 0.0
+        self._clock = ReplayClock(str(self.path), fps)  # loop offsets, increasing times
         self._wall0: float | None = None
         self._is_open = False
         self._has_accel = False
@@ -368,8 +372,7 @@ class ReplayDriver:
             if self._inner is not None:
                 item: object = self._inner.read_frame(5.0)
             else:
-                assert self._items is not None
-                item = next(self._items, None)
+                item = self._next_item()
             if item is None:
                 raise RecordingError(
                     f"{self.path}: start={count} is beyond the end ({skipped} frames)",
@@ -384,21 +387,21 @@ class ReplayDriver:
             frame = self._inner.read_frame(timeout_s)
             if frame is None:
                 return None
-            frame = dataclasses.replace(
-                frame, seq=self._seq
-            )  # seq counts from 0 after a start skip
+            # seq counts from 0 after a start skip; OpenNI loops the file and shifts time itself
+            t_s = self._clock.time(frame.timestamp_s, self._seq, shift=False)
+            frame = dataclasses.replace(frame, seq=self._seq, timestamp_s=t_s)
             self._seq += 1
             return frame
-        assert self._items is not None and self._intrinsics is not None
-        item = next(self._items, None)
+        assert self._intrinsics is not None
+        item = self._next_item()
         if item is None and self.loop and self._seq > 0:
-            self._t_offset_s = self._last_t_s + 1.0 / self.fps
+            self._clock.next_pass()
             self._start()
-            item = next(self._items, None)
+            item = self._next_item()
         if item is None:
             return None
         stamp, depth, accel, tilt, odom = item
-        t_s = stamp + self._t_offset_s
+        t_s = self._clock.time(stamp, self._seq)
         if self.realtime:
             now = time.monotonic()
             if self._wall0 is None:
@@ -422,8 +425,15 @@ class ReplayDriver:
             odom=odom,
         )
         self._seq += 1
-        self._last_t_s = t_s
         return frame
+
+    def _next_item(self) -> Item | None:
+        """The next recorded item of this pass; its stamp noted for the loop offset."""
+        assert self._items is not None
+        item = next(self._items, None)
+        if item is not None:
+            self._clock.note(item[0])
+        return item
 
     def close(self) -> None:
         """Stop replaying. Safe to call twice."""
@@ -434,6 +444,7 @@ class ReplayDriver:
         if hasattr(items, "close"):
             items.close()  # a ROS bag's generator closes its reader
         self._recording = None
+        self._clock.close()
         if self._is_open:
             self._is_open = False
             with ReplayDriver._count_lock:

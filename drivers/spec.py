@@ -9,7 +9,7 @@ from __future__ import annotations
 import re
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
-from urllib.parse import unquote
+from urllib.parse import quote, unquote, urlencode
 
 from drivers.base import (
     DISTORTION_KEYS,
@@ -86,6 +86,17 @@ def parse_spec(
                 )
             options[key] = unquote(value)
     return Spec(text=text, scheme=scheme, target=unquote(target), options=options)
+
+
+def format_spec(scheme: str, target: str, options: Mapping[str, str]) -> str:
+    """The spec text that :func:`parse_spec` reads back as ``scheme``, ``target`` and ``options``
+    (percent-encoded where a character would end the target or an option)."""
+    # "scheme:" + a target that starts with "//" would read as "scheme://" plus the rest
+    head = f"{scheme}://" if target.startswith("//") else f"{scheme}:"
+    text = head + quote(target, safe="/:@,+~")
+    if options:
+        text += "?" + urlencode(options, quote_via=quote, safe="/:@,")
+    return text
 
 
 def check_options(spec: Spec, valid: Iterable[str], grammar: str, kind: str = "") -> None:

@@ -38,7 +38,7 @@ DEVICE_OPTIONS: dict[str, tuple[str, tuple[tuple[str, str], ...]]] = {
         "    PNG/PGM depth images, fakenect folder, .oni, ROS bag)",
         (
             ("rate", "realtime (default: sleep to the recorded timestamps) or max"),
-            ("loop", "1: start again at the end"),
+            ("loop", "1: start again at the end (time goes on from the last frame)"),
             ("fps", "frame rate of sources without timestamps (default 30)"),
             ("start", "skip this many frames when opening"),
             *_intrinsics(),

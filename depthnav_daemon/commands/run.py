@@ -16,6 +16,7 @@ from depthnav_daemon.commands.common import (
     overrides,
 )
 from depthnav_daemon.errors import ConfigError
+from drivers.errors import DeviceSpecError
 
 log = logging.getLogger(__name__)
 
@@ -73,6 +74,40 @@ def cmd_run(args: argparse.Namespace) -> int:
     return _run(args, args.device)
 
 
+def replay_spec(path: str, rate: str | None, loop: bool) -> str:
+    """The device spec of ``depthnav replay PATH [--rate R] [--loop]``: PATH's own ``?options``
+    kept, the flags merged into them (rate max unless either gives one).
+
+    Raises:
+        DeviceSpecError: a flag and the same option in PATH disagree (exit 2).
+    """
+    from drivers.spec import Spec, bool_option, choice_option, format_spec, parse_spec
+
+    spec = parse_spec(f"replay:{path}")
+    options = dict(spec.options)
+    flags = {"rate": rate} if rate is not None else {}
+    if loop:
+        flags["loop"] = "1"
+    for key, value in flags.items():
+        if key in options:
+            # the same setting twice: compared as the driver reads them (loop=yes is loop=1)
+            def read(v: str, key: str = key) -> object:
+                probe = Spec(spec.text, spec.scheme, spec.target, {key: v})
+                if key == "rate":
+                    return choice_option(probe, key, ("realtime", "max"), "max")
+                return bool_option(probe, key, False)
+
+            if read(options[key]) != read(value):
+                flag = "--loop" if key == "loop" else f"--{key} {value}"
+                raise DeviceSpecError(
+                    f"{flag} and {key}={options[key]} in {path!r} disagree",
+                    hint=f"give {key} once: as the flag or in the path",
+                )
+        else:
+            options[key] = value
+    options.setdefault("rate", "max")  # the replay command's default: a recording as fast as read
+    return format_spec("replay", spec.target, options)
+
+
 def cmd_replay(args: argparse.Namespace) -> int:
-    query = f"?rate={args.rate}" + ("&loop=1" if args.loop else "")
-    return _run(args, f"replay:{args.path}{query}")
+    return _run(args, replay_spec(args.path, args.rate, args.loop))

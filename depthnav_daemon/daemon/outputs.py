@@ -68,7 +68,13 @@ def fan_out(sinks: list[Sink], frame: Frame, result: Result, report: RunReport) 
             sink.write(frame, result)
         except Exception as exc:
             msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
-            log.error("sink %s failed: %s; dropped, the others go on", sink.name, msg)
+            hint = getattr(exc, "hint", None)
+            log.error(
+                "sink %s failed: %s; dropped, the others go on%s",
+                sink.name,
+                msg,
+                f" ({hint})" if hint else "",
+            )
             report.dropped_sinks.append(sink.name)
             sinks.remove(sink)
             try:

@@ -42,7 +42,9 @@ from depthnav_daemon.sinks.base import SinkContext, SinkSpec, check_options, par
 from depthnav_daemon.sinks.json.message import mount_trust_to_json
 from depthnav_daemon.sinks.ros.messages import (
     OPTIONS,
+    UINT32_SEC_MAX,
     RosNames,
+    check_stamp,
     quaternion,
     scan_origin,
     sensor_placement,
@@ -168,7 +170,8 @@ class FoxgloveSink:
             raise SinkError(f"sink {self.name!r} is not open")
         from foxglove import messages as m
 
-        t_ns = to_ns(result.timestamp_s)
+        # foxglove.Timestamp's sec is uint32: past it the SDK raises OverflowError
+        t_ns = check_stamp(to_ns(result.timestamp_s), UINT32_SEC_MAX, "a foxglove Timestamp")
         stamp = m.Timestamp(t_ns // 10**9, t_ns % 10**9)
         n = self.names
         for topic, build in (

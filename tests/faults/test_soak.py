@@ -21,15 +21,16 @@ def test_soak_through_every_sink(soak_long: bool, tmp_path) -> None:
         warmup=max(500, frames // 10),
         timeout_s=3600.0 if soak_long else 600.0,
     )
-    print(report.text())  # noqa: T201 - the figures, with -s
-    assert report.exit_code == 0
-    assert report.frames_processed == frames
+    text = report.text()
+    print(text)  # noqa: T201 - the figures, with -s
+    assert report.exit_code == 0, text
+    assert report.frames_processed == frames, text
     # no frame dropped: every seq once and in order on stdout, every seq over UDP
-    assert report.stdout_lines == frames and report.stdout_out_of_order == 0
-    assert report.udp_received == frames and report.udp_missing == 0
-    assert report.mavlink_bytes > 0 and report.rrd_bytes > 0  # the other sinks were fed too
-    assert len([s for s in report.samples if s[0] >= report.warmup_frames]) >= 2
-    assert report.rss_growth_mb < RSS_LIMIT_MB, report.text()
+    assert report.stdout_lines == frames and report.stdout_out_of_order == 0, text
+    assert report.udp_received == frames and report.udp_missing == 0, text
+    assert report.mavlink_bytes > 0 and report.rrd_bytes > 0, text  # the other sinks were fed
+    assert len([s for s in report.samples if s[0] >= report.warmup_frames]) >= 2, text
+    assert report.rss_growth_mb < RSS_LIMIT_MB, text
 
 
 @pytest.mark.parametrize("frames", [1])

@@ -23,7 +23,12 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from depthnav_daemon.sinks.ros.messages import MessageBuilder, sensor_placement, stamp_ns
+from depthnav_daemon.sinks.ros.messages import (
+    MessageBuilder,
+    check_stamp,
+    sensor_placement,
+    stamp_ns,
+)
 
 if TYPE_CHECKING:
     from depthnav_daemon.pipeline import Result
@@ -105,8 +110,9 @@ class CdrEncoder:
         is ``t_ns`` when given, else the frame's own time."""
         if t_ns is None:
             t_ns = stamp_ns(result.timestamp_s)
-        sec, nanosec = t_ns // 10**9, t_ns % 10**9
         b = self.builder
+        check_stamp(t_ns, b.sec_max, b.time_type)  # before _STAMP packs it: no struct.error
+        sec, nanosec = t_ns // 10**9, t_ns % 10**9
         n = b.names
         out = [(n["scan_topic"], self._scan(result.scan, t_ns, sec, nanosec))]
         if result.cliff is not None:

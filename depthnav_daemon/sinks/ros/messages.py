@@ -22,6 +22,10 @@ left side up), pitch about y = tilt_deg (positive nose down), yaw = yaw_deg, ROS
 position = (x_m, y_m, height_m)).
 With ``image=1`` also the depth image (sensor_msgs/Image 16UC1, optical frame) and its
 CameraInfo, so ``replay:`` reads the bag back.
+
+Stamps: a ROS 2 ``builtin_interfaces/Time`` holds sec as int32 (up to 2038-01-19); a ROS 1 time
+is uint32, but rosbags serialises it through the same int32 Time, so ROS 1 bags stop there too. A
+frame time past that is a SinkError (:func:`check_stamp`), not a struct.error.
 """
 
 from __future__ import annotations
@@ -33,6 +37,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import numpy.typing as npt
 
+from depthnav_daemon.errors import SinkError
 from depthnav_daemon.pipeline.geometry import M_CAM_TO_FLU, rot_x, rot_y, rot_z
 from depthnav_daemon.sinks.base import SinkSpec, bool_option
 
@@ -126,6 +131,25 @@ def stamp_ns(t_s: float) -> int:
     return max(0, round(t_s * 1e9)) if math.isfinite(t_s) else 0
 
 
+INT32_SEC_MAX = 2**31 - 1  # builtin_interfaces/Time.sec: 2038-01-19T03:14:07Z
+UINT32_SEC_MAX = 2**32 - 1  # foxglove.Timestamp.sec: 2106-02-07T06:28:15Z
+
+
+def check_stamp(t_ns: int, sec_max: int, what: str) -> int:
+    """``t_ns`` (a stamp in ns) when its whole seconds fit ``sec_max``.
+
+    Raises:
+        SinkError: one line naming the time and the type's limit, with a hint.
+    """
+    if t_ns // 10**9 > sec_max:
+        raise SinkError(
+            f"frame time {t_ns / 1e9:.3f} s is past what {what} holds (sec at most {sec_max})",
+            hint="the source's timestamps are not a time ROS can carry; check the recording's "
+            "stamps (a looped replay goes on from the recording's own first stamp)",
+        )
+    return t_ns
+
+
 class MessageBuilder:
     """Builds the ROS messages of one frame for a typestore (see the module docstring)."""
 
@@ -134,6 +158,13 @@ class MessageBuilder:
         self.names = names
         self.t = store.types
         self._header_has_seq = "seq" in self.t["std_msgs/msg/Header"].__dataclass_fields__
+        # ROS 1 (its Header has seq) time is uint32 seconds, but rosbags packs it as int32
+        self.sec_max = INT32_SEC_MAX
+        self.time_type = (
+            "a ROS 1 time as rosbags writes it (int32 sec)"
+            if self._header_has_seq
+            else "a ROS 2 builtin_interfaces/Time (int32 sec)"
+        )
 
     def msgtypes(self) -> dict[str, str]:
         """topic -> message type of every topic this builder may write."""
@@ -266,6 +297,7 @@ class MessageBuilder:
         ``t_ns`` when given (live topics: the wall clock), else the frame's own time."""
         if t_ns is None:
             t_ns = stamp_ns(result.timestamp_s)
+        check_stamp(t_ns, self.sec_max, self.time_type)
         n = self.names
         out: list[tuple[str, Any]] = [(n["scan_topic"], self.laser_scan(result.scan, t_ns))]
         if result.cliff is not None:
