@@ -7,11 +7,14 @@ Which images (at a fixed frame rate unless ``depth.txt`` gives timestamps):
 - else the folder's ``*.png`` and ``*.pgm`` files, or if none of them is depth those in
   ``depth/``, in natural name order. Colour images (RGB PNG, PPM, JPEG) and 8-bit images beside
   them are skipped, said in one INFO line (TUM's rgb/ + depth/, slambook's color/ + depth/,
-  ``1.png`` beside ``1_depth.png``); a folder of colour images only is refused in one line.
+  ``1.png`` beside ``1_depth.png``, ``N_depth_u16.png`` beside its ``N_depth_u8.png`` preview:
+  what each file is comes from its header, drivers.formats.image_kinds); a folder of colour
+  images only is refused in one line.
 
 Images are read by drivers.formats.depth_images (16-bit single-channel PNG; binary PGM with
 maxval above 255, big-endian as netpbm says). Pixel values are depth units, ``scale`` of them
-per metre (TUM: 5000; 1000 means millimetres), 0 = no reading. Intrinsics and scale come from
+per metre (TUM: 5000, assumed for a folder laid out as TUM's, drivers.formats.tum; 1000 means
+millimetres), 0 = no reading. Intrinsics and scale come from
 a sidecar ``camera.toml``::
 
     depth_scale = 5000          # units per metre
@@ -31,7 +34,6 @@ from __future__ import annotations
 import itertools
 import logging
 import os
-import re
 from collections.abc import Iterable, Iterator
 from pathlib import Path
 from typing import Any
@@ -43,13 +45,14 @@ from PIL import Image
 from drivers.base import DISTORTION_KEYS, UINT16_MAX, Frame, Intrinsics
 from drivers.errors import RecordingError
 from drivers.files import INDEX_MAX_BYTES, check_regular, read_bytes, read_toml
-from drivers.formats.depth_images import MAX_IMAGE_BYTES, SUFFIXES, kind_of, read_depth_image
+from drivers.formats.depth_images import MAX_IMAGE_BYTES, SUFFIXES, read_depth_image
+from drivers.formats.image_kinds import DIGITS, image_kinds
+from drivers.formats.tum import INDEX, TUM_SCALE, recognise_tum
 from drivers.values import NumberError, short_repr, short_text, to_number
 
 log = logging.getLogger(__name__)
 
 SIDECAR = "camera.toml"
-INDEX = "depth.txt"
 MAX_SCALE = 1e6  # depth units per metre
 
 
@@ -67,11 +70,8 @@ def _images(where: Path) -> list[Path]:
 
 def _natural_key(path: Path) -> tuple[tuple[int, int | str], ...]:
     return tuple(
-        (0, int(part)) if part.isdigit() else (1, part) for part in _DIGITS.split(path.name) if part
+        (0, int(part)) if part.isdigit() else (1, part) for part in DIGITS.split(path.name) if part
     )
-
-
-_DIGITS = re.compile(r"([0-9]{1,18})")
 
 
 def is_png_folder(folder: Path) -> bool:
@@ -130,28 +130,12 @@ def _globbed(folder: Path, pattern: str) -> list[Path]:
     return sorted(paths, key=_natural_key)
 
 
-def _kinds(paths: list[Path]) -> list[tuple[Path, str]]:
-    """Each image with its kind (depth_images.kind_of), read from the first file of each name
-    shape (the name with its digits as one mark: ``#_depth.png``, ``#_rgb.png``, ``#.png``):
-    a 100 000-frame folder is not opened 100 000 times. A file of another kind inside a group
-    is refused when read, with the glob hint."""
-    seen: dict[str, str] = {}
-    out = []
-    for path in paths:
-        shape = _DIGITS.sub("#", path.name)
-        if shape not in seen:
-            seen[shape] = kind_of(path)
-        kind = seen[shape]
-        out.append((path, kind))
-    return out
-
-
 def _depth_images(folder: Path) -> list[Path]:
     """The depth images of a folder without ``depth.txt``: its own PNG/PGM files, else those in
     ``depth/``; colour and 8-bit images beside them are skipped (said in one INFO line)."""
     skipped: list[tuple[Path, str]] = []
     for where in (folder, folder / "depth"):
-        kinds = _kinds(_images(where))
+        kinds = image_kinds(_images(where))  # by each file's header, not its name
         depth = [p for p, kind in kinds if kind in ("depth", "unknown")]
         skipped += [(p, kind) for p, kind in kinds if kind not in ("depth", "unknown")]
         if depth:
@@ -207,8 +191,6 @@ def list_frames(folder: Path, fps: float, pattern: str | None = None) -> list[tu
 
 SIDECAR_KEYS = ("depth_scale", "intrinsics")
 INTRINSICS_KEYS = ("width", "height", "fx", "fy", "cx", "cy", *DISTORTION_KEYS)
-TUM_SCALE = 5000.0
-TUM_MARK = b"rgbd_dataset_"  # TUM RGB-D's depth.txt names its bag: "# file: 'rgbd_dataset_..."
 SCALE_HINT = (
     "say how many depth units make a metre: scale=1000 for millimetre PNGs (most sensors and "
     "tools), scale=5000 for TUM RGB-D; as replay:PATH?scale=1000 or depth_scale = 1000 in "
@@ -245,12 +227,8 @@ def read_sidecar(folder: Path) -> dict[str, Any]:
 
 
 def is_tum(folder: Path) -> bool:
-    """True for a TUM RGB-D folder: its depth.txt header names the dataset's bag."""
-    index = folder / INDEX
-    if not os.path.lexists(index):
-        return False
-    head = read_bytes(index, what="frame index", max_bytes=INDEX_MAX_BYTES)[:512]
-    return TUM_MARK in head
+    """True for a TUM RGB-D folder, recognised by its structure (drivers.formats.tum)."""
+    return recognise_tum(folder)[0]
 
 
 def sidecar_scale(folder: Path, side: dict[str, Any]) -> float:
@@ -260,15 +238,25 @@ def sidecar_scale(folder: Path, side: dict[str, Any]) -> float:
     units per metre puts every obstacle at a fifth of its range), so it must be stated.
 
     Raises:
-        RecordingError: no scale and not a TUM folder (with the common values); not a number in
-            1..1e6 (0 would divide by zero, text would not parse).
+        RecordingError: no scale and not a TUM folder (drivers.formats.tum, by its structure;
+            the message says what is not TUM about a folder that looks partly like one, the
+            hint the common values); not a number in 1..1e6 (0 would divide by zero).
     """
     if "depth_scale" not in side:
-        if is_tum(folder):
-            log.info("%s: a TUM RGB-D folder: %g depth units per metre", folder, TUM_SCALE)
+        tum, why = recognise_tum(folder)
+        if tum:
+            log.info(
+                "%s: a TUM RGB-D folder (%s): %g depth units per metre, as the format defines; "
+                "for another unit give replay:PATH?scale=N or depth_scale in %s",
+                folder,
+                why,
+                TUM_SCALE,
+                SIDECAR,
+            )
             return TUM_SCALE
         raise RecordingError(
-            f"{folder}: the depth scale is not stated (no depth_scale in {SIDECAR}, no scale=)",
+            f"{folder}: the depth scale is not stated (no depth_scale in {SIDECAR}, no scale=)"
+            + (f"; {why}" if why else ""),
             hint=SCALE_HINT,
         )
     value = side["depth_scale"]
