@@ -6,7 +6,8 @@ Specs:
     ``foxglove:FILE.mcap``                    write the channels to FILE.mcap (Foxglove opens it)
 
 Options: ``image=0`` leaves out the depth image and its overlays; ``tf=0`` the transforms; the
-frame and topic names of the ROS sinks (sinks/ros/messages.py: ``base_frame``, ``scan_topic`` ...).
+frame and topic names of the ROS sinks (sinks/ros/messages.py: ``base_frame``, ``scan_topic`` ...)
+and their ``cliff_z``.
 
 Channels (Foxglove's own protobuf schemas unless said):
     /depthnav/depth/image_raw     RawImage 16UC1 (mm), optical frame
@@ -14,7 +15,8 @@ Channels (Foxglove's own protobuf schemas unless said):
     /depthnav/depth/annotations   ImageAnnotations: the scan's row band (yellow), obstacle
                                   pixels (red, at most 1000 drawn), cliff blocks (magenta)
     /scan, /cliff/scan            LaserScan in the level scan frame (NaN/+inf/-inf as computed)
-    /cliff/points                 PointCloud x y z float32, floor points in the scan frame
+    /cliff/points                 PointCloud x y z float32, the drop-offs in the base frame at
+                                  z = cliff_z (as the ROS sinks)
     /tf                           FrameTransforms: base -> scan frame, base -> optical frame
     /depth_sensor_pose            PoseInFrame: the mount in the base frame (see ros_messages)
     /depthnav/timings             JSON: stage timings (ms), mount, its source and trust (the
@@ -45,6 +47,7 @@ from depthnav_daemon.sinks.ros.messages import (
     UINT32_SEC_MAX,
     RosNames,
     check_stamp,
+    cliff_xyz,
     quaternion,
     scan_origin,
     sensor_placement,
@@ -58,7 +61,7 @@ if TYPE_CHECKING:
 
 log = logging.getLogger(__name__)
 
-GRAMMAR = "foxglove://HOST:PORT | foxglove:FILE.mcap [?image=0|1&tf=0|1&<names>]"
+GRAMMAR = "foxglove://HOST:PORT | foxglove:FILE.mcap [?image=0|1&tf=0|1&cliff_z=-0.05&<names>]"
 DEFAULT_HOST, DEFAULT_PORT = "127.0.0.1", 8765
 BACKLOG = 64  # messages queued per client before the oldest are dropped
 MAX_OBSTACLE_POINTS = 1000  # ~7 us each to build
@@ -207,14 +210,12 @@ class FoxgloveSink:
 
     def _points(self, m: Any, stamp: Any, result: Result) -> Any:
         assert result.cliff is not None
-        xy = np.asarray(result.cliff.points_m, dtype=np.float32).reshape(-1, 2)
-        xy = xy[np.isfinite(xy).all(axis=1)]
-        xyz = np.column_stack([xy, np.full(len(xy), -result.mount.height_m, np.float32)])
+        xyz = cliff_xyz(result.cliff.points_m, self.names.cliff_z)
         f32 = m.PackedElementFieldNumericType.Float32
         fields = [m.PackedElementField(name=c, offset=4 * i, type=f32) for i, c in enumerate("xyz")]
         return m.PointCloud(
-            timestamp=stamp, frame_id=self.names["scan_frame"], pose=self._identity(m),
-            point_stride=12, fields=fields, data=xyz.astype("<f4").tobytes(),
+            timestamp=stamp, frame_id=self.names["base_frame"], pose=self._identity(m),
+            point_stride=12, fields=fields, data=xyz.tobytes(),
         )  # fmt: skip
 
     def _quat(self, m: Any, rot: np.ndarray) -> Any:

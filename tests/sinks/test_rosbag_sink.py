@@ -78,7 +78,9 @@ def check_messages(got: dict[str, list], msgs: list[dict]) -> None:
         xyz = np.frombuffer(bytes(cloud.data), dtype="<f4").reshape(-1, 3)
         assert [f.name for f in cloud.fields] == ["x", "y", "z"] and cloud.point_step == 12
         np.testing.assert_allclose(xyz[:, :2], m["cliff"]["points_m"], atol=0.0006)
-        np.testing.assert_allclose(xyz[:, 2], -m["pose"]["height_m"], atol=0.0006)
+        # in base_link, cliff_z (-0.05) below the floor exactly: no rounding decides for Nav2
+        assert cloud.header.frame_id == "base_link"
+        assert np.all(xyz[:, 2] == np.float32(-0.05))
         height, tilt = m["pose"]["height_m"], m["pose"]["tilt_deg"]
         level, optical = tf.transforms
         assert (level.header.frame_id, level.child_frame_id) == ("base_link", "depthnav_scan")

@@ -26,6 +26,7 @@ import numpy as np
 from depthnav_daemon.sinks.ros.messages import (
     MessageBuilder,
     check_stamp,
+    cliff_xyz,
     sensor_placement,
     stamp_ns,
 )
@@ -117,13 +118,7 @@ class CdrEncoder:
         out = [(n["scan_topic"], self._scan(result.scan, t_ns, sec, nanosec))]
         if result.cliff is not None:
             out.append((n["cliff_scan_topic"], self._scan(result.cliff.scan, t_ns, sec, nanosec)))
-            xy = np.asarray(result.cliff.points_m, dtype=np.float32).reshape(-1, 2)
-            if not np.isfinite(xy).all():
-                xy = xy[np.isfinite(xy).all(axis=1)]
-            xyz = np.empty((len(xy), 3), dtype="<f4")
-            xyz[:, :2] = xy
-            # as MessageBuilder: the height as float32, negated
-            xyz[:, 2] = np.float32(-result.mount.height_m)
+            xyz = cliff_xyz(result.cliff.points_m, n.cliff_z)  # as MessageBuilder
             out.append((n["cliff_points_topic"], self._cloud(xyz, t_ns, sec, nanosec)))
         mount = self._mount(result.mount)
         if mount is None:

@@ -8,18 +8,18 @@ builder serves ROS 1 bags, ROS 2 bags and live ROS 2 topics. Frames (names are o
   (:func:`sensor_placement`).
 - ``scan_frame`` (``depthnav_scan``): the base frame's axes raised to the sensor's height
   (:func:`scan_origin`); the scans (ranges from the base origin, bearings from the robot's
-  forward axis) and the cliff points are in it, the floor at z = -height.
+  forward axis) are in it, the floor at z = -height.
 - ``optical_frame`` (``depthnav_optical``): the depth camera's optical frame (x right, y down,
   z forward), tilted and rolled as the mount says.
 
 Topics (names are options): ``/scan`` and ``/cliff/scan`` (sensor_msgs/LaserScan, REP 117
 ranges: NaN no reading, +inf nothing within range_max, -inf closer than range_min),
-``/cliff/points`` (sensor_msgs/PointCloud2, x y z float32 in the scan frame: cliff floor
-points), ``/tf`` (tf2_msgs/TFMessage: base -> scan frame and base -> optical frame), and
-``/depth_sensor_pose`` (geometry_msgs/PoseStamped in the base frame: the sensor on the robot;
-orientation = the sensor body (x along the optical axis) as roll about x = roll_deg (positive
-left side up), pitch about y = tilt_deg (positive nose down), yaw = yaw_deg, ROS fixed-axis RPY;
-position = (x_m, y_m, height_m)).
+``/cliff/points`` (sensor_msgs/PointCloud2, x y z float32 in the base frame: the drop-offs,
+z = ``cliff_z`` exactly, :func:`cliff_xyz`), ``/tf`` (tf2_msgs/TFMessage: base -> scan frame
+and base -> optical frame), and ``/depth_sensor_pose`` (geometry_msgs/PoseStamped in the base
+frame: the sensor on the robot; orientation = the sensor body (x along the optical axis) as roll
+about x = roll_deg (positive left side up), pitch about y = tilt_deg (positive nose down),
+yaw = yaw_deg, ROS fixed-axis RPY; position = (x_m, y_m, height_m)).
 With ``image=1`` also the depth image (sensor_msgs/Image 16UC1, optical frame) and its
 CameraInfo, so ``replay:`` reads the bag back.
 
@@ -39,7 +39,7 @@ import numpy.typing as npt
 
 from depthnav_daemon.errors import SinkError
 from depthnav_daemon.pipeline.geometry import M_CAM_TO_FLU, rot_x, rot_y, rot_z
-from depthnav_daemon.sinks.base import SinkSpec, bool_option
+from depthnav_daemon.sinks.base import SinkSpec, bool_option, number_option
 
 if TYPE_CHECKING:
     from depthnav_daemon.pipeline import Result
@@ -61,7 +61,12 @@ NAME_OPTIONS = {  # option -> default frame id or topic name
     "image_topic": "/depthnav/depth/image_raw",
     "info_topic": "/depthnav/depth/camera_info",
 }
-OPTIONS = (*NAME_OPTIONS, "tf", "image")
+OPTIONS = (*NAME_OPTIONS, "tf", "image", "cliff_z")
+# z of the cliff points in the base frame (origin on the floor), metres: a clear distance below
+# the floor, so Nav2's height filters (min_obstacle_height) keep or drop them by configuration,
+# never by float rounding. At most -1 mm: 0 would sit exactly on the layer's default filter.
+CLIFF_Z_DEFAULT = -0.05
+CLIFF_Z_RANGE = (-1.0, -0.001)
 TFMESSAGE_MSG = "geometry_msgs/TransformStamped[] transforms"
 POINTFIELD_FLOAT32 = 7
 
@@ -79,16 +84,20 @@ def typestore(ros1: bool) -> Any:
 
 @dataclass(frozen=True, slots=True)
 class RosNames:
-    """Frame ids and topic names (``NAME_OPTIONS``), and which optional topics to write."""
+    """Frame ids and topic names (``NAME_OPTIONS``), which optional topics to write, and the
+    cliff points' z in the base frame (``cliff_z``, metres, negative: below the floor)."""
 
     names: dict[str, str]
     tf: bool = True
     image: bool = False
+    cliff_z: float = CLIFF_Z_DEFAULT
 
     @classmethod
     def from_spec(cls, spec: SinkSpec) -> RosNames:
+        """From a sink spec's options. Raises ConfigError (one line) for a bad ``cliff_z``."""
         names = {k: spec.options.get(k, v).strip() or v for k, v in NAME_OPTIONS.items()}
-        return cls(names, bool_option(spec, "tf", True), bool_option(spec, "image", False))
+        cliff_z = float(number_option(spec, "cliff_z", CLIFF_Z_DEFAULT, *CLIFF_Z_RANGE))
+        return cls(names, bool_option(spec, "tf", True), bool_option(spec, "image", False), cliff_z)
 
     def __getitem__(self, key: str) -> str:
         return self.names[key]
@@ -124,6 +133,20 @@ def quaternion(rot: F64) -> tuple[float, float, float, float]:
         math.sqrt(max(0.0, 1.0 - m[0, 0] - m[1, 1] + m[2, 2])) / 2.0, m[1, 0] - m[0, 1]
     )
     return x, y, z, w
+
+
+def cliff_xyz(points_m: Any, cliff_z: float) -> npt.NDArray[np.float32]:
+    """The cliff points as (K, 3) little-endian float32 in the base frame: x, y (metres) of the
+    finite points, z = ``cliff_z`` exactly. In the base frame, not the scan frame, so no
+    transform adds the height back (float32(-h) + h came out +-1e-8, either side of Nav2's
+    0.0 filter)."""
+    xy = np.asarray(points_m, dtype=np.float32).reshape(-1, 2)
+    if not np.isfinite(xy).all():
+        xy = xy[np.isfinite(xy).all(axis=1)]
+    xyz = np.empty((len(xy), 3), dtype="<f4")
+    xyz[:, :2] = xy
+    xyz[:, 2] = np.float32(cliff_z)
+    return xyz
 
 
 def stamp_ns(t_s: float) -> int:
@@ -203,7 +226,7 @@ class MessageBuilder:
         )
 
     def points(self, xyz: npt.NDArray[np.float32], t_ns: int) -> Any:
-        """A PointCloud2 of (K, 3) float32 points in the scan frame."""
+        """A PointCloud2 of (K, 3) float32 points in the base frame (the cliff points)."""
         field = self.t["sensor_msgs/msg/PointField"]
         fields = [
             field(name=c, offset=4 * i, datatype=POINTFIELD_FLOAT32, count=1)
@@ -211,7 +234,7 @@ class MessageBuilder:
         ]
         data = np.ascontiguousarray(xyz, dtype="<f4")
         return self.t["sensor_msgs/msg/PointCloud2"](
-            header=self.header(t_ns, self.names["scan_frame"]),
+            header=self.header(t_ns, self.names["base_frame"]),
             height=1,
             width=int(data.shape[0]),
             fields=fields,
@@ -302,10 +325,8 @@ class MessageBuilder:
         out: list[tuple[str, Any]] = [(n["scan_topic"], self.laser_scan(result.scan, t_ns))]
         if result.cliff is not None:
             out.append((n["cliff_scan_topic"], self.laser_scan(result.cliff.scan, t_ns)))
-            xy = np.asarray(result.cliff.points_m, dtype=np.float32).reshape(-1, 2)
-            xy = xy[np.isfinite(xy).all(axis=1)]
-            xyz = np.column_stack([xy, np.full(len(xy), -result.mount.height_m, np.float32)])
-            out.append((n["cliff_points_topic"], self.points(xyz.astype(np.float32), t_ns)))
+            xyz = cliff_xyz(result.cliff.points_m, n.cliff_z)
+            out.append((n["cliff_points_topic"], self.points(xyz, t_ns)))
         out.append((n["pose_topic"], self.pose(result.mount, t_ns)))
         if n.tf:
             out.append((n["tf_topic"], self.transforms(result.mount, t_ns)))

@@ -60,7 +60,7 @@ if TYPE_CHECKING:
 
 log = logging.getLogger(__name__)
 
-GRAMMAR = "ros2[?domain=0..232&tf=0|1&image=0|1&base_frame=..&scan_topic=..]"
+GRAMMAR = "ros2[?domain=0..232&tf=0|1&image=0|1&cliff_z=-0.05&base_frame=..&scan_topic=..]"
 MAX_DOMAIN = 232  # the highest domain whose RTPS ports (7400 + 250 * domain + ...) fit in 16 bits
 HISTORY_DEPTH = 5
 PIP_HINT = "pip install 'depthnav[ros2]'"

@@ -39,7 +39,10 @@ if TYPE_CHECKING:
 
 log = logging.getLogger(__name__)
 
-GRAMMAR = "rosbag:PATH.mcap|PATH.bag[?compression=..&image=0|1&tf=0|1&base_frame=..&scan_topic=..]"
+GRAMMAR = (
+    "rosbag:PATH.mcap|PATH.bag"
+    "[?compression=..&image=0|1&tf=0|1&cliff_z=-0.05&base_frame=..&scan_topic=..]"
+)
 COMPRESSIONS = {".mcap": ("zstd", "none"), ".bag": ("none", "bz2")}  # first = default
 PARTIAL = ".partial"
 RESERVE = ".reserve"
