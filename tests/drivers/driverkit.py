@@ -4,8 +4,10 @@ from __future__ import annotations
 
 import math
 import os
+import socket
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -171,3 +173,18 @@ def skip_without(missing: bool, package: str, install: str | None = None) -> Non
     if os.environ.get("DEPTHNAV_REQUIRE_NATIVE") == "1":
         pytest.fail(message + "; DEPTHNAV_REQUIRE_NATIVE=1 forbids skipping", pytrace=False)
     pytest.skip(message)
+
+
+def wait_until(pred, timeout_s: float = 10.0) -> None:
+    """Poll ``pred`` every 10 ms until it is true; fail the test after ``timeout_s``."""
+    end = time.monotonic() + timeout_s
+    while not pred():
+        assert time.monotonic() < end, "timed out"
+        time.sleep(0.01)
+
+
+def free_udp_port() -> int:
+    """A UDP port on 127.0.0.1 that nothing is bound to now."""
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]

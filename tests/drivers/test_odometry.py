@@ -9,7 +9,6 @@ import logging
 import math
 import os
 import socket
-import time
 
 import numpy as np
 import pytest
@@ -21,20 +20,7 @@ from drivers.formats.recording_writer import write_recording
 from drivers.odometry import OdomBuffer, create_odometry
 from drivers.odometry.mavlink import MavlinkOdometry, quaternion_yaw
 from drivers.odometry.udp import OdometryLineError, parse_odometry_line
-from tests.drivers.driverkit import SMALL, ramp_frames
-
-
-def _wait(pred, timeout_s: float = 10.0) -> None:
-    end = time.monotonic() + timeout_s
-    while not pred():
-        assert time.monotonic() < end, "timed out"
-        time.sleep(0.01)
-
-
-def _free_udp_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+from tests.drivers.driverkit import SMALL, free_udp_port, ramp_frames, wait_until
 
 
 def test_buffer_interpolates_and_turns_the_short_way_across_pi() -> None:
@@ -77,7 +63,7 @@ def test_bad_lines_are_named(line: bytes, kind: str, why: str) -> None:
 
 
 def test_json_lines_over_loopback_udp(caplog) -> None:
-    port = _free_udp_port()
+    port = free_udp_port()
     src = create_odometry(f"odom+udp://127.0.0.1:{port}?clock=message")
     src.start()
     try:
@@ -91,7 +77,7 @@ def test_json_lines_over_loopback_udp(caplog) -> None:
                 tx.sendto(b'{"x_m": "oops"}\n', ("127.0.0.1", port))
                 # the receiver counts the line, then logs it: wait for both (on a loaded machine
                 # the log record came after the count)
-                _wait(
+                wait_until(
                     lambda: (
                         src.bad_messages == 1
                         and src.buffer.count == 3
@@ -126,7 +112,7 @@ def test_mavlink_local_position_and_attitude_from_a_real_peer() -> None:
     os.environ.setdefault("MAVLINK20", "1")
     from pymavlink import mavutil
 
-    port = _free_udp_port()
+    port = free_udp_port()
     src = create_odometry(f"mavlink+udp://127.0.0.1:{port}")
     assert isinstance(src, MavlinkOdometry)
     src.start()
@@ -138,7 +124,7 @@ def test_mavlink_local_position_and_attitude_from_a_real_peer() -> None:
             tx.mav.attitude_send(1000, 0.0, 0.0, math.radians(30.0), 0.0, 0.0, 0.0)
             tx.mav.local_position_ned_send(1000, 2.0, 0.5, 0.0, 0.0, 0.0, 0.0)
 
-        _wait(lambda: send() or src.buffer.count > 0)
+        wait_until(lambda: send() or src.buffer.count > 0)
         latest = src.buffer.latest()
         assert (latest.x_m, latest.y_m) == pytest.approx((2.0, -0.5))
         assert math.degrees(latest.yaw_rad) == pytest.approx(-30.0, abs=1e-4)

@@ -11,7 +11,6 @@ import math
 import os
 import re
 import socket
-import time
 
 import numpy as np
 import pytest
@@ -27,24 +26,11 @@ from drivers.formats.recording import read_recording
 from drivers.odometry import OdomBuffer, OdomRefusals, OdomSample, check_sample, create_odometry
 from drivers.odometry.mavlink import MavlinkOdometry
 from drivers.odometry.udp import OdometryLineError, parse_odometry_line
-from tests.drivers.driverkit import SMALL, ramp_frames
+from tests.drivers.driverkit import SMALL, free_udp_port, ramp_frames, wait_until
 
 HUGE = 10**400  # a 401-digit integer: float() of it raises OverflowError
 DEEP = b"[" * 60_000 + b"]" * 60_000  # RecursionError in the JSON parser
 DEEP_DATAGRAM = b"[" * 60_000  # as deep, in one datagram (the parser recurses before it ends)
-
-
-def _wait(pred, timeout_s: float = 10.0) -> None:
-    end = time.monotonic() + timeout_s
-    while not pred():
-        assert time.monotonic() < end, "timed out"
-        time.sleep(0.01)
-
-
-def _free_udp_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 @pytest.mark.parametrize(
@@ -172,7 +158,7 @@ def test_warned_once_per_kind_then_a_summary_at_most_every_minute(caplog) -> Non
 
 
 def test_the_udp_receiver_refuses_every_hostile_line_and_takes_the_next_good_one(caplog) -> None:
-    port = _free_udp_port()
+    port = free_udp_port()
     src = create_odometry(f"odom+udp://127.0.0.1:{port}?clock=message")
     hostile = [
         b'{"t_s": 1, "x_m": ' + b"7" * 400 + b', "y_m": 0, "yaw_rad": 0}',  # out_of_range
@@ -196,10 +182,10 @@ def test_the_udp_receiver_refuses_every_hostile_line_and_takes_the_next_good_one
                 tx.sendto(line, ("127.0.0.1", port))
             good = {"t_s": 5.0, "x_m": 1.25, "y_m": -0.5, "yaw_rad": 0.3}
             tx.sendto(json.dumps(good).encode(), ("127.0.0.1", port))
-            _wait(lambda: src.buffer.count == 1)
+            wait_until(lambda: src.buffer.count == 1)
             # time going back after the good line: refused, counted
             tx.sendto(b'{"t_s": 4, "x_m": 0, "y_m": 0, "yaw_rad": 0}', ("127.0.0.1", port))
-            _wait(lambda: src.refusals.total == len(hostile) + 1)
+            wait_until(lambda: src.refusals.total == len(hostile) + 1)
         assert src.buffer.latest() == OdomSample(5.0, 1.25, -0.5, 0.3)
         assert src.refusals.counts() == {
             "malformed": 4,
@@ -229,13 +215,13 @@ def test_a_line_whose_handling_raises_anything_is_one_malformed_refusal(monkeypa
         return real(line, need_time)
 
     monkeypatch.setattr(udp, "parse_odometry_line", buggy)
-    port = _free_udp_port()
+    port = free_udp_port()
     src = create_odometry(f"odom+udp://127.0.0.1:{port}")
     src.start()
     try:
         with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as tx:
             tx.sendto(b'BOOM\n{"x_m": 1, "y_m": 2, "yaw_rad": 0}', ("127.0.0.1", port))
-            _wait(lambda: src.buffer.count == 1)
+            wait_until(lambda: src.buffer.count == 1)
         assert src.refusals.counts()["malformed"] == 1 and src.restarts == 0
         assert src._thread is not None and src._thread.is_alive()
     finally:
@@ -243,7 +229,7 @@ def test_a_line_whose_handling_raises_anything_is_one_malformed_refusal(monkeypa
 
 
 def test_a_failing_receive_loop_is_reported_and_started_again(monkeypatch, caplog) -> None:
-    port = _free_udp_port()
+    port = free_udp_port()
     src = create_odometry(f"odom+udp://127.0.0.1:{port}")
     real = src._receive
     failures = []
@@ -265,7 +251,7 @@ def test_a_failing_receive_loop_is_reported_and_started_again(monkeypatch, caplo
                     tx.sendto(b'{"x_m": 1, "y_m": 2, "yaw_rad": 0}', ("127.0.0.1", port))
                     return src.buffer.count > 0
 
-                _wait(sent)
+                wait_until(sent)
             assert src.restarts == 1 and src._thread.is_alive()
         finally:
             src.stop()
@@ -277,7 +263,7 @@ def test_mavlink_absurd_values_from_a_real_peer_are_refused_and_reading_goes_on(
     os.environ.setdefault("MAVLINK20", "1")
     from pymavlink import mavutil
 
-    port = _free_udp_port()
+    port = free_udp_port()
     src = create_odometry(f"mavlink+udp://127.0.0.1:{port}")
     src.start()
     tx = mavutil.mavlink_connection(f"udpout:127.0.0.1:{port}", source_system=1)
@@ -288,7 +274,7 @@ def test_mavlink_absurd_values_from_a_real_peer_are_refused_and_reading_goes_on(
             tx.mav.local_position_ned_send(1000, 1e19, 0.0, 0.0, 0.0, 0.0, 0.0)
             tx.mav.local_position_ned_send(1000, 0.0, math.nan, 0.0, 0.0, 0.0, 0.0)
 
-        _wait(lambda: send_bad() or src.refusals.counts()["not_finite"] > 0)
+        wait_until(lambda: send_bad() or src.refusals.counts()["not_finite"] > 0)
         assert src.refusals.counts()["out_of_range"] > 0 and src.buffer.count == 0
 
         def send_good() -> bool:
@@ -296,7 +282,7 @@ def test_mavlink_absurd_values_from_a_real_peer_are_refused_and_reading_goes_on(
             tx.mav.local_position_ned_send(1000, 2.0, 0.5, 0.0, 0.0, 0.0, 0.0)
             return src.buffer.count > 0
 
-        _wait(send_good)
+        wait_until(send_good)
         assert src.buffer.latest().x_m == pytest.approx(2.0)
         assert src._thread is not None and src._thread.is_alive()
     finally:
