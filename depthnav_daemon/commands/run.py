@@ -81,7 +81,7 @@ def replay_spec(path: str, rate: str | None, loop: bool) -> str:
     Raises:
         DeviceSpecError: a flag and the same option in PATH disagree (exit 2).
     """
-    from drivers.spec import Spec, bool_option, choice_option, format_spec, parse_spec
+    from drivers.spec import format_spec, parse_spec
 
     spec = parse_spec(f"replay:{path}")
     options = dict(spec.options)
@@ -91,13 +91,9 @@ def replay_spec(path: str, rate: str | None, loop: bool) -> str:
     for key, value in flags.items():
         if key in options:
             # the same setting twice: compared as the driver reads them (loop=yes is loop=1)
-            def read(v: str, key: str = key) -> object:
-                probe = Spec(spec.text, spec.scheme, spec.target, {key: v})
-                if key == "rate":
-                    return choice_option(probe, key, ("realtime", "max"), "max")
-                return bool_option(probe, key, False)
-
-            if read(options[key]) != read(value):
+            if _replay_option(spec.text, key, options[key]) != _replay_option(
+                spec.text, key, value
+            ):
                 flag = "--loop" if key == "loop" else f"--{key} {value}"
                 raise DeviceSpecError(
                     f"{flag} and {key}={options[key]} in {path!r} disagree",
@@ -107,6 +103,17 @@ def replay_spec(path: str, rate: str | None, loop: bool) -> str:
             options[key] = value
     options.setdefault("rate", "max")  # the replay command's default: a recording as fast as read
     return format_spec("replay", spec.target, options)
+
+
+def _replay_option(text: str, key: str, value: str) -> object:
+    """A ``rate`` or ``loop`` value as the replay driver reads it (``text``: the spec, for the
+    error of a bad value)."""
+    from drivers.spec import Spec, bool_option, choice_option
+
+    probe = Spec(text, "replay", "", {key: value})
+    if key == "rate":
+        return choice_option(probe, key, ("realtime", "max"), "max")
+    return bool_option(probe, key, False)
 
 
 def cmd_replay(args: argparse.Namespace) -> int:

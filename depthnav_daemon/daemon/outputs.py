@@ -67,12 +67,11 @@ def fan_out(sinks: list[Sink], frame: Frame, result: Result, report: RunReport) 
         try:
             sink.write(frame, result)
         except Exception as exc:
-            msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
             hint = getattr(exc, "hint", None)
             log.error(
                 "sink %s failed: %s; dropped, the others go on%s",
                 sink.name,
-                msg,
+                _one_line(exc),
                 f" ({hint})" if hint else "",
             )
             report.dropped_sinks.append(sink.name)
