@@ -5,12 +5,13 @@ from __future__ import annotations
 
 import functools
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import numpy.typing as npt
 
 from depthnav_daemon.errors import ConfigError
+from depthnav_daemon.pipeline.coverage import floor_extent, seen_to
 from depthnav_daemon.pipeline.geometry import (
     F32,
     F64,
@@ -64,6 +65,9 @@ class ExactTable:
     n_bins: int
     angle_min: float
     angle_increment: float
+    # bins whose floor the read rows do not see out to range_max (coverage.floor_extent): a bin
+    # there that found no obstacle is unknown (NaN), not clear (+inf); the safety contract
+    short_view: npt.NDArray[np.intp] = field(default_factory=lambda: np.empty(0, np.intp))
 
 
 def scan_rows(intr: Intrinsics, params: ScanParams) -> slice:
@@ -243,6 +247,8 @@ def exact_table(intr: Intrinsics, mount: Mount, params: ScanParams) -> ExactTabl
         )
     blk, fl_blk, probe_start, probe, spans = block_tables(k_lo, k_mid, k_hi, fl_start, fl_code, n)
     row_idx = np.arange(intr.height, dtype=np.int32)[rows]
+    _, far = floor_extent(intr, mount, angle_min, inc, n, (rows.start, rows.stop, rows.step or 1))
+    short_view = np.flatnonzero(~seen_to(far, params.range_max_m)).astype(np.intp)
     table = ExactTable(
         rows=row_idx,
         col0=0,
@@ -264,6 +270,7 @@ def exact_table(intr: Intrinsics, mount: Mount, params: ScanParams) -> ExactTabl
         spans=spans,
         n_bins=n,
         angle_min=angle_min,
+        short_view=short_view,
         angle_increment=inc,
     )
     return frozen_table(table)  # cached and shared between calls

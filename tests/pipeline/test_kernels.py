@@ -88,6 +88,11 @@ def reference_exact_scan(
             out[b] = min(out[b], val[i, c0 : c1 + 1].min())
             seen[b] |= bool((d[i, c0 : c1 + 1] != 0).any())
     out[(out == np.inf) & ~seen] = np.nan
+    # the view's reach (coverage.floor_extent, tested on its own in test_coverage): a bin whose
+    # floor is not seen to range_max says NaN where it found nothing
+    short = np.zeros(t.n_bins, dtype=bool)
+    short[t.short_view] = True
+    out[(out == np.inf) & short] = np.nan
     return out
 
 

@@ -162,7 +162,15 @@ def test_scan_values_follow_rep117() -> None:
     widest_valid = np.nanmax(np.arctan2(pts[..., 1], pts[..., 0]))
     left = scan.angles > widest_valid + 2 * scan.angle_increment
     assert left.sum() > 10 and np.isnan(scan.ranges[left]).all()
-    assert np.isposinf(scan.ranges[scan.angles < widest_valid - 0.3]).all()
+    # +inf on the bearings where the view reaches the floor out to range_max, NaN at its edge
+    # where it does not (the bottom corners of a tilted image reach wide bearings only near by)
+    pts_all = view.points_m[:, 100:][view.height_m[:, 100:] > -1.0]
+    rng = np.hypot(pts_all[:, 0], pts_all[:, 1])
+    bear = np.arctan2(pts_all[:, 1], pts_all[:, 0])
+    far_side = bear[rng > PARAMS.range_max_m + 0.1].min()  # widest bearing seen far enough
+    inner = scan.angles < widest_valid - 0.3
+    assert np.isposinf(scan.ranges[inner & (scan.angles > far_side + 0.05)]).all()
+    assert np.isnan(scan.ranges[inner & (scan.angles < far_side - 0.05)]).all()
     near = render(
         Scene(boxes=(Box(0.55, 0.0, 0.2, 3.0, 1.0),)),
         ASYM_640,
