@@ -245,7 +245,7 @@ def process(
     base_scan, base_cliff = scan, cliff
     if mount.placed:
         t0 = tick()
-        base_scan, base_cliff = to_base_frame(scan, cliff, mount, params)
+        base_scan, base_cliff = to_base_frame(scan, cliff, mount, params, intr)
         timings["placement"] = tick() - t0
     return Result(
         seq=frame.seq,
@@ -264,10 +264,15 @@ def process(
 
 
 def to_base_frame(
-    scan: LaserScan, cliff: CliffResult | None, mount: Mount, params: StageParams
+    scan: LaserScan,
+    cliff: CliffResult | None,
+    mount: Mount,
+    params: StageParams,
+    intr: Intrinsics,
 ) -> tuple[LaserScan, CliffResult | None]:
     """A sensor's level-frame scan and cliff result in the robot's base frame (one layout for
-    both, see ``placement``)."""
+    both, see ``placement``); ``intr`` is the sensor's camera (what its view sees decides where
+    the base scans may say clear)."""
     rmin, rmax = scan.range_min, scan.range_max
     if params.cliff is not None:
         rmin, rmax = min(rmin, params.cliff.range_min_m), max(rmax, params.cliff.range_max_m)
@@ -281,14 +286,17 @@ def to_base_frame(
         rmin,
         rmax,
     )
-    base_scan = scan_to_base(scan, mount, layout)
+    rows = scan_rows(intr, params.scan)
+    base_scan = scan_to_base(scan, mount, layout, intr, (rows.start, rows.stop, rows.step or 1))
     if cliff is None:
         return base_scan, None
+    assert params.cliff is not None
+    cliff_rows = (max(0, intr.height - params.cliff.used_depth_height), intr.height, 1)
     base_cliff = CliffResult(
         points_to_base(cliff.points_m, mount),
         cliff.blocks,
         cliff.block_size,
-        scan_to_base(cliff.scan, mount, layout),
+        scan_to_base(cliff.scan, mount, layout, intr, cliff_rows),
     )
     return base_scan, base_cliff
 
@@ -320,7 +328,7 @@ def prepare(intr: Intrinsics, mount: Mount, params: StageParams) -> None:
             blank, intr, level, params.cliff, scan.angle_min, scan.angle_increment, scan.ranges.size
         )
     if mount.placed:
-        to_base_frame(scan, cliff, mount, params)
+        to_base_frame(scan, cliff, mount, params, intr)
     # the memory's view of this mount (its lower dead zone per bin), for when odometry is on
     rows = scan_rows(intr, params.scan)
     near_limits(

@@ -33,7 +33,9 @@ import numpy.typing as npt
 from depthnav_daemon.pipeline._jit import kernel
 from depthnav_daemon.pipeline.geometry import F32, F64, Mount, frozen_table
 from depthnav_daemon.pipeline.memory_kernels import fast_atan2
+from depthnav_daemon.pipeline.placement_rays import ray_table, rays_to_base_kernel
 from depthnav_daemon.pipeline.scan import LaserScan
+from drivers.base import Intrinsics
 
 SEEN = np.float32(1e30)  # "valid readings, no obstacle": sorts between ranges and no data (+inf)
 
@@ -155,7 +157,13 @@ def arc_table(
     )
 
 
-def scan_to_base(scan: LaserScan, mount: Mount, layout: tuple[float, float, int]) -> LaserScan:
+def scan_to_base(
+    scan: LaserScan,
+    mount: Mount,
+    layout: tuple[float, float, int],
+    intr: Intrinsics,
+    rows: tuple[int, int, int],
+) -> LaserScan:
     """A level-frame scan of a sensor at ``mount`` in the base frame, in ``layout`` (module
     docstring).
 
@@ -163,6 +171,8 @@ def scan_to_base(scan: LaserScan, mount: Mount, layout: tuple[float, float, int]
         scan: REP 117 scan in the sensor's level frame.
         mount: the sensor's placement (x_m, y_m, yaw_deg).
         layout: (angle_min, angle_increment, bins) of the result, from :func:`base_layout`.
+        intr, rows: the sensor's camera and the image rows (start, stop, step) the scan read:
+            what its view sees on the floor (coverage.floor_extent), for the +inf claims.
     """
     a0, inc, n = layout
     if not mount.placed:
@@ -196,10 +206,35 @@ def scan_to_base(scan: LaserScan, mount: Mount, layout: tuple[float, float, int]
         float(inc),
         out,
     )
-    d = math.hypot(mount.x_m, mount.y_m)
-    return LaserScan(
-        a0, a0 + (n - 1) * inc, inc, max(0.0, scan.range_min - d), scan.range_max + d, out
+    sensor = (float(scan.angle_min), float(scan.angle_increment), int(scan.ranges.size))
+    rt = ray_table(
+        sensor,
+        (float(a0), float(inc), int(n)),
+        mount.x_m,
+        mount.y_m,
+        mount.yaw_rad,
+        float(scan.range_max),
+        intr,
+        mount.level_part(),
+        rows,
     )
+    d = math.hypot(mount.x_m, mount.y_m)
+    rays_to_base_kernel(
+        np.ascontiguousarray(scan.ranges, dtype=np.float32),
+        rt.start,
+        rt.k,
+        rt.s,
+        rt.rho,
+        rt.a,
+        rt.centre,
+        rt.check,
+        rt.never,
+        d * d,
+        float(scan.range_min),
+        out,
+    )
+    # +inf claims free out to range_max - d (every base bearing within the sensor's reach)
+    return LaserScan(a0, a0 + (n - 1) * inc, inc, max(0.0, scan.range_min - d), rt.range_max_m, out)
 
 
 @kernel
@@ -234,22 +269,20 @@ def arcs_to_base_kernel(ranges, phi, a, c, far_lo, far_hi, near_lo, near_hi, inc
         phi, a, c, far_lo, far_hi, near_lo, near_hi: the ArcTable.
         inc_s: sensor bin width, radians.
         a0, inc: base bin j is centred on a0 + j * inc.
-        out: (N,) float32 result.
+        out: (N,) float32, overwritten: the arcs' finite and -inf values by min, +inf where no
+            arc falls (placement_rays.rays_to_base_kernel then decides clear or unknown).
     """
     n = out.shape[0]
     inf = np.float32(np.inf)
-    seen = SEEN
     for j in range(n):
         out[j] = inf
     for i in range(ranges.shape[0]):
         v = ranges[i]
-        if np.isnan(v):
-            continue
-        if np.isinf(v):
-            code = seen if v == inf else -inf
-            j0, j1 = (far_lo[i], far_hi[i]) if v == inf else (near_lo[i], near_hi[i])
-            for j in range(j0, j1 + 1):
-                out[j] = min(out[j], code)
+        if np.isnan(v) or v == inf:
+            continue  # clear claims are the rays' (placement_rays), not the arcs'
+        if v == -inf:
+            for j in range(near_lo[i], near_hi[i] + 1):
+                out[j] = -inf
             continue
         s = np.float64(v)
         w = a[i] + s
@@ -267,7 +300,3 @@ def arcs_to_base_kernel(ranges, phi, a, c, far_lo, far_hi, near_lo, near_hi, inc
             db = min(max(a0 + j * inc - beta, -hw), hw)
             val = np.float32(rho + slope * db)
             out[j] = min(out[j], val)
-    nan = np.float32(np.nan)
-    for j in range(n):
-        v = out[j]
-        out[j] = inf if v == seen else (nan if v == inf else v)

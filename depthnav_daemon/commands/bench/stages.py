@@ -361,7 +361,7 @@ def robot_work(frames: Sequence[Frame], mount: Mount, cliff: CliffParams) -> lis
 
     def base_frame() -> None:
         r = nl()
-        to_base_frame(r.scan, r.cliff, placed, params)
+        to_base_frame(r.scan, r.cliff, placed, params, r.intrinsics)
 
     return [
         Work("placement: scan + cliff to the base frame (0.2, -0.1 m, 30 deg)", base_frame),
