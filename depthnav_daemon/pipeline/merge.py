@@ -3,12 +3,13 @@ sensors", sec. 3.1).
 
 The merged scan's bins have the finest of the sensors' widths and are centred on multiples of it
 (bearing 0 is a bin centre); its extent is the union of the sensors' extents, the smallest arc
-holding them all, up to a full turn (then -pi .. pi). Each sensor bin feeds the merged bins whose
-centres its footprint covers (or the one holding its centre when it is narrower than a merged bin),
-and each merged bin keeps the nearest over the sensors (REP 117 order: -inf, ranges, +inf, then no
-data), so an obstacle either sensor sees is in it at its own range, and where both see it the
-nearer reading wins. Which sensors take part (their data younger than a max age) is the daemon's
-decision; this module is pure.
+holding them all, up to a full turn (then -pi .. pi). Each sensor bin feeds every merged bin
+its footprint overlaps; per sensor a merged bin takes the nearest reading of the bins feeding it,
+and is clear (+inf) for that sensor only if none of them is unknown (NaN); over the sensors the
+nearest wins (REP 117 order: -inf, ranges, +inf, then no data). So an obstacle either sensor sees
+is in it at its own range, where both see it the nearer reading wins, and a bin is clear only where
+one sensor saw all of it clear (the safety contract). Which sensors take part (their data younger
+than a max age) is the daemon's decision; this module is pure.
 """
 
 from __future__ import annotations
@@ -94,12 +95,12 @@ def feed_map(src: Layout, dst: Layout) -> tuple[npt.NDArray[np.int64], npt.NDArr
     # each bearing as the turn nearest the merged arc's middle
     c = (n - 1) * inc / 2.0
     rel = np.mod(centre - b0 - c + math.pi, TWO_PI) - math.pi + c
-    first = np.ceil((rel - w / 2) / inc - 1e-9).astype(np.int64)
-    last = np.floor((rel + w / 2) / inc + 1e-9).astype(np.int64)
-    narrow = first > last
-    mid = np.floor(rel / inc + 0.5).astype(np.int64)
-    first = np.where(narrow, mid, first)
-    last = np.where(narrow, mid, last)
+    # every merged bin the source bin overlaps (by more than a thousandth of a bin), so a merged
+    # bin hears of everything in its width: the nearest reading wins, and one part of it unknown
+    # to a sensor keeps that sensor from calling it clear (merge_into)
+    eps = 1e-3 * min(inc, w)
+    first = (np.floor((rel - w / 2 + eps) / inc - 0.5) + 1).astype(np.int64)
+    last = (np.ceil((rel + w / 2 - eps) / inc + 0.5) - 1).astype(np.int64)
     if not full:
         first = np.maximum(first, 0)
         last = np.minimum(last, n - 1)
@@ -118,9 +119,10 @@ def merge_scans(scans: Sequence[LaserScan], layout: Layout | None = None) -> Las
     lay = layout or merged_layout(tuple(layout_of(s) for s in scans))
     b0, inc, n = lay
     out = np.full(n, np.inf, dtype=np.float32)
+    part = np.empty(n, dtype=np.float32)
     for s in scans:
         first, last = feed_map(layout_of(s), lay)
-        merge_into(np.ascontiguousarray(s.ranges, dtype=np.float32), first, last, out)
+        merge_into(np.ascontiguousarray(s.ranges, dtype=np.float32), first, last, part, out)
     finish(out)
     rmin = min((s.range_min for s in scans), default=0.0)
     rmax = max((s.range_max for s in scans), default=0.0)
@@ -128,19 +130,32 @@ def merge_scans(scans: Sequence[LaserScan], layout: Layout | None = None) -> Las
 
 
 @kernel
-def merge_into(ranges, first, last, out):
-    """out[j] = nearest of out[j] and every source bin feeding j (REP 117 codes, SEEN for +inf);
-    indices past the end wrap (full turn)."""
+def merge_into(ranges, first, last, part, out):
+    """out[j] = nearest of out[j] and this sensor's word on j (REP 117 codes, SEEN for +inf):
+    the nearest reading of the source bins feeding j; clear (SEEN) only if none of them is
+    unknown (NaN). Indices past the end wrap (full turn); ``part`` is scratch (n,)."""
     n = out.shape[0]
     inf = np.float32(np.inf)
+    unknown = np.float32(-1.0)  # a part of the bin this sensor did not see
+    for j in range(n):
+        part[j] = inf
     for i in range(ranges.shape[0]):
         v = ranges[i]
-        if np.isnan(v):
-            continue
-        code = SEEN if v == inf else v
         for j in range(first[i], last[i] + 1):
             jj = j % n
-            out[jj] = min(out[jj], code)
+            p = part[jj]
+            if np.isnan(v):
+                if p >= SEEN:  # +inf (nothing yet) or SEEN
+                    part[jj] = unknown
+            elif v == inf:
+                if p == inf:
+                    part[jj] = SEEN
+            elif v < p or p == unknown or p == SEEN:  # noqa: PLR1714 (compiled: no tuple)
+                part[jj] = v
+    for j in range(n):
+        p = part[j]
+        if p != unknown:
+            out[j] = min(out[j], p)
 
 
 @kernel

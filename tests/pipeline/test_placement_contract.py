@@ -105,3 +105,23 @@ def test_too_close_stays_too_close_in_the_base_frame() -> None:
     scan = _base_scan(scene, mount, params)
     assert np.isneginf(scan.ranges).sum() > 0.5 * scan.ranges.size
     assert not np.isposinf(scan.ranges).any()
+
+
+def test_two_sensor_merge_never_clear_over_a_wall() -> None:
+    """Two yawed, off-centre sensors and a wall 2.5 m ahead with a box before it: the merged
+    scan is never clear where the truth has something within its range_max, and never farther
+    than the truth plus 2 cm."""
+    from depthnav_daemon.pipeline.merge import merge_scans
+
+    scene = Scene(boxes=(Box(2.55, 0.0, 0.1, 8.0, 1.5), Box(1.4, -0.5, 0.3, 0.3, 0.4)))
+    mounts = [
+        Mount(0.5, 15.0, 0.0, x_m=0.1, y_m=0.2, yaw_deg=28.0),
+        Mount(0.45, 18.0, 0.0, x_m=0.15, y_m=-0.25, yaw_deg=-31.0),
+    ]
+    merged = merge_scans([_base_scan(scene, m) for m in mounts])
+    truth = _truth(merged, scene, PARAMS.scan)
+    r = merged.ranges
+    fin = np.isfinite(r)
+    assert fin.sum() > 0.5 * r.size
+    assert (r[fin] <= truth[fin] + 0.02).all(), np.max(r[fin] - truth[fin])
+    assert not (np.isposinf(r) & (truth < merged.range_max)).any()
