@@ -56,9 +56,13 @@ def reference_sectors(scan: LaserScan, n: int = 72) -> np.ndarray:
     for j in range(n):
         s_lo, s_hi = left_cw + j * width, left_cw + (j + 1) * width
         vals = []
+        unknown = False
         for theta, r in zip(scan.angles, scan.ranges.astype(float), strict=True):
             b_lo, b_hi = -math.degrees(theta + inc / 2), -math.degrees(theta - inc / 2)
-            if min(s_hi, b_hi) - max(s_lo, b_lo) <= 1e-6 * width or math.isnan(r):
+            if min(s_hi, b_hi) - max(s_lo, b_lo) <= 1e-6 * width:
+                continue
+            if math.isnan(r):
+                unknown = True
                 continue
             if r == math.inf:
                 vals.append(max_cm + 1)
@@ -66,7 +70,9 @@ def reference_sectors(scan: LaserScan, n: int = 72) -> np.ndarray:
                 vals.append(min_cm)
             else:
                 vals.append(min(max(math.floor(r * 100), min_cm), max_cm))
-        out.append(min(vals) if vals else UNKNOWN)
+        best = min(vals) if vals else UNKNOWN
+        # the safety contract: "no obstacle" only where no part of the sector is unknown
+        out.append(UNKNOWN if best == max_cm + 1 and unknown else best)
     return np.asarray(out)
 
 
@@ -127,16 +133,19 @@ def test_real_scene_thin_post_on_the_right(pairs):
     assert abs(int(s.distances_cm[j]) - 100 * math.hypot(1.18, 0.3)) <= 5
 
 
-def test_cliff_merge_only_adds_detections():
+def test_cliff_merge_adds_detections_and_unknown_floor():
+    """Drop-offs come in; "no drop-off" changes nothing; where the cliff stage did not read the
+    floor (NaN) a "no obstacle" sector becomes unknown (a drop-off may be there)."""
     obstacles = obstacle_sectors(make_scan(np.full(640, np.inf)))
     cliff = np.full(640, np.inf)
-    cliff[:100] = np.nan
+    cliff[:100] = np.nan  # the right-most bins (clockwise sectors at the end)
     cliff[600] = 2.0  # a drop-off ahead-left
     merged = merge_cliff(obstacles, make_scan(cliff))
-    assert (merged.distances_cm == 200).sum() >= 1 and np.flatnonzero(merged.distances_cm == 200)[
-        0
-    ] < 36
-    assert np.all(merged.distances_cm[merged.distances_cm != 200] == 501)
+    d = merged.distances_cm
+    assert (d == 200).sum() >= 1 and np.flatnonzero(d == 200)[0] < 36
+    unknown = np.flatnonzero(d == UNKNOWN)
+    assert unknown.size >= 10 and unknown.min() > 36  # the right: the end of the clockwise row
+    assert np.all(d[(d != 200) & (d != UNKNOWN)] == 501)
     far = np.full(640, np.inf)
     far[300] = 6.0  # beyond the 5 m max_distance: not an obstacle at 5 m
     assert np.all(merge_cliff(obstacles, make_scan(far)).distances_cm == 501)

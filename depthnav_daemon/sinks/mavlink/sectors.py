@@ -75,20 +75,35 @@ def _pool_min(
     cm: np.ndarray,
     left: float,
     width: float,
-) -> None:
-    """out[j] = min(out[j], cm of bins whose footprint [lo, hi) overlaps sector j); NaN skipped."""
+) -> npt.NDArray[np.bool_]:
+    """out[j] = min(out[j], cm of bins whose footprint [lo, hi) overlaps sector j), NaN skipped;
+    returns (n,) whether a NaN (unknown) bin overlaps each sector."""
     n = out.size
     eps = 1e-6  # footprints that only touch a sector boundary do not count as overlapping
     first = np.floor((lo - left) / width + eps).astype(np.int64)
     last = np.ceil((hi - left) / width - eps).astype(np.int64) - 1
     last = np.maximum(last, first)
-    keep = ~np.isnan(cm) & (last >= 0) & (first <= n - 1)
-    first, last, cm = np.clip(first[keep], 0, n - 1), np.clip(last[keep], 0, n - 1), cm[keep]
-    span = last - first + 1
-    idx = np.repeat(first, span) + (
-        np.arange(int(span.sum())) - np.repeat(np.cumsum(span) - span, span)
-    )
-    np.minimum.at(out, idx, np.repeat(cm, span))
+    inside = (last >= 0) & (first <= n - 1)
+    first, last = np.clip(first, 0, n - 1), np.clip(last, 0, n - 1)
+    unknown = np.zeros(n, dtype=bool)
+    nan = np.isnan(cm)
+    for keep, into in ((inside & ~nan, None), (inside & nan, unknown)):
+        f, la, c = first[keep], last[keep], cm[keep]
+        span = la - f + 1
+        idx = np.repeat(f, span) + (
+            np.arange(int(span.sum())) - np.repeat(np.cumsum(span) - span, span)
+        )
+        if into is None:
+            np.minimum.at(out, idx, np.repeat(c, span))
+        else:
+            into[idx] = True
+    return unknown
+
+
+def _clear_only_if_known(out: npt.NDArray[np.float64], unknown: np.ndarray, max_cm: int) -> None:
+    """A sector that found nothing (max_distance + 1, "no obstacle") but has an unknown part is
+    unknown (UINT16_MAX): "no obstacle" makes a vehicle drive there (the safety contract)."""
+    out[(out == max_cm + 1) & unknown] = UNKNOWN
 
 
 def obstacle_sectors(scan: LaserScan, n: int = SECTORS) -> Sectors:
@@ -108,28 +123,32 @@ def obstacle_sectors(scan: LaserScan, n: int = SECTORS) -> Sectors:
     lo, hi = _footprints_deg(scan)
     left = float(lo.min())
     width = (float(hi.max()) - left) / n
-    _pool_min(out, lo, hi, bins_to_cm(scan.ranges, min_cm, max_cm), left, width)
+    unknown = _pool_min(out, lo, hi, bins_to_cm(scan.ranges, min_cm, max_cm), left, width)
+    _clear_only_if_known(out, unknown, max_cm)
     return Sectors(out.astype(np.uint16), width, left + width / 2.0, min_cm, max_cm)
 
 
 def merge_cliff(obstacles: Sectors, cliff_scan: LaserScan) -> Sectors:
     """Obstacle sectors with the drop-offs of a cliff scan folded in (sector-wise minimum).
 
-    Only detections count (finite ranges, and -inf = a drop-off closer than range_min): the cliff
-    scan's "no drop-off" (+inf) or "no data" (NaN) leave the obstacle scan's verdict unchanged.
-    Drop-offs outside the obstacle sectors' field of view or beyond max_distance are not reported.
+    Detections count (finite ranges, and -inf = a drop-off closer than range_min); the cliff
+    scan's "no drop-off" (+inf) leaves the obstacle scan's verdict unchanged, and its "unknown"
+    (NaN: the floor there was not read) makes a "no obstacle" sector unknown (a drop-off may be
+    there). Drop-offs outside the obstacle sectors' field of view or beyond max_distance are not
+    reported.
     """
     out = obstacles.distances_cm.astype(np.float64)
     if cliff_scan.ranges.size:
         r = np.asarray(cliff_scan.ranges, dtype=np.float64)
         cm = bins_to_cm(r, obstacles.min_cm, obstacles.max_cm)
-        cm[~(np.isfinite(r) | (r == -np.inf))] = np.nan
+        cm[r == np.inf] = UNKNOWN  # no drop-off: never below what the obstacles say
         with np.errstate(invalid="ignore"):
             # a drop-off beyond the obstacle scan's max range is out of this message's range
-            cm[np.floor(r * 100.0) > obstacles.max_cm] = np.nan
+            cm[np.floor(r * 100.0) > obstacles.max_cm] = UNKNOWN
         lo, hi = _footprints_deg(cliff_scan)
         left = obstacles.angle_offset_deg - obstacles.increment_f_deg / 2.0
-        _pool_min(out, lo, hi, cm, left, obstacles.increment_f_deg)
+        unknown = _pool_min(out, lo, hi, cm, left, obstacles.increment_f_deg)
+        _clear_only_if_known(out, unknown, obstacles.max_cm)
     return Sectors(
         out.astype(np.uint16),
         obstacles.increment_f_deg,
@@ -169,8 +188,9 @@ def trust_statustext(trust: MountTrust | None, cliff: bool, untrusted: str) -> t
 
 def memory_sectors(scan: LaserScan, n: int = SECTORS) -> Sectors:
     """72 sectors of 5 deg all around the robot from a 360 deg memory scan: element 0 centred
-    straight behind (-180 deg clockwise), then clockwise. A sector with nothing remembered is
-    max_distance + 1 (no obstacle), never unknown: the memory covers every bearing."""
+    straight behind (-180 deg clockwise), then clockwise. A sector is the nearest remembered
+    point in it; max_distance + 1 (no obstacle) only where the memory knows all of it free;
+    else unknown (UINT16_MAX)."""
     min_cm = 1
     max_cm = min(UNKNOWN - 2, max(min_cm + 1, round(scan.range_max * 100.0)))
     out = np.full(n, float(UNKNOWN))
@@ -180,7 +200,8 @@ def memory_sectors(scan: LaserScan, n: int = SECTORS) -> Sectors:
     # every bin's footprint into [left, left + 360): the scan's -180 deg bin is sector 0's
     shift = left + np.mod(lo - left, 360.0) - lo
     lo, hi = lo + shift, hi + shift
-    _pool_min(out, lo, hi, bins_to_cm(scan.ranges, min_cm, max_cm), left, width)
+    unknown = _pool_min(out, lo, hi, bins_to_cm(scan.ranges, min_cm, max_cm), left, width)
+    _clear_only_if_known(out, unknown, max_cm)
     return Sectors(out.astype(np.uint16), width, left + width / 2.0, min_cm, max_cm)
 
 
