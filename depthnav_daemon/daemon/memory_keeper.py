@@ -25,6 +25,7 @@ from collections.abc import Callable, Sequence
 
 from depthnav_daemon.config.loader import MemorySettings, OdometrySettings
 from depthnav_daemon.pipeline import Result, StageParams
+from depthnav_daemon.pipeline.cliff import CliffParams
 from depthnav_daemon.pipeline.memory import (
     MemoryResult,
     SensorView,
@@ -45,7 +46,15 @@ Pose = tuple[float, float, float]
 
 
 def sensor_view(result: Result, params: StageParams) -> SensorView:
-    """What the memory needs of one sensor's Result."""
+    """What the memory needs of one sensor's Result: its level-frame scans, the rows each stage
+    read (the memory clears only the floor those rows see, coverage.floor_extent) and the row
+    margins of what they found.
+
+    The memory's blind radius and range_max (pipeline.memory.scan_limits) follow from these views'
+    mounts and scans unless [memory] sets them. ``short_free`` / ``cliff_short_free`` stay None:
+    the Result does not say which of its NaN bins are the coverage rule's over floor seen free,
+    so those bins clear nothing (safe; the view's edge bins add no free knowledge).
+    """
     rows = scan_rows(result.intrinsics, params.scan)
     cliff = result.level_cliff
     cp = params.cliff
@@ -57,7 +66,20 @@ def sensor_view(result: Result, params: StageParams) -> SensorView:
         (rows.start, rows.stop, rows.step or 1),
         scan_margin_rows=rows.step or 1,
         cliff_margin_rows=1 if cp is None else cp.block_size + cp.row_step,
+        cliff_rows=None if cp is None else cliff_rows(result.intrinsics.height, cp),
     )
+
+
+def cliff_rows(height: int, cp: CliffParams) -> tuple[int, int, int]:
+    """(start, stop, step) covering the image rows the cliff stage samples: from its top sample
+    row (blocks counted from the image bottom, ``cliff_table``) to the bottom, every row in
+    between (the floor they see lies between the samples'). The cliff table builds the floor
+    extent of these very rows (coverage.floor_extent, cached): the memory reuses it."""
+    used = min(cp.used_depth_height, height)
+    blocks = max(1, used // cp.block_size)
+    last = (cp.block_size - 1) // cp.row_step * cp.row_step  # a block's top sample row offset
+    top = height - 1 - ((blocks - 1) * cp.block_size + last)
+    return (max(0, top), height, 1)
 
 
 class MemoryKeeper:

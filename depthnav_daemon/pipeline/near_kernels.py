@@ -1,4 +1,6 @@
-"""Compiled builder of the memory's per-mount table (``memory.near_limits``).
+"""The memory's former per-mount table (``near_limits``: the lower dead zone per bin), kept until
+``pipeline.prepare`` and its test move to ``coverage.floor_extent``, which the memory now uses (its
+``near`` is this table's, with every column read and the view's edge bins handled).
 
 numpy took 30-45 ms at 1280x720 for it (a full-image ray rotation, arctan2, a scatter-min) on the
 worker that builds a new mount's tables, holding the interpreter lock for parts of it: the frame
@@ -7,16 +9,23 @@ loop waited for the lock. This kernel visits only the sampled pixels and release
 
 from __future__ import annotations
 
+import functools
 import math
 
+import numpy as np
+
 from depthnav_daemon.pipeline._jit import kernel
+from depthnav_daemon.pipeline.geometry import F32, Mount, cam_to_level, pixel_rays
+from drivers.base import Intrinsics
+
+NEAR_STRIDE = 2  # pixels between the samples of the near-limit table
 
 
 @kernel
 def near_limits_kernel(
     rays, rot, height_m, row0, row_stop, row_step, col_step, angle_min, inc, out
 ):
-    """Per scan bin, the nearest floor range any sampled pixel sees (``memory.near_limits``).
+    """Per scan bin, the nearest floor range any sampled pixel sees (``near_limits``).
 
     Args:
         rays: (H, W, 3) float64 camera rays per metre of depth (``geometry.pixel_rays``).
@@ -59,3 +68,34 @@ def near_limits_kernel(
             nxt = first if b == n - 1 else out[b + 1]
             out[b] = min(prev, here, nxt)
             prev = here
+
+
+@functools.lru_cache(maxsize=32)
+def near_limits(
+    intr: Intrinsics,
+    mount: Mount,
+    angle_min: float,
+    inc: float,
+    n: int,
+    rows: tuple[int, int, int],
+) -> F32:
+    """(n,) float32: per scan bin, the nearest floor range the sensor sees (its lower dead zone,
+    eq. 15 generalised to every bearing, tilt and roll), +inf where no pixel sees the floor."""
+    start, stop, step = rows
+    stop = intr.height if stop < 0 else min(stop, intr.height)
+    out = np.empty(n)
+    near_limits_kernel(
+        pixel_rays(intr),
+        cam_to_level(mount.tilt_rad, mount.roll_rad),
+        float(mount.height_m),
+        int(start),
+        int(stop),
+        max(1, int(step)),
+        max(1, NEAR_STRIDE),
+        float(angle_min),
+        float(inc),
+        out,
+    )
+    res = out.astype(np.float32)
+    res.setflags(write=False)
+    return res

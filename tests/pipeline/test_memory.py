@@ -129,7 +129,7 @@ def _dist_to_box(pts: np.ndarray, box: Box) -> np.ndarray:
     return np.hypot(dx, dy)
 
 
-def test_box_passed_on_the_left_stays_behind_until_it_leaves_the_grid() -> None:
+def test_box_passed_on_the_left_stays_behind_until_it_leaves_the_scan() -> None:
     box = Box(1.5, 0.75, 0.3, 0.3, 0.5)
     params = MemoryParams()  # 8 x 8 m: a point leaves 4 m behind the robot (to a cell)
     state = new_state(params)
@@ -145,16 +145,20 @@ def test_box_passed_on_the_left_stays_behind_until_it_leaves_the_grid() -> None:
         assert len(pts) == 0 or _dist_to_box(pts, box).max() <= params.cell_m
         scan = read_scan(state, d.frame.odom).scan
         rel = pts - np.array(d.pose[:2])
-        if (rel[:, 0] > -params.size_m / 2 + params.cell_m).any():
-            # in the grid: memory.scan shows it on its bearing at its range
-            b = math.atan2(rel[0, 1], rel[0, 0])
+        dist = np.hypot(rel[:, 0], rel[:, 1])
+        if len(pts) and dist.min() <= scan.range_max - params.cell_m:
+            # within the memory scan's range_max: it shows the nearest point on its bearing
+            k = int(np.argmin(dist))
+            b = math.atan2(rel[k, 1], rel[k, 0])
             j = int(np.floor((b - scan.angle_min) / scan.angle_increment + 0.5)) % scan.ranges.size
-            near = float(np.hypot(rel[:, 0], rel[:, 1]).min())
-            assert scan.ranges[j] <= np.hypot(*rel[0]) + 1e-3
-            assert np.nanmin(scan.ranges) == pytest.approx(near, abs=1e-3)
+            assert scan.ranges[j] == pytest.approx(dist[k], abs=1e-3)
+            assert np.nanmin(scan.ranges) == pytest.approx(dist.min(), abs=1e-3)
             behind.append(x > 1.7)
-        elif x > 1.5 + params.size_m / 2 + params.cell_m:
-            assert len(pts) == 0 and np.isposinf(scan.ranges).all()  # it left the grid
+        else:
+            # beyond range_max (3.9 m here) nothing is reported: the scan does not reach it
+            assert not np.isfinite(scan.ranges).any()
+        if x > 1.5 + params.size_m / 2 + params.cell_m:
+            assert len(pts) == 0  # it left the grid
     assert sum(behind) >= 20  # remembered behind the robot for many frames
     assert len(_box_points(state, OBSTACLE)) == 0  # and gone at the end (x = 7.05)
 
@@ -217,7 +221,11 @@ def test_drop_off_cells_are_marked_as_cliff(step_drive) -> None:
     state = new_state(MemoryParams())
     update(state, poses[0], 0.0, [view_of(results[0])])
     pts = _box_points(state, CLIFF)
-    assert len(pts) > 20 and pts[:, 0].min() >= STEP_M - 1e-3  # all on the far side of the edge
+    # where the cliff stage puts the edge (a little short of it: the safe side), none nearer
+    cs = results[0].cliff.scan
+    edge_x = float(np.nanmin(cs.ranges * np.cos(cs.angles)))
+    assert STEP_M - 0.05 <= edge_x <= STEP_M
+    assert len(pts) > 20 and pts[:, 0].min() >= edge_x - 1e-3
     assert len(_box_points(state, OBSTACLE)) == 0
 
 
