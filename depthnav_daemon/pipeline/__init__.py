@@ -25,8 +25,8 @@ import numpy as np
 import numpy.typing as npt
 
 from depthnav_daemon.pipeline.cliff import CliffParams, CliffResult, detect_cliffs
+from depthnav_daemon.pipeline.coverage import floor_extent
 from depthnav_daemon.pipeline.geometry import Mount
-from depthnav_daemon.pipeline.memory import near_limits
 from depthnav_daemon.pipeline.placement import base_layout, points_to_base, scan_to_base
 from depthnav_daemon.pipeline.scan import (
     LaserScan,
@@ -329,9 +329,10 @@ def prepare(intr: Intrinsics, mount: Mount, params: StageParams) -> None:
         )
     if mount.placed:
         to_base_frame(scan, cliff, mount, params, intr)
-    # the memory's view of this mount (its lower dead zone per bin), for when odometry is on
+    # what this mount's view covers on the floor per bin (the memory's clearing, the contract's
+    # clear claims): the exact scan built it already; the paper method did not
     rows = scan_rows(intr, params.scan)
-    near_limits(
+    floor_extent(
         intr,
         level,
         float(scan.angle_min),

@@ -43,7 +43,7 @@ def test_table_has_a_line_per_pose_and_margin() -> None:
     assert "(1.20 m, 60 deg) | 20 cm" in text
 
 
-README = Path(__file__).resolve().parents[2] / "README.md"
+README = Path(__file__).resolve().parents[2] / "docs" / "paper-experiment.md"
 
 
 def _readme_table() -> str:
