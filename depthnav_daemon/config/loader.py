@@ -134,7 +134,7 @@ SECTIONS: dict[str, type] = {
 }
 TOP_LEVEL = ("device", "sinks", "sensor")
 # keys whose values are checked by their section's class rather than by the default's type
-FREE_TYPED = {("memory", "enabled")}
+FREE_TYPED = {("memory", "enabled"), ("cliff", "depth_noise")}  # depth_noise: a name or a number
 
 
 def valid_keys() -> list[str]:

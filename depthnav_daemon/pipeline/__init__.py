@@ -234,6 +234,8 @@ def process(
             depth, intr, level, params.cliff, scan.angle_min, scan.angle_increment, scan.ranges.size
         )
         timings["cliff"] = tick() - t0
+        if params.cliff.method == "exact":
+            _unread_behind_obstacles(cliff.scan.ranges, scan.ranges)
     mask = None
     if params.obstacle_mask and params.scan.method == "exact":
         mask = obstacle_pixels(depth, intr, level, params.scan)
@@ -340,6 +342,14 @@ def prepare(intr: Intrinsics, mount: Mount, params: StageParams) -> None:
         int(scan.ranges.size),
         (rows.start, rows.stop, rows.step or 1),
     )
+
+
+def _unread_behind_obstacles(cliff: npt.NDArray[np.float32], scan: npt.NDArray[np.float32]) -> None:
+    """Cliff bins that found no drop-off (+inf) where the scan found an obstacle (finite or -inf)
+    are unknown (NaN), in place: the obstacle hides the floor behind it, so "no drop-off out to
+    range_max" was not seen (the safety contract). Same layout (the cliff uses the scan's)."""
+    hidden = np.isposinf(cliff) & (np.isfinite(scan) | np.isneginf(scan))
+    cliff[hidden] = np.float32(np.nan)
 
 
 def _all_nan(ranges: npt.NDArray[np.floating]) -> bool:

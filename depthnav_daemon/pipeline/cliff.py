@@ -1,26 +1,38 @@
-"""Negative obstacles (steps down, holes): the paper's eq. 6-8 with an exact per-pixel floor depth.
+"""Negative obstacles (steps down, holes): the paper's eq. 6-8 decides that a drop-off is there;
+the exact method then finds its edge on every image column.
 
 A *drop-off sample* is a pixel that sees farther than the floor should be: its ray goes below the
 floor plane. Samples are taken on a grid (``row_step`` x ``col_step``) inside square blocks of
 ``block_size`` pixels over the bottom ``used_depth_height`` rows (eq. 7); a block with at least
 ``block_points_thresh`` samples is a negative obstacle (eq. 8).
 
-``exact`` (the default, the fix): a sample counts when its reading lies more than
-``ground_margin_m`` *below the floor plane*, with tilt AND roll (as ``level_rays``): the floor
-depth of a pixel is ``h / -kz`` (kz = level-frame z per metre of optical depth), so the test is
-``depth > (h + margin) / -kz``. A vertical margin keeps Kinect quantisation (centimetres of depth
-at 4 m, but millimetres of height along a grazing ray) from faking drops. Only pixels whose ray
-meets the floor within [range_min_m, range_max_m] of horizontal range are used; rays at or above
-the horizon never count.
+``exact`` (the default, the fix): a sample counts when its reading lies *below the floor plane*
+(tilt AND roll, as ``level_rays``: the floor depth of a pixel is t = h / -kz, kz = level-frame z
+per metre of optical depth) by more than both ``ground_margin_m`` (vertical: depth > t (h +
+margin) / h; it keeps Kinect quantisation, centimetres of depth at 4 m but millimetres of height
+along a grazing ray, from faking drops) and ``noise_sigmas`` sigmas of the sensor's depth noise
+at the floor's depth (depth > t + n k t^2, ``depth_noise``: k of sigma(z) = k z^2, a stereo
+camera's grows fast). Only pixels whose ray meets the floor within [range_min_m, range_max_m] of
+horizontal range are read; rays at or above the horizon never count. Where blocks are found, the
+edge is searched for on every image column of them, of the block below (the block straddling the
+edge may miss the threshold) and of the block columns either side (``cliff_kernels.edges``):
+the first lower-floor pixel going up the column, and the floor reading under it. The edge hiding the
+lower floor lies between their two rays, so the floor point of the lower ray is at most one
+pixel's floor footprint before the edge (two where the sensor dropped the last floor pixel) and
+never beyond it; where an obstacle hides the edge, its point is taken. ``points_m`` holds these
+edge points, one per column and drop-off; the cliff scan bins each by its pixel's footprint (the
+bearings between its left and right edges, as the obstacle scan), nearest first. A bin without a
+drop-off is +inf only where the read rows see the floor on it out to range_max
+(``coverage.floor_extent``), else NaN (the safety contract).
 
 ``paper``: eq. 6 as published: per-row floor depth with the linear row angle (eq. 3), no roll,
-margin in optical depth, ``range_min_m < depth < range_max_m`` (ROS 1 cliff_detector).
+margin in optical depth, ``range_min_m < depth < range_max_m`` (ROS 1 cliff_detector); every
+detected block is reported at the point where the ray through its centre meets the floor plane
+(tilt and roll included), and the cliff scan holds the nearest floor range of a drop-off sample
+inside a detected block. No noise term, no edges, no coverage mask: the original's behaviour.
 
-With either method a 0/NaN reading never counts, every detected block is reported once at the point
-where the ray through its centre meets the floor plane (tilt and roll included: that is where the
-drop begins or the hole is), and the cliff scan holds, per bearing of the given scan layout, the
-nearest horizontal range of the floor point of a drop-off sample inside a detected block (REP 117:
-+inf = valid readings but no drop-off, NaN = no valid reading).
+With either method a 0/NaN reading never counts, and the cliff scan follows REP 117 (+inf = no
+drop-off, NaN = unknown, no valid reading).
 """
 
 from __future__ import annotations
@@ -53,8 +65,10 @@ class CliffResult:
     """Drop-offs found in one frame.
 
     Attributes:
-        points_m: (K, 2) float32 floor points (x forward, y left), metres, in the level frame at the
-            sensor's foot: where each detected block's centre ray meets the floor.
+        points_m: (P, 2) float32 floor points (x forward, y left), metres, in the level frame at the
+            sensor's foot. exact: the drop-offs' edges, one per image column and drop-off (the
+            module docstring says where); paper: where each detected block's centre ray meets the
+            floor (P = K, in the order of ``blocks``).
         blocks: (K, 2) int64 (row, col) of each detected block's top-left pixel (for drawing).
         block_size: block side in pixels (for drawing).
         scan: nearest drop-off per bearing, in the layout the caller asked for (REP 117).
@@ -86,7 +100,7 @@ def detect_cliffs(
             pass the obstacle scan's layout (``scan.scan_layout``) so the two line up.
 
     Returns:
-        Floor points and blocks of the detected negative obstacles, and the cliff scan.
+        The detected blocks, the drop-offs' floor points (exact: their edges) and the cliff scan.
 
     Raises:
         FrameError: wrong dtype or shape. ConfigError: a layout or block size that does not fit.
@@ -122,6 +136,14 @@ def detect_cliffs(
         intr.height,
         params.block_size,
         out,
+        mm,
+        t.row0,
+        t.px_band_mm,
+        t.px_xyt_m,
+        t.px_bins,
+        t.short,
+        np.float32(params.range_min_m),
+        params.method == "exact",
     )
     ranges = out[:-1]
     scan = LaserScan(

@@ -7,6 +7,7 @@ the other for them (the stage modules still export them under the old names).
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 from depthnav_daemon.errors import ConfigError
@@ -21,6 +22,24 @@ from depthnav_daemon.pipeline.geometry import (
 
 METHODS = ("exact", "paper")  # the scan's and the cliff detector's: the same two names
 MIN_ANGLE_INCREMENT_DEG = 0.001  # finer gives more bins than the kernels hold (scan_table.MAX_BINS)
+
+# Depth noise per sensor type: 1-sigma sigma(z) = k * z^2 (z: optical depth, m), k in 1/m. A
+# triangulating sensor's depth error is sigma_d * z^2 / (f b) for a disparity error sigma_d (px),
+# focal length f (px) and baseline b (m).
+DEPTH_NOISE_PRESETS: dict[str, float] = {
+    # Kinect v1 (structured light): 1.425e-3 z^2, Khoshelham & Elberink 2012, Sensors 12(2)
+    "structured_light": 1.425e-3,
+    # RealSense D415 (active stereo, b = 0.055 m, f ~640 px at 848x480): Intel's datasheet bounds
+    # the RMS error at 2 % of 2 m, k = 0.01 (sigma_d ~0.35 px). The 0.08 px of Intel's tuning
+    # guide (k = 2.3e-3) holds for a textured wall facing the camera, not for a floor seen at a
+    # grazing angle; a real D415 corridor floor needed about 10 cm of margin at 5 m from ~0.6 m
+    # up, which 3 sigma of k = 0.01 gives (3 * k * z * h).
+    "stereo_d415": 1.0e-2,
+    # RealSense D435 (b = 0.050 m, f ~430 px at 848x480): the D415's sigma_d over its f b
+    "stereo_d435": 1.65e-2,
+}
+MAX_DEPTH_NOISE_K = 1.0  # 1/m: sigma 1 m at 1 m; no depth sensor is that bad
+SHOWN_CHARS = 40  # a bad value is shown up to this long in its message
 
 
 @dataclass(frozen=True, slots=True)
@@ -111,6 +130,10 @@ class CliffParams:
         block_points_thresh: drop-off samples a block needs to be a negative obstacle (eq. 8).
         row_step, col_step: sample strides inside a block, pixels.
         ground_margin_m: e_g; exact: metres below the floor plane; paper: metres of optical depth.
+        depth_noise: exact: the sensor's depth noise, 1-sigma k * z^2 (z optical depth, metres):
+            a preset name (DEPTH_NOISE_PRESETS) or k in 1/m (a number or its text; 0 = none).
+        noise_sigmas: exact: a reading counts only if it lies beyond the floor's depth by more
+            than this many sigmas of the floor depth's noise as well as by the ground margin.
     """
 
     method: str = "exact"
@@ -122,6 +145,8 @@ class CliffParams:
     row_step: int = 8
     col_step: int = 8
     ground_margin_m: float = 0.05
+    depth_noise: str | float = "structured_light"
+    noise_sigmas: float = 3.0
 
     def __post_init__(self) -> None:
         if self.method not in METHODS:
@@ -137,11 +162,37 @@ class CliffParams:
         check_int("cliff.col_step", self.col_step, 1, self.block_size)
         check_int("cliff.block_points_thresh", self.block_points_thresh, 1, self.samples_per_block)
         check_range("cliff.ground_margin_m", self.ground_margin_m, 0.0, 10.0, " m")
+        _ = self.depth_noise_k  # checks depth_noise
+        check_range("cliff.noise_sigmas", self.noise_sigmas, 0.0, 10.0)
 
     @property
     def samples_per_block(self) -> int:
         """Samples one block holds: ceil(bs / row_step) * ceil(bs / col_step)."""
         return -(-self.block_size // self.row_step) * -(-self.block_size // self.col_step)
+
+    @property
+    def depth_noise_k(self) -> float:
+        """k of the depth noise model sigma(z) = k * z^2, 1/m (``depth_noise`` resolved).
+
+        Raises:
+            ConfigError: neither a preset name nor a number in range.
+        """
+        v = self.depth_noise
+        if isinstance(v, str) and v in DEPTH_NOISE_PRESETS:
+            return DEPTH_NOISE_PRESETS[v]
+        accepted = f"{', '.join(DEPTH_NOISE_PRESETS)} or k in 0..{MAX_DEPTH_NOISE_K:g} 1/m"
+        shown = repr(v) if len(repr(v)) <= SHOWN_CHARS else repr(v)[: SHOWN_CHARS - 3] + "..."
+        try:
+            if isinstance(v, bool):  # float(True) is 1.0: a TOML true is not a noise model
+                raise ValueError
+            k = float(v)
+        except (TypeError, ValueError, OverflowError):  # OverflowError: a 400-digit integer
+            raise ConfigError(
+                f"cliff.depth_noise={shown} is not known (accepted: {accepted})"
+            ) from None
+        if not (math.isfinite(k) and 0.0 <= k <= MAX_DEPTH_NOISE_K):
+            raise ConfigError(f"cliff.depth_noise={shown} is out of range (accepted: {accepted})")
+        return k
 
 
 @dataclass(frozen=True, slots=True)

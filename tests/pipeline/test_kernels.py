@@ -303,6 +303,12 @@ def reference_cliffs(
     mask = (d > lo_mm) & (d < hi_mm)
     counts = mask.reshape(t.shape4).sum(axis=(1, 3))
     found = (counts >= params.block_points_thresh) & np.isfinite(t.block_xy_m[..., 0])
+    if params.method == "exact":
+        # the exact method refines detected blocks to the edge per column: its plain-Python
+        # definition lives with the edge tests
+        from tests.pipeline.test_cliff_edges import reference_edges
+
+        return found, reference_edges(depth, intr, mount, params, layout)[0]
     marked = (mask.reshape(t.shape4) & found[:, None, :, None]).reshape(mask.shape)
     vals = np.where(marked, range_m, np.where(d > 0, np.float32(np.inf), np.float32(np.nan)))
     # every sample covers the bins between its col_step footprint's edges
