@@ -65,8 +65,7 @@ def sensor_view(result: Result, params: StageParams) -> SensorView:
         None if cliff is None else cliff.scan,
         (rows.start, rows.stop, rows.step or 1),
         scan_margin_rows=rows.step or 1,
-        # exact: edges at pixel resolution; paper: a block straddling the edge may not count
-        cliff_margin_rows=1 if cp is None or cp.method == "exact" else cp.block_size + cp.row_step,
+        cliff_margin_rows=1 if cp is None else cp.block_size + cp.row_step,
         cliff_rows=None if cp is None else cliff_rows(result.intrinsics.height, cp),
     )
 
