@@ -57,7 +57,6 @@ from depthnav_daemon.pipeline.memory_kernels import (
 )
 from depthnav_daemon.pipeline.memory_read_kernels import BLOCK, memory_read
 from depthnav_daemon.pipeline.memory_update_kernels import update_view
-from depthnav_daemon.pipeline.near_kernels import NEAR_STRIDE, near_limits
 from drivers.base import OdomRefusal, check_odom_pose
 
 MAX_CELLS = 2048  # cells per side
@@ -339,7 +338,6 @@ def snapshot(state: MemoryState) -> GridSnapshot:
 
 
 __all__ = [
-    "NEAR_STRIDE",
     "GridSnapshot",
     "MemoryParams",
     "MemoryResult",
@@ -347,7 +345,6 @@ __all__ = [
     "MemoryState",
     "SensorView",
     "UpdateReport",
-    "near_limits",
     "new_state",
     "read_scan",
     "reset",
