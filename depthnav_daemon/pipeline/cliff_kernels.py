@@ -57,17 +57,18 @@ def cliff_kernel(
 
     A bin of the cliff scan holds the nearest drop-off range (``refine`` False, paper: the floor
     range of the drop-off samples of detected blocks that cover it; True, exact: the edges
-    ``edges`` finds); else NaN if ``short[b]``; else +inf if some sample
-    covering it has a reading; else NaN.
+    ``edges`` finds); else NaN if ``short[b]``; else +inf if one of its reach samples (those in
+    its highest sample row read, cliff_table._reach_samples) has a reading below ``hi``
+    (one beyond it says nothing of the floor on the way; ``refine`` False, paper: any reading of
+    any covering sample); else NaN.
 
     Per block row: a sweep counts drop-offs per sample column (uint16 lanes, no branches). If the
     block row holds at least ``thresh`` drop-offs in all, its blocks are decided (eq. 7-8), and
     each stretch of adjacent detected blocks is swept again (its rows still in cache) for the
     ranges, with the run-minimum scheme of the exact scan: a minimum per column while the column
     covers the same bins, written to them when a run ends (runs end at block-row boundaries too).
-    Whether a bin has a reading is asked of one covering sample (its "probe", the lowest: the
-    floor near the robot nearly always gives one) while its row is in cache, the other covering
-    samples only when the probe has none.
+    Whether a bin is seen that far is asked of one reach sample (its "probe", in its highest
+    row read) while its row is in cache, the other reach samples only when the probe has none.
 
     Args:
         depth: (H, C) uint16 mm, the sample columns only (a column-strided view is fine; with
@@ -83,8 +84,8 @@ def cliff_kernel(
             column bi are ev_block[i, bi]:ev_block[i, bi + 1] of ev_code.
         ev_code: (E,) int32 ``col | last << 15 | bin << 16``: column col's run minimum goes into
             bin (bin n: scratch, a run that covers no bin); ``last``: the run ends there.
-        cov_start: (n + 1,) int64, cov_code: (M,) int32 ``col | row << 15``: the samples covering
-            bin b, cov_start[b]:cov_start[b + 1], the probe last.
+        cov_start: (n + 1,) int64, cov_code: (M,) int32 ``col | row << 15``: the reach samples
+            of bin b, cov_start[b]:cov_start[b + 1], the probe last.
         probe_start: (R + 1,) int64, probe_code: (P,) int32 ``col | bin << 15``: the probes in
             sample row i are probe_start[i]:probe_start[i + 1].
         block_xy: (nbr, nbc, 2) float32 floor point of each block's centre ray.
@@ -106,6 +107,7 @@ def cliff_kernel(
     """
     n_cols = lo.shape[1]
     nbr, nbc = block_ok.shape
+    paper = not refine  # the original: any reading of a covering sample makes its bin +inf
     n = out.shape[0] - 1
     inf = np.float32(np.inf)
     colcnt = np.zeros(n_cols, np.uint16)
@@ -127,7 +129,8 @@ def cliff_kernel(
                 colcnt[k] += (lo_i[k] < d) & (d < hi)
             for p in range(probe_start[i], probe_start[i + 1]):
                 x = probe_code[p]
-                seen[x >> CODE_BITS] = drow[x & CODE_MASK] != 0
+                d = drow[x & CODE_MASK]
+                seen[x >> CODE_BITS] = (d != 0) & ((d < hi) | paper)
         total = 0
         for k in range(n_cols):  # a vectorised sum: most block rows see the floor and no drop-off
             total += colcnt[k]
@@ -192,7 +195,8 @@ def cliff_kernel(
             continue
         for m in range(cov_start[b], cov_start[b + 1] - 1):  # the probe (the last) had no reading
             x = cov_code[m]
-            if depth[rows[x >> CODE_BITS], x & CODE_MASK] != 0:
+            d = depth[rows[x >> CODE_BITS], x & CODE_MASK]
+            if (d != 0) & ((d < hi) | paper):
                 break
         else:
             out[b] = nan

@@ -57,8 +57,8 @@ class CliffTable:
     col_step: int  # sample columns are col0 + k * col_step (0: unevenly spaced, gather them)
     ev_block: npt.NDArray[np.int64]  # (R, nbc + 1) flushes per sample row and block column ..
     ev_code: npt.NDArray[np.int32]  # (E,) .. col | run ends << 15 | bin << 16
-    cov_start: npt.NDArray[np.int64]  # (N + 1,) samples covering bin b: cov_start[b]:cov_start[b+1]
-    cov_code: npt.NDArray[np.int32]  # (M,) col | sample row << 15, top rows first
+    cov_start: npt.NDArray[np.int64]  # (N + 1,) bin b's reach samples: cov_start[b]:cov_start[b+1]
+    cov_code: npt.NDArray[np.int32]  # (M,) col | sample row << 15 (_reach_samples: probe last)
     probe_start: npt.NDArray[np.int64]  # (R + 1,) probes (a bin's lowest sample) by sample row
     probe_code: npt.NDArray[np.int32]  # (P,) col | bin << 15
     # exact: every pixel of the used rows (image rows row0..H-1); paper: empty (0 rows)
@@ -130,13 +130,48 @@ def _covering_samples(
     return start, r.astype(np.int32), c.astype(np.int32)
 
 
+def _reach_samples(
+    cov_start: npt.NDArray[np.int64],
+    cov_row: npt.NDArray[np.int32],
+    cov_col: npt.NDArray[np.int32],
+    range_m: F64,
+    params: CliffParams,
+) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.int32], npt.NDArray[np.int32]]:
+    """Of every bin's covering samples, those that say whether it is seen out to range_max: the
+    samples read (floor point within [range_min, range_max]) in the bin's highest sample row read.
+    A bin is +inf (no drop-off) only if one of them has a reading: a drop-off nearer than them
+    shows as lower-floor readings in the rows above its edge, and where the highest row reads
+    nothing (a lower floor beyond the sensor's reach) the far end of the bin is unknown (the
+    safety contract). The next row down is no stand-in: at 4 m its floor lies ~0.4 m nearer.
+
+    The paper method keeps them all (the original: +inf where any covering sample reads).
+
+    Returns:
+        (start (n + 1,), row, col) as ``_covering_samples``'.
+    """
+    if params.method == "paper":
+        return cov_start, cov_row, cov_col
+    r = range_m[cov_row, cov_col]
+    read = (r >= params.range_min_m) & (r <= params.range_max_m)
+    n = cov_start.size - 1
+    bin_of = np.repeat(np.arange(n), np.diff(cov_start))
+    big = np.iinfo(np.int32).max
+    top = np.full(n, big, np.int64)
+    np.minimum.at(top, bin_of[read], cov_row[read])
+    keep = read & (cov_row == top[bin_of])
+    rows, cols = cov_row[keep], cov_col[keep]  # bin by bin, as _covering_samples gave them
+    start = np.zeros(n + 1, dtype=np.int64)
+    np.cumsum(np.bincount(bin_of[keep], minlength=n), out=start[1:])
+    return start, rows.astype(np.int32), cols.astype(np.int32)
+
+
 def _probes(
     cov_start: npt.NDArray[np.int64],
     cov_row: npt.NDArray[np.int32],
     cov_col: npt.NDArray[np.int32],
     n_rows: int,
 ) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.int32], npt.NDArray[np.int32]]:
-    """Every covered bin's last covering sample (the lowest in the image), grouped by sample row.
+    """Every covered bin's last reach sample (one of its highest read), grouped by sample row.
 
     Returns:
         (start (R + 1,), bin, col): the probes of sample row i are start[i]:start[i + 1].
@@ -215,6 +250,7 @@ def cliff_table(
         key, np.arange(first.shape[0])[:, None] * (nbc + 1) + np.arange(nbc + 1)[None, :]
     ).astype(np.int64)
     cov_start, cov_row, cov_col = _covering_samples(first, last, n_bins)
+    cov_start, cov_row, cov_col = _reach_samples(cov_start, cov_row, cov_col, range_m, params)
     probe_start, probe_bin, probe_col = _probes(cov_start, cov_row, cov_col, first.shape[0])
     cov_code = (cov_col | (cov_row << CODE_BITS)).astype(np.int32)
     probe_code = (probe_col | (probe_bin << CODE_BITS)).astype(np.int32)

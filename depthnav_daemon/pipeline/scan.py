@@ -93,14 +93,12 @@ def _exact_scan(
         t.probe_start,
         t.probe,
         t.spans,
+        t.short,
+        np.float32(params.range_max_m),
         acc,
         out,
     )
     ranges = out[:-1]
-    if t.short_view.size:
-        # the contract: +inf only where the view reaches range_max on the whole bin
-        sv = ranges[t.short_view]
-        ranges[t.short_view] = np.where(np.isposinf(sv), np.float32(np.nan), sv)
     n = ranges.size
     return LaserScan(
         t.angle_min,

@@ -123,6 +123,8 @@ def exact_scan_kernel(
     probe_start,
     probe,
     spans,
+    short,
+    range_max,
     acc,
     out,
 ):
@@ -135,8 +137,9 @@ def exact_scan_kernel(
 
     Each row is looked at in blocks of BLOCK columns (scan_blocks): a block none of whose
     depths can be an obstacle or too close is not read further, and its flushes are skipped while
-    its columns hold nothing (+inf). A bin left at +inf is NaN if none of its pixels has a
-    reading, found by looking its pixels up (usually the first has one).
+    its columns hold nothing (+inf). A bin left at +inf is NaN unless one of its pixels reads at
+    or beyond ``range_max`` (horizontal range), found by looking its pixels up from the top
+    (usually the first has such a reading).
 
     Args:
         depth: (H, Ws) uint16 mm, already reduced to the used columns (a strided view is fine).
@@ -152,6 +155,9 @@ def exact_scan_kernel(
             minimum into bin; ``last``: the run ends here, the column starts again.
         probe_start, probe: the runs (column, first row, last row) feeding each bin.
         spans: (2, n) int16 the first and last row of each bin's runs.
+        short: (n,) bool: bins whose view does not reach range_max (coverage.floor_extent):
+            NaN where no obstacle is found, without looking.
+        range_max: float32 m, the scan's range_max.
         acc: (Ws,) float32 work space.
         out: (n + 1,) float32, overwritten: the scan in out[:n]; out[n] is scratch (runs that
             feed no bin are flushed there).
@@ -278,26 +284,32 @@ def exact_scan_kernel(
     for b in range(n):
         if out[b] != inf:
             continue
+        if short[b]:
+            out[b] = nan  # the view does not reach range_max: nothing to look up
+            continue
         r0 = spans[0, b]
         r1 = spans[1, b]
         if r1 < r0 or (counted and with_reading[r1 + 1] == with_reading[r0]):
             out[b] = nan  # no pixel, or no reading in any row of its pixels
             continue
         found = False
-        # bottom rows first: they see the floor, where the top rows may see nothing (sky, or
-        # beyond the sensor's reach), so the first pixel looked at usually has a reading
-        for e in range(probe_start[b + 1] - 1, probe_start[b] - 1, -1):
+        # +inf only if some pixel of the bin reads at or beyond range_max (its ray was seen free
+        # that far; the safety contract): a bin whose readings all end nearer (something below
+        # the obstacle band in the way, the top rows without a reading) is unknown. Top rows
+        # first: they look farthest, so the first pixel with a reading usually decides
+        for e in range(probe_start[b], probe_start[b + 1]):
             c = probe[0, e]
             r0 = probe[1, e]
             r1 = probe[2, e]
             if counted and with_reading[r1 + 1] == with_reading[r0]:
                 continue  # every row of this run is all zeros
-            for ri in range(r1, r0 - 1, -1):
+            for ri in range(r0, r1 + 1):
                 walked += 1
                 r = np.uint64(rows[ri])
                 if seen[ri] == UNKNOWN:  # once a row: a frame of zeros costs a pass, not one a bin
                     seen[ri] = _any_reading(depth, r, n_cols)
-                if seen[ri] and depth[r, c] != 0:
+                d = depth[r, c]
+                if seen[ri] and d != 0 and np.float32(d) * kr[ri, c] >= range_max:
                     found = True
                     break
             if found:

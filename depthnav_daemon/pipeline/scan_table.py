@@ -68,6 +68,7 @@ class ExactTable:
     # bins whose floor the read rows do not see out to range_max (coverage.floor_extent): a bin
     # there that found no obstacle is unknown (NaN), not clear (+inf); the safety contract
     short_view: npt.NDArray[np.intp] = field(default_factory=lambda: np.empty(0, np.intp))
+    short: npt.NDArray[np.bool_] = field(default_factory=lambda: np.zeros(0, np.bool_))  # (n,)
 
 
 def scan_rows(intr: Intrinsics, params: ScanParams) -> slice:
@@ -271,6 +272,7 @@ def exact_table(intr: Intrinsics, mount: Mount, params: ScanParams) -> ExactTabl
         n_bins=n,
         angle_min=angle_min,
         short_view=short_view,
+        short=np.ascontiguousarray(~seen_to(far, params.range_max_m)),
         angle_increment=inc,
     )
     return frozen_table(table)  # cached and shared between calls

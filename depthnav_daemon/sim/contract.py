@@ -16,12 +16,14 @@ sensor sees (geometry only, no stage code) and the judge reads the contract so:
   standing there would have been seen; a box hiding it does not excuse it) OR, for base-frame and
   merged outputs, no sensor's view covered it (the contract says such a bin is NaN). Stated
   exceptions, reported apart, never unsafe: ``overhang`` (a table top, a box above the floor,
-  whose band body is above the view's top edge while its floor point is seen) and
+  whose band body is outside the view, above its top edge or beside it, while its floor point is
+  seen) and
   ``below_resolution`` (a drop-off whose extent along the ray there is below the cliff stage's:
   a block plus a row stride). Any other drop-off edge on floor the cliff rows read makes +inf
   unsafe. The bearing is exact to one bin here too: a +inf bin whose truth (the nearest claimed
   point) a neighbour bin reports (finite <= truth + err, or -inf) is counted ``beside`` (and
-  again as ``clear_held``, the table's "(held)"), not unsafe.
+  again as ``clear_held``, the table's "(held)"), not unsafe. A truth within the stated error of
+  range_max may read beyond it: +inf there is not unsafe (it is counted nowhere).
 - +inf, the memory (``memory``, ``memory_sectors``): unsafe if anything is on the bin within its
   range_max, except table tops no sensor ever saw (``overhang``) and what lies nearer the robot
   than the memory's ``blind_m`` (the disc round the base origin it does not judge; the value the
@@ -159,7 +161,8 @@ def judge(
         held_claim = (lc <= claim_lim) | (rc <= claim_lim)
         truth_in = near <= range_max
         good = (fin & (np.abs(r - near) <= err)) | (ninf & (near < range_min + TOO_CLOSE_SLACK_M))
-        claimed = inf & (t.claim <= range_max)
+        # within the stated error of range_max a surface may read beyond it (noise, mm steps)
+        claimed = inf & (t.claim <= range_max - (err if err_claim is None else err_claim))
         clear = claimed & ~held_claim
         rest = inf & ~claimed
         kinds = []

@@ -7,16 +7,17 @@ segment): boxes (heights inside the scan band) and holes (drop-off edges). Per s
 - *in view* (a box): at some of its band heights it lies on a pixel row the scan reads (a row
   centre) inside the image's columns, within the sensor's depth range; *visible*: in view with no
   box nearer on that camera ray (the finite truth). *Floor seen*: its floor point (z = 0)
-  projects into the rows and columns the scan reads. *Above the view*: the lowest band height
-  projects above the first row read (or behind the camera). A table top (a box above the floor)
-  whose floor is seen but whose band body is above the view is an *overhang*.
+  projects into the rows and columns the scan reads. A table top (a box above the floor) whose
+  floor is seen but whose band body lies wholly outside the rows and columns read (above the top
+  row, or beside the image where a tilted camera's sides lean out) is an *overhang*.
 - a drop-off edge: a sample of a hole's outline where the camera's ray enters the hole (a near
   edge) of a hole deeper than the cliff's ground margin. *Floor seen*: its floor point projects
   into the cliff stage's blocks, within the cliff's range_max. *Below resolution*: floor seen, but
   the ray a block and a sample stride of rows above the edge's row (what a block needs to fill)
-  no longer drops the ground margin inside the hole: the hole's extent along the ray is below the
-  stage's resolution there. *In view*: floor seen, not below resolution and a block plus a stride
-  below the blocks' top; *visible*: in view and no box hides it.
+  no longer drops the ground margin (and the noise model's sigmas, CliffParams) inside the hole:
+  the hole's extent along the ray is below the stage's resolution there. *In view*: floor seen,
+  not below resolution and a block plus a stride below the blocks' top; *visible*: in view and
+  no box hides it.
 - *dead*: its floor point projects below the lowest row the stage reads, or lies nearer the
   camera's foot than where the bottom row read meets the floor (the lower dead zone; behind the
   camera only the latter). *Covered*: in view or floor seen. Neither *in view* nor *floor seen*
@@ -260,7 +261,7 @@ def sight(bd: Boundary, scene: Scene, cam: Camera, scan: ScanParams, cliff: Clif
     zero = np.zeros(n)
     flo, fhi = cam.window(bd.xy, zero, zero, (rows.start, last), cols)
     floor = box & (flo <= fhi)
-    over = bd.raised & floor & ~inview & (cam.rows_at(bd.xy, bd.z_lo) < rows.start)
+    over = bd.raised & floor & (lo > hi)  # a raised body wholly outside the view (top or sides)
     fr = cam.floor_row(bd.xy)
     dead = (np.isfinite(fr) & (fr > last)) | (r < cam.nearest_floor(last, cols))
     visible = np.zeros(n, bool)
@@ -288,7 +289,12 @@ def sight(bd: Boundary, scene: Scene, cam: Camera, scan: ScanParams, cliff: Clif
     d = (bd.xy[e[q]] - [cam.x, cam.y]) / r[e[q], None]
     up = cam.floor_row(bd.xy[e[q]]) - bs - cliff.row_step
     fine = np.zeros(len(e), bool)
-    fine[q] = t_out[pick][q] >= _floor_range_at_row(cam, d, up, r[e[q]]) * (1 + m / cam.h)
+    fr_up = _floor_range_at_row(cam, d, up, r[e[q]])
+    # the stage's own resolution: beyond the floor by the margin's height and by its noise
+    # model's sigmas at the floor's optical depth (CliffParams: depth > t + n k t^2)
+    zc = cam.linear(np.array([[cam.x, cam.y]]) + d * np.minimum(fr_up, FAR_M)[:, None])[2][0]
+    noise = cliff.noise_sigmas * cliff.depth_noise_k * np.maximum(zc, 0.0)
+    fine[q] = t_out[pick][q] >= fr_up * np.maximum(1 + m / cam.h, 1 + noise)
     ok = fine & (cam.floor_row(bd.xy[e]) >= top + bs + cliff.row_step)
     ev = np.zeros(len(e), bool)
     ev[ok] = _unhidden(scene, cam, bd.xy[e[ok]], r[e[ok]], zero[e][ok, None])
@@ -371,7 +377,7 @@ class Truth:
 def truth(bd: Boundary, c: Claims, origin: Origin, layout: Layout, kinds: B | None = None) -> Truth:
     """Bin the outline seen from ``origin`` with the sample masks ``c``; ``kinds`` keeps only some
     samples (e.g. ``bd.edge`` for a cliff scan; None: all). A segment is visible if both its ends
-    are, claimed (or of a reported kind) if either is."""
+    are, claimed if both are (else its claimed end is), of a reported kind if either is."""
     d = bd.xy - origin[:2]
     rng, bearing = np.hypot(d[:, 0], d[:, 1]), np.arctan2(d[:, 1], d[:, 0]) - origin[2]
     keep = np.flatnonzero(np.ones(len(rng), bool) if kinds is None else kinds)
@@ -388,10 +394,22 @@ def truth(bd: Boundary, c: Claims, origin: Origin, layout: Layout, kinds: B | No
     def either(m: B) -> F64:
         return nearest(m[keep] | m[j])
 
+    # a segment with one end claimed and one not crosses the claim's border somewhere between
+    # its samples (SAMPLE_STEP_M apart): only its claimed end is claimed (the whole segment,
+    # its unclaimed end's range included, would claim what the view did not cover)
+    pb, pk, pv = segment_bins(bearing[keep], bearing[keep], rng[keep], rng[keep], layout)
+    pb, pk = pb.astype(np.int64), pk.astype(np.int64)
+
+    def claimed(m: B) -> F64:
+        out = nearest(m[keep] & m[j])
+        sel = m[keep][pb]
+        np.minimum.at(out, pk[sel], pv[sel])
+        return out
+
     return Truth(
         nearest(c.visible[keep] & c.visible[j] & ~bd.edge[keep]),
         nearest(c.visible[keep] & c.visible[j] & bd.edge[keep]),
-        either(c.claim),
+        claimed(c.claim),
         nearest(np.ones(len(keep), bool)),
         either(c.overhang),
         either(c.below),

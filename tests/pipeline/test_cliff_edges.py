@@ -393,7 +393,8 @@ def reference_edges(
     out[clear & t.short] = np.nan
     for b in np.flatnonzero(clear & ~t.short):
         codes = t.cov_code[t.cov_start[b] : t.cov_start[b + 1]]
-        if not (depth[t.rows[codes >> 15], t.cols[codes & 0x7FFF]] != 0).any():
+        d = depth[t.rows[codes >> 15], t.cols[codes & 0x7FFF]]
+        if not ((d != 0) & (d < t.hi_mm)).any():
             out[b] = np.nan
     return out, np.array(pts, np.float32).reshape(-1, 2)
 

@@ -79,6 +79,7 @@ def reference_exact_scan(
         np.float32
     )
     val[close] = -np.inf
+    val_range = d.astype(np.float32) * t.kr_m_per_mm  # horizontal range of every reading
     ws = d.shape[1]
     out = np.full(t.n_bins, np.inf, dtype=np.float32)
     seen = np.zeros(t.n_bins, dtype=bool)
@@ -86,7 +87,9 @@ def reference_exact_scan(
         for b in np.flatnonzero(g_lo[i] < ws):
             c0, c1 = int(g_lo[i, b]), int(min(g_hi[i, b], ws - 1))
             out[b] = min(out[b], val[i, c0 : c1 + 1].min())
-            seen[b] |= bool((d[i, c0 : c1 + 1] != 0).any())
+            # +inf only where a reading reaches range_max (the ray was seen free that far)
+            reach = val_range[i, c0 : c1 + 1] >= np.float32(params.range_max_m)
+            seen[b] |= bool(((d[i, c0 : c1 + 1] != 0) & reach).any())
     out[(out == np.inf) & ~seen] = np.nan
     # the view's reach (coverage.floor_extent, tested on its own in test_coverage): a bin whose
     # floor is not seen to range_max says NaN where it found nothing
