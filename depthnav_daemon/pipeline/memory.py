@@ -330,11 +330,14 @@ def read_scan(state: MemoryState, pose: tuple[float, float, float]) -> MemorySca
 
 
 def snapshot(state: MemoryState) -> GridSnapshot:
-    """A copy of the grid in window order (for drawing)."""
+    """A copy of the grid and its known-free layer in window order (for drawing, sinks)."""
     n, cell = state.params.cells, state.params.cell_m
-    g = np.roll(state.grid, (-(state.wx0 % n), -(state.wy0 % n)), axis=(0, 1))
+    shift, axes = (-(state.wx0 % n), -(state.wy0 % n)), (0, 1)
+    g = np.roll(state.grid, shift, axis=axes)
+    known = np.roll(state.known, shift, axis=axes)
     g.setflags(write=False)
-    return GridSnapshot(g, (state.wx0 * cell, state.wy0 * cell), cell)
+    known.setflags(write=False)
+    return GridSnapshot(g, (state.wx0 * cell, state.wy0 * cell), cell, known)
 
 
 __all__ = [

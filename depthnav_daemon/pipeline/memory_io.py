@@ -88,11 +88,14 @@ class GridSnapshot:
         grid: (n, n) uint8 FREE (0) / OBSTACLE (1) / CLIFF (2), a copy.
         origin_m: (x, y) odometry coordinates of the grid's corner, metres.
         cell_m: cell side, metres.
+        known: (n, n) uint8 1 where a FREE cell is known free (seen free, not expired), 0
+            unknown, a copy in the same order; None where not given.
     """
 
     grid: npt.NDArray[np.uint8]
     origin_m: tuple[float, float]
     cell_m: float
+    known: npt.NDArray[np.uint8] | None = None
 
 
 @dataclass(frozen=True, slots=True)

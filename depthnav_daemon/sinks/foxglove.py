@@ -7,7 +7,7 @@ Specs:
 
 Options: ``image=0`` leaves out the depth image and its overlays; ``tf=0`` the transforms; the
 frame and topic names of the ROS sinks (sinks/ros/messages.py: ``base_frame``, ``scan_topic`` ...)
-and their ``cliff_z``.
+and their ``cliff_z``, ``grid_rate`` and ``odom_tf``.
 
 Channels (Foxglove's own protobuf schemas unless said):
     /depthnav/depth/image_raw     RawImage 16UC1 (mm), optical frame
@@ -21,6 +21,14 @@ Channels (Foxglove's own protobuf schemas unless said):
     /depth_sensor_pose            PoseInFrame: the mount in the base frame (see ros_messages)
     /depthnav/timings             JSON: stage timings (ms), mount, its source and trust (the
                                   JSON sinks' "mount" object), warning
+With the obstacle memory on (odometry), from its first frame (sinks/ros/memory_out.py):
+    /memory/grid                  Grid in the odom frame at grid_rate (2 Hz): int8 field
+                                  ``occupancy`` (100 / 0 / -1, as nav_msgs/OccupancyGrid) and
+                                  red, green, blue, alpha (3D panel: color mode RGBA): obstacles
+                                  red, drop-offs magenta, known free faint green, unknown clear
+    /memory/scan                  LaserScan, 360 deg, in the scan frame (NaN unknown, +inf free)
+    /memory/cliff/points          PointCloud: the remembered drop-off cells, base frame, cliff_z
+    /tf                           also odom -> base, the robot at the memory's odometry pose
 
 Served by the foxglove-sdk (its Rust server runs on its own threads): logging a message never
 waits for a client; each client has a bounded backlog (oldest data dropped when it fills, a
@@ -42,6 +50,14 @@ import numpy as np
 from depthnav_daemon.errors import ConfigError, SinkError
 from depthnav_daemon.sinks.base import SinkContext, SinkSpec, check_options, parse_host_port
 from depthnav_daemon.sinks.json.message import mount_trust_to_json
+from depthnav_daemon.sinks.ros.memory_out import (
+    GridClock,
+    cliff_cells_xy,
+    live_memory,
+    occupancy,
+    occupancy_rgba,
+    yaw_quaternion,
+)
 from depthnav_daemon.sinks.ros.messages import (
     OPTIONS,
     UINT32_SEC_MAX,
@@ -56,12 +72,16 @@ from depthnav_daemon.sinks.ros.messages import stamp_ns as to_ns
 
 if TYPE_CHECKING:
     from depthnav_daemon.pipeline import Result
+    from depthnav_daemon.pipeline.memory_io import MemoryResult
     from depthnav_daemon.pipeline.scan import LaserScan
     from drivers.base import Frame
 
 log = logging.getLogger(__name__)
 
-GRAMMAR = "foxglove://HOST:PORT | foxglove:FILE.mcap [?image=0|1&tf=0|1&cliff_z=-0.05&<names>]"
+GRAMMAR = (
+    "foxglove://HOST:PORT | foxglove:FILE.mcap "
+    "[?image=0|1&tf=0|1&cliff_z=-0.05&grid_rate=2&odom_tf=0|1&<names>]"
+)
 DEFAULT_HOST, DEFAULT_PORT = "127.0.0.1", 8765
 BACKLOG = 64  # messages queued per client before the oldest are dropped
 MAX_OBSTACLE_POINTS = 1000  # ~7 us each to build
@@ -85,6 +105,7 @@ class FoxgloveSink:
         self._out: Any = None  # the WebSocketServer or the MCAP writer
         self._ch: dict[str, Any] = {}
         self._intr: Any = None
+        self._grid_clock = GridClock(names.grid_rate)
 
     @classmethod
     def from_spec(cls, spec: SinkSpec) -> FoxgloveSink:
@@ -167,6 +188,19 @@ class FoxgloveSink:
             ch[ANNOTATIONS] = c.ImageAnnotationsChannel(ANNOTATIONS, context=ctx)
         self._ch = ch
 
+    def _memory_channels(self) -> None:
+        """The memory's channels, made with its first frame (advertised to clients then)."""
+        from foxglove import channels as c
+
+        n, ctx = self.names, self._ctx
+        if n.grid_rate > 0:
+            self._ch[n["memory_grid_topic"]] = c.GridChannel(n["memory_grid_topic"], context=ctx)
+        for key, kind in (
+            ("memory_scan_topic", c.LaserScanChannel),
+            ("memory_cliff_points_topic", c.PointCloudChannel),
+        ):
+            self._ch[n[key]] = kind(n[key], context=ctx)
+
     def write(self, frame: Frame, result: Result) -> None:
         """Log the frame on every channel somebody listens to; never waits for a client."""
         if self._out is None:
@@ -177,6 +211,9 @@ class FoxgloveSink:
         t_ns = check_stamp(to_ns(result.timestamp_s), UINT32_SEC_MAX, "a foxglove Timestamp")
         stamp = m.Timestamp(t_ns // 10**9, t_ns % 10**9)
         n = self.names
+        mem = live_memory(result)
+        if mem is not None and n["memory_scan_topic"] not in self._ch:
+            self._memory_channels()
         for topic, build in (
             (n["scan_topic"], lambda: self._scan(m, stamp, result.scan)),
             (
@@ -185,7 +222,13 @@ class FoxgloveSink:
             ),
             (n["cliff_points_topic"], lambda: result.cliff and self._points(m, stamp, result)),
             (n["pose_topic"], lambda: self._pose(m, stamp, result)),
-            (n["tf_topic"], lambda: self._tf(m, stamp, result)),
+            (n["tf_topic"], lambda: self._tf(m, stamp, result, mem)),
+            (n["memory_grid_topic"], lambda: mem and self._grid(m, stamp, mem, result)),
+            (n["memory_scan_topic"], lambda: mem and self._scan(m, stamp, mem.scan)),
+            (
+                n["memory_cliff_points_topic"],
+                lambda: mem and self._cloud(m, stamp, cliff_cells_xy(mem)),
+            ),
             (n["image_topic"], lambda: self._image(m, stamp, frame)),
             (n["info_topic"], lambda: self._calibration(m, stamp, frame)),
             (ANNOTATIONS, lambda: self._annotations(m, stamp, result)),
@@ -210,7 +253,11 @@ class FoxgloveSink:
 
     def _points(self, m: Any, stamp: Any, result: Result) -> Any:
         assert result.cliff is not None
-        xyz = cliff_xyz(result.cliff.points_m, self.names.cliff_z)
+        return self._cloud(m, stamp, result.cliff.points_m)
+
+    def _cloud(self, m: Any, stamp: Any, points_m: Any) -> Any:
+        """Drop-offs (K, 2) x, y in the base frame as a PointCloud at z = cliff_z."""
+        xyz = cliff_xyz(points_m, self.names.cliff_z)
         f32 = m.PackedElementFieldNumericType.Float32
         fields = [m.PackedElementField(name=c, offset=4 * i, type=f32) for i, c in enumerate("xyz")]
         return m.PointCloud(
@@ -227,26 +274,59 @@ class FoxgloveSink:
         pose = m.Pose(position=m.Vector3(x=t[0], y=t[1], z=t[2]), orientation=self._quat(m, body))
         return m.PoseInFrame(timestamp=stamp, frame_id=self.names["base_frame"], pose=pose)
 
-    def _tf(self, m: Any, stamp: Any, result: Result) -> Any:
+    def _tf(self, m: Any, stamp: Any, result: Result, mem: MemoryResult | None) -> Any:
+        """base -> scan and optical frames; odom -> base too with the memory (and odom_tf)."""
         from depthnav_daemon.pipeline.geometry import M_CAM_TO_FLU
 
         t, body = sensor_placement(result.mount)
         n = self.names
-        return m.FrameTransforms(
-            transforms=[
+        out = [
+            m.FrameTransform(
+                timestamp=stamp,
+                parent_frame_id=n["base_frame"],
+                child_frame_id=child,
+                translation=m.Vector3(x=o[0], y=o[1], z=o[2]),
+                rotation=self._quat(m, rot),
+            )
+            for child, o, rot in (
+                (n["scan_frame"], scan_origin(result.mount), np.eye(3)),
+                (n["optical_frame"], t, body @ M_CAM_TO_FLU),
+            )
+        ]
+        if mem is not None and mem.pose is not None and n.odom_tf:
+            x, y, yaw = mem.pose
+            qx, qy, qz, qw = yaw_quaternion(yaw)
+            out.append(
                 m.FrameTransform(
                     timestamp=stamp,
-                    parent_frame_id=n["base_frame"],
-                    child_frame_id=child,
-                    translation=m.Vector3(x=o[0], y=o[1], z=o[2]),
-                    rotation=self._quat(m, rot),
+                    parent_frame_id=n["odom_frame"],
+                    child_frame_id=n["base_frame"],
+                    translation=m.Vector3(x=x, y=y, z=0.0),
+                    rotation=m.Quaternion(x=qx, y=qy, z=qz, w=qw),
                 )
-                for child, o, rot in (
-                    (n["scan_frame"], scan_origin(result.mount), np.eye(3)),
-                    (n["optical_frame"], t, body @ M_CAM_TO_FLU),
-                )
-            ]
-        )
+            )
+        return m.FrameTransforms(transforms=out)
+
+    def _grid(self, m: Any, stamp: Any, mem: MemoryResult, result: Result) -> Any:
+        """The memory grid as a Grid in the odom frame when one is due (grid_rate), else None:
+        per cell the int8 ``occupancy`` then red, green, blue, alpha (5 bytes)."""
+        if mem.grid is None or not self._grid_clock.due(result.timestamp_s):
+            return None
+        occ = occupancy(mem.grid)
+        cols = occ.cells.shape[1]
+        t = m.PackedElementFieldNumericType
+        fields = [m.PackedElementField(name="occupancy", offset=0, type=t.Int8)]
+        fields += [
+            m.PackedElementField(name=c, offset=1 + i, type=t.Uint8)
+            for i, c in enumerate(("red", "green", "blue", "alpha"))
+        ]
+        ox, oy = occ.origin_m
+        return m.Grid(
+            timestamp=stamp, frame_id=self.names["odom_frame"],
+            pose=m.Pose(position=m.Vector3(x=ox, y=oy, z=0.0), orientation=m.Quaternion(w=1.0)),
+            column_count=cols, cell_size=m.Vector2(x=occ.cell_m, y=occ.cell_m),
+            row_stride=5 * cols, cell_stride=5, fields=fields, data=occupancy_rgba(occ).tobytes(),
+        )  # fmt: skip
 
     def _image(self, m: Any, stamp: Any, frame: Frame) -> Any:
         h, w = frame.depth_mm.shape

@@ -21,7 +21,9 @@ frame: the sensor on the robot; orientation = the sensor body (x along the optic
 about x = roll_deg (positive left side up), pitch about y = tilt_deg (positive nose down),
 yaw = yaw_deg, ROS fixed-axis RPY; position = (x_m, y_m, height_m)).
 With ``image=1`` also the depth image (sensor_msgs/Image 16UC1, optical frame) and its
-CameraInfo, so ``replay:`` reads the bag back.
+CameraInfo, so ``replay:`` reads the bag back. With the obstacle memory on, the memory's topics
+(``/memory/grid`` in ``odom_frame``, ``/memory/scan``, ``/memory/cliff/points``, odom -> base on
+``/tf``): sinks/ros/memory_out.py.
 
 Stamps: a ROS 2 ``builtin_interfaces/Time`` holds sec as int32 (up to 2038-01-19); a ROS 1 time
 is uint32, but rosbags serialises it through the same int32 Time, so ROS 1 bags stop there too. A
@@ -37,7 +39,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import numpy.typing as npt
 
-from depthnav_daemon.errors import SinkError
+from depthnav_daemon.errors import ConfigError, SinkError
 from depthnav_daemon.pipeline.geometry import M_CAM_TO_FLU, rot_x, rot_y, rot_z
 from depthnav_daemon.sinks.base import SinkSpec, bool_option, number_option
 
@@ -60,13 +62,20 @@ NAME_OPTIONS = {  # option -> default frame id or topic name
     "tf_topic": "/tf",
     "image_topic": "/depthnav/depth/image_raw",
     "info_topic": "/depthnav/depth/camera_info",
+    "odom_frame": "odom",  # the obstacle memory's (sinks/ros/memory_out.py)
+    "memory_grid_topic": "/memory/grid",
+    "memory_scan_topic": "/memory/scan",
+    "memory_cliff_points_topic": "/memory/cliff/points",
 }
-OPTIONS = (*NAME_OPTIONS, "tf", "image", "cliff_z")
+OPTIONS = (*NAME_OPTIONS, "tf", "image", "cliff_z", "grid_rate", "odom_tf")
 # z of the cliff points in the base frame (origin on the floor), metres: a clear distance below
 # the floor, so Nav2's height filters (min_obstacle_height) keep or drop them by configuration,
 # never by float rounding. At most -1 mm: 0 would sit exactly on the layer's default filter.
 CLIFF_Z_DEFAULT = -0.05
 CLIFF_Z_RANGE = (-1.0, -0.001)
+# the memory's occupancy grid per second of frame time (0: none); a grid is the memory's size
+GRID_RATE_DEFAULT = 2.0
+GRID_RATE_RANGE = (0.0, 30.0)
 TFMESSAGE_MSG = "geometry_msgs/TransformStamped[] transforms"
 POINTFIELD_FLOAT32 = 7
 
@@ -84,20 +93,49 @@ def typestore(ros1: bool) -> Any:
 
 @dataclass(frozen=True, slots=True)
 class RosNames:
-    """Frame ids and topic names (``NAME_OPTIONS``), which optional topics to write, and the
-    cliff points' z in the base frame (``cliff_z``, metres, negative: below the floor)."""
+    """Frame ids and topic names (``NAME_OPTIONS``), which optional topics to write, the
+    cliff points' z in the base frame (``cliff_z``, metres, negative: below the floor), the
+    memory grid's rate (``grid_rate``, Hz of frame time, 0 = none) and whether ``/tf`` carries
+    odom -> base (``odom_tf``: 0 when the robot's odometry publishes it)."""
 
     names: dict[str, str]
     tf: bool = True
     image: bool = False
     cliff_z: float = CLIFF_Z_DEFAULT
+    grid_rate: float = GRID_RATE_DEFAULT
+    odom_tf: bool = True
 
     @classmethod
     def from_spec(cls, spec: SinkSpec) -> RosNames:
-        """From a sink spec's options. Raises ConfigError (one line) for a bad ``cliff_z``."""
+        """From a sink spec's options. Raises ConfigError (one line) for a bad ``cliff_z``,
+        ``grid_rate`` or flag, two topics of the same name, or an odometry frame named as the
+        base frame."""
         names = {k: spec.options.get(k, v).strip() or v for k, v in NAME_OPTIONS.items()}
+        topics: dict[str, str] = {}
+        for key in (k for k in NAME_OPTIONS if k.endswith("_topic")):
+            if names[key] in topics:
+                raise ConfigError(
+                    f"{topics[names[key]]} and {key} in sink spec {spec.text!r} are both "
+                    f"{names[key]!r}",
+                    hint="give each topic its own name",
+                )
+            topics[names[key]] = key
+        if names["odom_frame"] == names["base_frame"]:
+            raise ConfigError(
+                f"odom_frame and base_frame in sink spec {spec.text!r} are both "
+                f"{names['base_frame']!r}",
+                hint="the odometry frame is the fixed one the robot moves in, e.g. odom",
+            )
         cliff_z = float(number_option(spec, "cliff_z", CLIFF_Z_DEFAULT, *CLIFF_Z_RANGE))
-        return cls(names, bool_option(spec, "tf", True), bool_option(spec, "image", False), cliff_z)
+        rate = float(number_option(spec, "grid_rate", GRID_RATE_DEFAULT, *GRID_RATE_RANGE))
+        return cls(
+            names,
+            bool_option(spec, "tf", True),
+            bool_option(spec, "image", False),
+            cliff_z,
+            rate,
+            bool_option(spec, "odom_tf", True),
+        )
 
     def __getitem__(self, key: str) -> str:
         return self.names[key]

@@ -19,8 +19,10 @@ What makes it ROS 2 on the wire (as rmw_cyclonedds and rmw_fastrtps do it):
 
 Options:
     domain: the DDS domain, 0..232 (default: $ROS_DOMAIN_ID, else 0).
-    tf, image, names: as the rosbag sink (``scan_topic=/depth/scan``, ``base_frame=base_footprint``;
-        relative names resolve against ``/``).
+    tf, image, grid_rate, odom_tf, names: as the rosbag sink (``scan_topic=/depth/scan``,
+        ``base_frame=base_footprint``; relative names resolve against ``/``). With the obstacle
+        memory on, its topics (``/memory/grid``, ``/memory/scan``, ``/memory/cliff/points``) get
+        their writers at its first frame.
 
 Stamps are the wall clock when the frame is published (ROS time, which Nav2 compares against its
 transforms); the bags keep the frames' own times. Cyclone DDS reads its configuration from
@@ -46,6 +48,7 @@ from depthnav_daemon.sinks.base import (
     number_option,
 )
 from depthnav_daemon.sinks.ros.cdr import CdrEncoder
+from depthnav_daemon.sinks.ros.memory_out import MemoryMessages
 from depthnav_daemon.sinks.ros.messages import (
     NAME_OPTIONS,
     OPTIONS,
@@ -60,7 +63,10 @@ if TYPE_CHECKING:
 
 log = logging.getLogger(__name__)
 
-GRAMMAR = "ros2[?domain=0..232&tf=0|1&image=0|1&cliff_z=-0.05&base_frame=..&scan_topic=..]"
+GRAMMAR = (
+    "ros2[?domain=0..232&tf=0|1&image=0|1&cliff_z=-0.05&grid_rate=2&odom_tf=0|1&base_frame=.."
+    "&scan_topic=..]"
+)
 MAX_DOMAIN = 232  # the highest domain whose RTPS ports (7400 + 250 * domain + ...) fit in 16 bits
 HISTORY_DEPTH = 5
 PIP_HINT = "pip install 'depthnav[ros2]'"
@@ -181,6 +187,9 @@ class Ros2Sink:
         self._builder: MessageBuilder | None = None
         self._encoder: CdrEncoder | None = None
         self._write: Any = None
+        self._memory: MemoryMessages | None = None
+        self._memory_types: dict[str, str] = {}
+        self._add_writer: Any = None
         self.failures = RateLimitedLog(log)
         self.samples = 0
 
@@ -218,25 +227,28 @@ class Ros2Sink:
 
         store = typestore(ros1=False)
         self._builder = MessageBuilder(store, self.names)
+        self._memory = MemoryMessages(self._builder)
         idl = IdlTypes(store)
+
+        def add_writer(ros_topic: str, msgtype: str) -> None:
+            topic = cdds.topic.Topic(self._participant, self.topics[ros_topic], idl.get(msgtype))
+            qos = Qos(
+                Policy.Reliability.Reliable(duration(seconds=0)),
+                Policy.Durability.Volatile,
+                Policy.History.KeepLast(HISTORY_DEPTH),
+                Policy.DataRepresentation(use_cdrv0_representation=True),
+                Policy.Userdata(f"typehash={store.hash_rihs01(msgtype)};".encode()),
+            )
+            self._writers[ros_topic] = cdds.pub.DataWriter(publisher, topic, qos=qos)
+            store.get_msgdef(msgtype)  # generates its serializer now, not at the first frame
+
         try:
             self._participant = cdds.domain.DomainParticipant(
                 self.domain, qos=Qos(Policy.Userdata(b"enclave=/;"))
             )
             publisher = cdds.pub.Publisher(self._participant)
             for ros_topic, msgtype in self._builder.msgtypes().items():
-                topic = cdds.topic.Topic(
-                    self._participant, self.topics[ros_topic], idl.get(msgtype)
-                )
-                qos = Qos(
-                    Policy.Reliability.Reliable(duration(seconds=0)),
-                    Policy.Durability.Volatile,
-                    Policy.History.KeepLast(HISTORY_DEPTH),
-                    Policy.DataRepresentation(use_cdrv0_representation=True),
-                    Policy.Userdata(f"typehash={store.hash_rihs01(msgtype)};".encode()),
-                )
-                self._writers[ros_topic] = cdds.pub.DataWriter(publisher, topic, qos=qos)
-                store.get_msgdef(msgtype)  # generates its serializer now, not at the first frame
+                add_writer(ros_topic, msgtype)
         except DDSException as exc:
             self.close()
             code = str(exc).split("]")[0].lstrip("[") if str(exc).startswith("[") else "error"
@@ -247,6 +259,8 @@ class Ros2Sink:
             ) from None
         self._encoder = CdrEncoder(self._builder)
         self._write = ddspy_write
+        self._add_writer = add_writer  # the memory's writers come with its first frame
+        self._memory_types = self._memory.msgtypes()
         log.info(
             "ros2 sink publishing %s on DDS domain %d",
             ", ".join(sorted(self._writers)),
@@ -255,10 +269,16 @@ class Ros2Sink:
 
     def write(self, frame: Frame, result: Result) -> None:
         """Serialise and publish the frame's messages; never waits for a subscriber."""
-        if self._encoder is None or self._write is None:
+        if self._encoder is None or self._write is None or self._memory is None:
             raise SinkError(f"sink {self.name!r} is not open")
+        t_ns = time.time_ns()
         # rosbags' CDR of the messages, padded to whole 4-byte words (sinks/ros/cdr.py)
-        for topic, data in self._encoder.encode(frame, result, t_ns=time.time_ns()):
+        out = self._encoder.encode(frame, result, t_ns=t_ns)
+        for topic, msg in self._memory.messages(result, t_ns):
+            if topic not in self._writers:
+                self._new_writer(topic)
+            out.append((topic, self._encoder.serialize(msg)))
+        for topic, data in out:
             # cyclonedds' DataWriter.write serialises a sample in Python and hands the bytes to
             # this call: we hand it rosbags' CDR of the same layout (checked in the tests)
             rc = self._write(self._writers[topic]._ref, data)
@@ -267,12 +287,23 @@ class Ros2Sink:
             else:
                 self.samples += 1
 
+    def _new_writer(self, topic: str) -> None:
+        """A writer for a memory topic, at its first message (a DDS error: the sink fails)."""
+        from cyclonedds.core import DDSException
+
+        try:
+            self._add_writer(topic, self._memory_types[topic])
+        except DDSException as exc:
+            raise SinkError(f"ros2 sink: cannot create a writer for {topic} ({exc})") from None
+        log.info("ros2 sink publishing %s (the obstacle memory)", topic)
+
     def close(self) -> None:
         """Leave the domain (subscribers see the writers go). Safe to call twice."""
         participant, self._participant = self._participant, None
         self._writers = {}
         self._write = None
         self._encoder = None
+        self._add_writer = None
         if participant is not None:
             # cyclonedds deletes an entity (and what it contains) in its finaliser: run it now,
             # so the other side hears the participant leave at close, not at garbage collection

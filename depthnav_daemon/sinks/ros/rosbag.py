@@ -1,9 +1,10 @@
-"""``rosbag``: write every frame's scans, cliff points, transforms and pose to a ROS bag.
+"""``rosbag``: write every frame's scans, cliff points, transforms, pose and obstacle memory to
+a ROS bag.
 
-Spec: ``rosbag:PATH[?compression=..&image=0|1&tf=0|1&<names>]``. ``PATH.mcap`` is a ROS 2 bag
-(one MCAP file, CDR messages with their ``ros2msg`` definitions: ``ros2 bag play PATH.mcap``,
-Foxglove, rosbags, the mcap tools); ``PATH.bag`` is a ROS 1 bag (``rosbag play``). No ROS is
-needed to write either (the ``rosbags`` and ``mcap`` packages).
+Spec: ``rosbag:PATH[?compression=..&image=0|1&tf=0|1&grid_rate=2&odom_tf=0|1&<names>]``.
+``PATH.mcap`` is a ROS 2 bag (one MCAP file, CDR messages with their ``ros2msg`` definitions:
+``ros2 bag play PATH.mcap``, Foxglove, rosbags, the mcap tools); ``PATH.bag`` is a ROS 1 bag
+(``rosbag play``). No ROS is needed to write either (the ``rosbags`` and ``mcap`` packages).
 
 Options:
     compression: .mcap: ``zstd`` (default) or ``none``; .bag: ``none`` (default) or ``bz2``
@@ -11,6 +12,10 @@ Options:
     image: 1 also writes the depth image (16UC1) and its CameraInfo (~0.6 MB a frame at 640x480),
         so ``replay:PATH`` reads the run back.
     tf: 0 leaves out ``/tf`` (when the robot's URDF already places the sensor).
+    grid_rate, odom_tf: the obstacle memory's grid per second of frame time (default 2, 0 =
+        none) and its odom -> base transform (0: the robot's odometry publishes it); with the
+        memory on, ``/memory/grid``, ``/memory/scan``, ``/memory/cliff/points`` and that
+        transform are added with its first frame (sinks/ros/memory_out.py).
     names: frame ids and topics, see sinks/ros/messages.py (``base_frame=base_footprint``,
         ``scan_topic=/depth/scan``, ...).
 
@@ -31,6 +36,7 @@ from typing import TYPE_CHECKING, Any
 
 from depthnav_daemon.errors import ConfigError, SinkError
 from depthnav_daemon.sinks.base import SinkContext, SinkSpec, check_options
+from depthnav_daemon.sinks.ros.memory_out import MemoryMessages
 from depthnav_daemon.sinks.ros.messages import OPTIONS, MessageBuilder, RosNames, typestore
 
 if TYPE_CHECKING:
@@ -41,7 +47,8 @@ log = logging.getLogger(__name__)
 
 GRAMMAR = (
     "rosbag:PATH.mcap|PATH.bag"
-    "[?compression=..&image=0|1&tf=0|1&cliff_z=-0.05&base_frame=..&scan_topic=..]"
+    "[?compression=..&image=0|1&tf=0|1&cliff_z=-0.05&grid_rate=2&odom_tf=0|1&base_frame=.."
+    "&scan_topic=..]"
 )
 COMPRESSIONS = {".mcap": ("zstd", "none"), ".bag": ("none", "bz2")}  # first = default
 PARTIAL = ".partial"
@@ -103,11 +110,13 @@ class _Mcap:
         self.writer.start(profile="ros2", library=library)
         self.store = typestore(ros1=False)
         self.channels: dict[str, int] = {}
+        self.schemas: dict[str, int] = {}  # one schema record per message type
 
     def add(self, topic: str, msgtype: str) -> None:
-        msgdef = self.store.generate_msgdef(msgtype, ros_version=2)[0]
-        schema = self.writer.register_schema(msgtype, "ros2msg", msgdef.encode())
-        self.channels[topic] = self.writer.register_channel(topic, "cdr", schema)
+        if msgtype not in self.schemas:
+            msgdef = self.store.generate_msgdef(msgtype, ros_version=2)[0]
+            self.schemas[msgtype] = self.writer.register_schema(msgtype, "ros2msg", msgdef.encode())
+        self.channels[topic] = self.writer.register_channel(topic, "cdr", self.schemas[msgtype])
 
     def write(self, topic: str, t_ns: int, msg: Any) -> None:
         data = self.store.serialize_cdr(msg, msg.__msgtype__)
@@ -150,6 +159,7 @@ class _Bag1:
         self.writer.bio = self.out
         self.store = typestore(ros1=True)
         self.conns: dict[str, Any] = {}
+        self.channels = self.conns  # topic -> connection: the topics added so far
 
     def add(self, topic: str, msgtype: str) -> None:
         self.conns[topic] = self.writer.add_connection(topic, msgtype, typestore=self.store)
@@ -180,6 +190,8 @@ class RosbagSink:
         self.reserve = path.with_name(path.name + PARTIAL + RESERVE)
         self._bag: _Mcap | _Bag1 | None = None
         self._builder: MessageBuilder | None = None
+        self._memory: MemoryMessages | None = None
+        self._memory_types: dict[str, str] = {}
         self.messages = 0
 
     @classmethod
@@ -234,6 +246,9 @@ class RosbagSink:
             for topic, msgtype in self._builder.msgtypes().items():
                 self._bag.add(topic, msgtype)
                 self._bag.store.get_msgdef(msgtype)  # generates its serializer now, not per frame
+            # the memory's topics are added with its first message (no empty topics without it)
+            self._memory = MemoryMessages(self._builder)
+            self._memory_types = self._memory.msgtypes()
             self._bag.out.mark()
         except Exception as exc:  # a file error, or a library's own on a bad name
             self._discard()
@@ -252,11 +267,14 @@ class RosbagSink:
 
     def write(self, frame: Frame, result: Result) -> None:
         """Append the frame's messages; a failed write closes the bag at its last whole chunk."""
-        if self._bag is None or self._builder is None:
+        if self._bag is None or self._builder is None or self._memory is None:
             raise SinkError(f"sink {self.name!r} is not open")
         t_ns, messages = self._builder.messages(frame, result)
+        messages += self._memory.messages(result, t_ns)
         try:
             for topic, msg in messages:
+                if topic not in self._bag.channels:
+                    self._bag.add(topic, self._memory_types[topic])
                 self._bag.write(topic, t_ns, msg)
                 self.messages += 1
                 self._bag.out.mark()
