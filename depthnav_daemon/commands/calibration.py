@@ -3,7 +3,6 @@ frames."""
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 import math
 import os
@@ -21,49 +20,36 @@ import tomlkit.exceptions
 
 from depthnav_daemon.config.loader import Config
 from depthnav_daemon.errors import ConfigError, DepthnavError
-from depthnav_daemon.pipeline.geometry import MAX_ROLL_DEG, MAX_TILT_DEG
-from depthnav_daemon.pipeline.pose import PoseParams, estimate_pose, tilt_roll_from_accel
+from depthnav_daemon.pipeline.pose import (
+    TILT_SENSOR_WINDOW_DEG,
+    WHOLE_RANGE,
+    PoseParams,
+    estimate_pose,
+    tilt_roll_from_accel,
+    wide_prior,
+)
 from drivers import create_driver, iter_frames, opened
 from drivers.files import read_text
 from drivers.values import short_text
 
 log = logging.getLogger(__name__)
 
-# calibrate searches every plausible mount (the daemon's default prior is narrower, for live
-# tracking around a known mount): a sensor on a mast or a pole, pitched up or looking down. Not
-# beyond 80 deg down: a wall seen head-on is a floor seen from straight above, so without an
-# accelerometer a steeper mount needs a prior in [pose].
-WHOLE_RANGE = {
-    "height_min_m": 0.05,
-    "height_max_m": 3.0,
-    "tilt_min_deg": -30.0,
-    "tilt_max_deg": 80.0,
-    "roll_max_deg": 30.0,
-}
-ACCEL_WINDOW_DEG = 10.0  # the search around the accelerometer's tilt and roll
+# calibrate searches every plausible mount (pose.WHOLE_RANGE; the daemon searches the same while
+# an unconfigured mount's floor is not found yet)
+ACCEL_WINDOW_DEG = TILT_SENSOR_WINDOW_DEG  # the search around the accelerometer's tilt and roll
 
 
 def calibration_prior(pose: PoseParams, accel_mps2: Sequence[float] | None = None) -> PoseParams:
     """The floor search's prior for calibrate: a prior the user's config gives (any prior field
     changed from its default) wins; else the accelerometer's tilt and roll +-10 deg at any
-    height; else the whole plausible range."""
-    default = PoseParams()
-    if any(getattr(pose, k) != getattr(default, k) for k in WHOLE_RANGE):
-        return pose
-    wide = dataclasses.replace(pose, **WHOLE_RANGE)
+    height; else the whole plausible range (:func:`pose.wide_prior`)."""
     if accel_mps2 is None:
-        return wide
+        return wide_prior(pose)
     try:
-        tilt, roll = tilt_roll_from_accel(accel_mps2)
+        tilt_roll = tilt_roll_from_accel(accel_mps2)
     except ConfigError:  # moving, or not an accelerometer reading: search the whole range
-        return wide
-    w = ACCEL_WINDOW_DEG
-    return dataclasses.replace(
-        wide,
-        tilt_min_deg=max(-MAX_TILT_DEG, round(tilt) - w),
-        tilt_max_deg=min(MAX_TILT_DEG, round(tilt) + w),
-        roll_max_deg=min(MAX_ROLL_DEG, abs(round(roll)) + w),
-    )
+        return wide_prior(pose)
+    return wide_prior(pose, tilt_roll)
 
 
 class NoFramesError(DepthnavError):
@@ -259,3 +245,15 @@ def _umask() -> int:
     mask = os.umask(0o022)
     os.umask(mask)
     return mask
+
+
+__all__ = [  # WHOLE_RANGE lives in pose; importable from here as before
+    "ACCEL_WINDOW_DEG",
+    "WHOLE_RANGE",
+    "Calibration",
+    "NoFramesError",
+    "calibrate",
+    "calibration_prior",
+    "format_text",
+    "write_mount",
+]

@@ -9,6 +9,11 @@ Every confident floor estimate also checks the mount in use (:meth:`MountTracker
 the tracker's :meth:`~MountTracker.trust` says where the mount came from, whether the floor
 confirms it, and whether drop-offs computed with it can be trusted (a wrong mount turns the floor
 itself into a "drop-off").
+
+A mount nobody configured is not known at all until the floor gives one
+(:attr:`MountTracker.confirmed`): its trust says so (``trusted`` False), the daemon searches every
+plausible mount for the floor meanwhile (``frame_step.pose_prior``) and reports every range as
+unknown.
 """
 
 from __future__ import annotations
@@ -93,6 +98,13 @@ class MountTracker:
         # trust()'s last answer and what it rested on: (mount, floor mount, source, floor, trust)
         self._last_trust: tuple[Mount, Mount | None, str, str, MountTrust] | None = None
 
+    @property
+    def confirmed(self) -> bool:
+        """Whether the mount is known: configured (or pinned), or given by the floor. False while
+        nobody configured it and no confident floor estimate has been taken; once True, it stays
+        True (later floor estimates only refine or move a known mount)."""
+        return not self._default or self._floor_seen
+
     def check_floor(self, height_m: float, tilt_deg: float, roll_deg: float) -> None:
         """Compare a confident floor estimate with the mount in use (after :meth:`from_floor` has
         taken it, if it does): within ``max_jump_m`` / ``max_jump_deg`` it confirms the mount,
@@ -140,12 +152,13 @@ class MountTracker:
                     f"{', pinned' if self._pinned else ''}): drop-offs are not trusted"
                 ),
             )
-        if self._default and self.source != "floor":
+        if not self.confirmed:
             return MountTrust(
                 source=source,
                 pinned=self._pinned,
                 floor=floor,
                 dropoffs_trusted=False,
+                trusted=False,
                 note=(
                     f"the mount is not configured (the built-in height {m.height_m:.2f} m, "
                     + (
@@ -153,7 +166,8 @@ class MountTracker:
                         if source in ("accel", "serial")
                         else f"tilt {m.tilt_deg:.1f} deg"
                     )
-                    + ") and no floor estimate has confirmed it: drop-offs are not trusted "
+                    + ") and the floor has not given it yet: mount unconfirmed, every range "
+                    "unknown and drop-offs not trusted until it does "
                     "(set [mount] or run depthnav calibrate)"
                 ),
             )

@@ -82,6 +82,10 @@ class MountTrust:
         dropoffs_trusted: drop-offs (the cliff stage) rest on a trustworthy mount: the floor
             confirms it, or no floor estimate yet and the mount was configured. False while the
             floor contradicts the mount or while the built-in default is unconfirmed.
+        trusted: the mount is known at all: configured, or found by the floor. False while
+            nobody configured it and no floor estimate has given it yet (the built-in 0.5 m,
+            perhaps with a tilt sensor's tilt): the daemon then reports every range of the
+            scan and the cliff scan as unknown (NaN), and ``dropoffs_trusted`` is False too.
         note: one line for people while drop-offs are not trusted, else None.
     """
 
@@ -92,6 +96,7 @@ class MountTrust:
     floor_tilt_deg: float | None = None
     floor_roll_deg: float | None = None
     dropoffs_trusted: bool = True
+    trusted: bool = True
     note: str | None = None
 
 
@@ -240,8 +245,11 @@ def process(
     if params.obstacle_mask and params.scan.method == "exact":
         mask = obstacle_pixels(depth, intr, level, params.scan)
     rows = scan_rows(intr, params.scan)
-    # the scan already visited every used pixel: all-NaN means none of them had a reading
-    warning = "no valid depth in this frame (all pixels 0)" if _all_nan(scan.ranges) else None
+    # the scan already visited every used pixel: all-NaN means none of them had a reading, or
+    # none of the bins was seen out to range_max (a steep mount over open floor: the safety
+    # contract's coverage rule), which a look at the frame tells apart
+    no_depth = _all_nan(scan.ranges) and not depth.any()
+    warning = "no valid depth in this frame (all pixels 0)" if no_depth else None
     if warning is None and mount_trust is not None and not mount_trust.dropoffs_trusted:
         warning = mount_trust.note
     base_scan, base_cliff = scan, cliff

@@ -19,6 +19,7 @@ and roll = atan2(-n_x, -n_y), the same formulas as for an accelerometer's gravit
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 
@@ -26,7 +27,7 @@ import numpy as np
 import numpy.typing as npt
 
 from depthnav_daemon.errors import ConfigError
-from depthnav_daemon.pipeline.geometry import F64
+from depthnav_daemon.pipeline.geometry import F64, MAX_ROLL_DEG, MAX_TILT_DEG
 
 # PoseParams lives apart for pose_fit; importable here as before
 from depthnav_daemon.pipeline.params import PoseParams
@@ -42,6 +43,45 @@ from drivers.base import Intrinsics
 
 PRIOR_SLACK_DEG = 2.0  # fitted angles may exceed the prior by this much (noise at its edges)
 PRIOR_SLACK_M = 0.02
+
+# Every plausible mount, for a floor search that knows nothing of the mount (``depthnav
+# calibrate``; the daemon until an unconfigured mount's floor is found): a sensor on a mast or a
+# pole, pitched up or looking down. The default prior (PoseParams) is narrower, for live tracking
+# around a known mount. Not beyond 80 deg down: a wall seen head-on is a floor seen from straight
+# above, so without a tilt sensor a steeper mount needs a prior in [pose].
+WHOLE_RANGE = {
+    "height_min_m": 0.05,
+    "height_max_m": 3.0,
+    "tilt_min_deg": -30.0,
+    "tilt_max_deg": 80.0,
+    "roll_max_deg": 30.0,
+}
+TILT_SENSOR_WINDOW_DEG = 10.0  # the wide search around a tilt sensor's tilt and roll
+
+
+def wide_prior(params: PoseParams, tilt_roll: tuple[float, float] | None = None) -> PoseParams:
+    """The floor search for a mount nobody gave: a prior the user's config sets (any prior field
+    changed from its default) wins; else a tilt sensor's tilt and roll +-10 deg at any height;
+    else the whole plausible range (:data:`WHOLE_RANGE`).
+
+    Args:
+        params: the configured pose parameters (the fit's own settings are kept).
+        tilt_roll: (tilt, roll) degrees from an accelerometer or IMU, or None.
+    """
+    default = PoseParams()
+    if any(getattr(params, k) != getattr(default, k) for k in WHOLE_RANGE):
+        return params
+    wide = dataclasses.replace(params, **WHOLE_RANGE)
+    if tilt_roll is None:
+        return wide
+    tilt, roll = round(tilt_roll[0]), abs(round(tilt_roll[1]))
+    w = TILT_SENSOR_WINDOW_DEG
+    return dataclasses.replace(
+        wide,
+        tilt_min_deg=max(-MAX_TILT_DEG, tilt - w),
+        tilt_max_deg=min(MAX_TILT_DEG, tilt + w),
+        roll_max_deg=min(MAX_ROLL_DEG, roll + w),
+    )
 
 
 @dataclass(frozen=True, slots=True)

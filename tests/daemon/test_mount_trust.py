@@ -9,6 +9,7 @@ import logging
 import threading
 from dataclasses import dataclass, field
 
+import numpy as np
 import pytest
 
 from depthnav_daemon.config.loader import build_config
@@ -135,8 +136,9 @@ def test_a_right_mount_is_confirmed_and_not_flagged(tilt_source: str) -> None:
 
 def test_the_unconfirmed_default_mount_is_not_trusted() -> None:
     # UC3M's living room in miniature: a camera 1.0 m high, level, a wall 2.8 m ahead leaves too
-    # little floor for an estimate on every frame, no tilt sensor, no [mount]: the built-in 0.5 m
-    # makes the floor beyond 2.5 m a drop-off
+    # little floor for an estimate on every frame (the wide search of an unconfigured mount finds
+    # the wall, a "floor" seen from 84 deg down, beyond its 80 deg), no tilt sensor, no [mount]:
+    # the built-in 0.5 m makes the floor beyond 2.5 m a drop-off
     sink = run_scene(
         "daemon.pose_every_frames=1",
         mounts=[Mount(1.0, 0.0, 0.0)] * 3,
@@ -144,13 +146,17 @@ def test_the_unconfirmed_default_mount_is_not_trusted() -> None:
     )
     for frame, result in sink.results:
         assert result.pose is not None and not result.pose.ok
-        assert "too little floor" in result.pose.reason
         trust = result.mount_trust
         assert (trust.source, trust.floor, trust.dropoffs_trusted) == ("default", "unknown", False)
+        assert trust.trusted is False  # the mount is unconfirmed: every range is unknown
+        assert np.isnan(result.scan.ranges).all() and np.isnan(result.cliff.scan.ranges).all()
+        # the drop-offs' floor points stay, flagged untrusted
         assert result.mount.height_m == 0.5 and len(result.cliff.points_m) > 100
-        assert "not configured" in result.warning
+        assert "not configured" in result.warning and "unconfirmed" in result.warning
         msg = message(frame, result)
         assert msg["cliff"]["trusted"] is False and msg["mount"]["source"] == "default"
+        assert msg["mount"]["trusted"] is False and msg["scan"]["trusted"] is False
+        assert set(msg["scan"]["ranges"]) == {None}
         assert "(default, floor unknown)" in TextSink().format(frame, result)
     # the same with no floor estimate at all
     sink = run_scene("daemon.pose_every_frames=0")

@@ -27,6 +27,8 @@ from .kit import depthnav, json_lines, one_error_line
 A = Intrinsics(64, 48, 61.5, 57.25, 30.25, 22.75)
 B = Intrinsics(80, 60, 70.0, 66.0, 41.0, 27.5)  # a second mode, for the mid-stream switch
 NO_DEPTH = "no valid depth in this frame (all pixels 0)"
+# a configured mount: with none, every range stays unknown until the floor is found (issue 33)
+MOUNT = ("mount.height_m=0.55", "mount.tilt_deg=5.0")
 
 
 class ListDriver:
@@ -147,7 +149,7 @@ def test_extreme_frames_give_defined_results(kinds, seed: int) -> None:
 
 def test_all_zero_frame_is_a_warning_not_an_error() -> None:
     frame = Frame(0, 0.0, np.zeros((48, 64), np.uint16), A)
-    (result,) = run_frames([frame])
+    (result,) = run_frames([frame], *MOUNT)
     assert result.warning == NO_DEPTH
     assert np.isnan(np.asarray(result.scan.ranges, dtype=np.float64)).all()
 
@@ -157,13 +159,13 @@ def test_no_depth_warning_only_when_every_bin_is_nan() -> None:
     reading): a frame whose first bins see nothing but others do is no warning."""
     depth = np.full((48, 64), 1500, np.uint16)
     depth[:, :40] = 0  # the left part of the image: the last bins (bearings run right to left)
-    (left_blind,) = run_frames([Frame(0, 0.0, depth, A)])
+    (left_blind,) = run_frames([Frame(0, 0.0, depth, A)], *MOUNT)
     ranges = np.asarray(left_blind.scan.ranges, dtype=np.float64)
     assert np.isnan(ranges[-1]) and not np.isnan(ranges).all()
     assert left_blind.warning != NO_DEPTH
     depth = np.full((48, 64), 1500, np.uint16)
     depth[:, 24:] = 0  # the right part: the first bins
-    (right_blind,) = run_frames([Frame(1, 1 / 30, depth, A)])
+    (right_blind,) = run_frames([Frame(1, 1 / 30, depth, A)], *MOUNT)
     ranges = np.asarray(right_blind.scan.ranges, dtype=np.float64)
     assert np.isnan(ranges[0]) and not np.isnan(ranges).all()
     assert right_blind.warning != NO_DEPTH

@@ -86,7 +86,9 @@ def test_fields_and_values(pairs):
         "range_min",
         "range_max",
         "ranges",
+        "trusted",
     }
+    assert scan["trusted"] is True  # nobody assessed this mount (no trust): nothing to doubt
     assert scan["angle_min"] == pytest.approx(result.scan.angle_min, abs=1e-6)
     assert scan["angle_increment"] == pytest.approx(result.scan.angle_increment, rel=1e-6)
     assert len(scan["ranges"]) == result.scan.ranges.size
@@ -115,6 +117,35 @@ def test_fields_and_values(pairs):
     assert len(cliff["scan"]["ranges"]) == result.cliff.scan.ranges.size
     assert msg["timings_s"] == {"cliff": 0.002, "scan": pytest.approx(0.0042)}
     assert msg["warning"] is None and msg["message"] is None
+
+
+def test_an_unconfirmed_mount_flags_the_scan_and_the_mount(pairs):
+    frame, result = pairs[0]
+    note = "the mount is not configured (...): mount unconfirmed, every range unknown"
+    unknown = MountTrust(source="default", dropoffs_trusted=False, trusted=False, note=note)
+    nan = np.full_like(result.scan.ranges, np.nan)
+    doubtful = replace(
+        result,
+        scan=replace(result.scan, ranges=nan),
+        mount_state=replace(result.mount_state, trust=unknown),
+        warning=note,
+    )
+    msg = json.loads(jsonmsg.dumps(jsonmsg.frame_message(frame, doubtful, "0.1.0", 1.0)))
+    assert msg["scan"]["trusted"] is False and set(msg["scan"]["ranges"]) == {None}
+    mount = msg["mount"]
+    assert (mount["trusted"], mount["dropoffs_trusted"], mount["source"]) == (
+        False,
+        False,
+        "default",
+    )
+    assert "unconfirmed" in mount["note"] and "unconfirmed" in msg["warning"]
+    assert msg["cliff"]["trusted"] is False
+    # a known mount whose drop-offs are doubted: the scan stands, the drop-offs are flagged
+    contradicted = MountTrust(source="config", floor="contradicted", dropoffs_trusted=False)
+    known = replace(result, mount_state=replace(result.mount_state, trust=contradicted))
+    msg = json.loads(jsonmsg.dumps(jsonmsg.frame_message(frame, known, "0.1.0", 1.0)))
+    assert msg["scan"]["trusted"] is True and msg["mount"]["trusted"] is True
+    assert msg["cliff"]["trusted"] is False
 
 
 def test_no_cliff_and_failed_estimate_are_null_not_nan(pairs):

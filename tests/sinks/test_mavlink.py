@@ -415,6 +415,45 @@ def test_untrusted_dropoffs_option_and_statustext(udp_receiver, context, policy)
     assert list(obstacle[-1].distances) == with_cliff.tolist()
 
 
+UNCONFIRMED = MountTrust(
+    source="default",
+    dropoffs_trusted=False,
+    trusted=False,
+    note="the mount is not configured (...): mount unconfirmed, every range unknown",
+)
+
+
+def test_an_unconfirmed_mount_sends_every_sector_unknown(udp_receiver, context):
+    """While nobody knows the mount the sectors are all UINT16_MAX, whatever the scan holds (the
+    daemon makes its ranges NaN too; the sink does not rely on it), then normal once known."""
+    port = udp_receiver.getsockname()[1]
+    sink = create_sink(f"mavlink+udp://127.0.0.1:{port}?cliff=1&rate=20&stale=10")
+    _frame, result = wrong_mount_pair(0, UNCONFIRMED)
+    with_cliff = merge_cliff(obstacle_sectors(result.scan), result.cliff.scan).distances_cm
+    assert (with_cliff != UNKNOWN).all()  # what this scan would say through a known mount
+    sink.open(context)
+    try:
+        read = udp_reader(udp_receiver)
+        for seq in range(3):
+            sink.write(*wrong_mount_pair(seq, UNCONFIRMED))
+        msgs = collect(read, lambda m: len(of_type(m, "OBSTACLE_DISTANCE")) >= 3)
+        known = MountTrust(source="floor", floor="confirmed")
+        sink.write(*wrong_mount_pair(3, known))
+        msgs += collect(read, lambda m: len(of_type(m, "STATUSTEXT")) >= 1)
+        msgs += collect(read, lambda m: False, timeout_s=0.5)  # nothing more comes
+    finally:
+        sink.close()
+    texts = [(m.severity, m.text) for m in of_type(msgs, "STATUSTEXT")]
+    assert texts == [
+        (4, "depthnav: mount unconfirmed, sectors unknown"),  # MAV_SEVERITY_WARNING
+        (6, "depthnav: mount confirmed by the floor"),  # MAV_SEVERITY_INFO
+    ]
+    obstacle = of_type(msgs, "OBSTACLE_DISTANCE")
+    unconfirmed = [m for m in obstacle if m.time_usec == obstacle[0].time_usec]
+    assert unconfirmed and all(set(m.distances) == {UNKNOWN} for m in unconfirmed)
+    assert list(obstacle[-1].distances) == with_cliff.tolist()
+
+
 def test_default_unconfirmed_mount_statustext_and_bad_policy():
     trust = MountTrust(source="default", dropoffs_trusted=False, note="not configured")
     assert trust_statustext(trust, True, "drop") == (

@@ -8,6 +8,10 @@ strings; :func:`decode_ranges` is the reference decoder.
 
 Arrays go through numpy (rounded to 1 mm, ``tolist``) and the object through orjson, one call per
 message. A frame's line is made once and shared by the sinks that send the same object (line.py).
+
+Mount trust: ``mount.trusted`` and ``scan.trusted`` are false while the mount is unconfirmed
+(nobody configured it, the floor has not given it yet): every range is then null (unknown), and
+``mount.note`` says why. ``cliff.trusted`` (and ``mount.dropoffs_trusted``) flag drop-offs.
 """
 
 from __future__ import annotations
@@ -172,7 +176,7 @@ def sensors_to_json(sensors: Sequence[Any], max_cliff_points: int | None) -> lis
                 "status": s.status,
                 "age_s": _num(s.age_s, SEC),
                 "seq": None if r is None else int(r.seq),
-                "scan": None if r is None else scan_to_json(r.scan),
+                "scan": None if r is None else _live_scan_json(r),
                 "cliff": None
                 if r is None or r.cliff is None
                 else _cliff_to_json(r.cliff, max_cliff_points, dropoffs_trusted(r)),
@@ -180,6 +184,21 @@ def sensors_to_json(sensors: Sequence[Any], max_cliff_points: int | None) -> lis
                 "mount": None if r is None else mount_trust_to_json(r),
             }
         )
+    return out
+
+
+def mount_trusted(result: Result) -> bool:
+    """Whether the mount a result rests on is known (configured, or confirmed by the floor);
+    True when nobody assessed it."""
+    trust = result.mount_trust
+    return trust is None or trust.trusted
+
+
+def _live_scan_json(result: Result) -> dict[str, Any]:
+    """The result's scan, with ``trusted``: false while its mount is unconfirmed (its ranges are
+    then all unknown)."""
+    out = scan_to_json(result.scan)
+    out["trusted"] = mount_trusted(result)
     return out
 
 
@@ -217,6 +236,7 @@ def _trust_json(t: Any) -> dict[str, Any]:
         "floor_height_m": _num(t.floor_height_m, MM),
         "floor_tilt_deg": _num(t.floor_tilt_deg, DEG),
         "floor_roll_deg": _num(t.floor_roll_deg, DEG),
+        "trusted": t.trusted,
         "dropoffs_trusted": t.dropoffs_trusted,
         "note": t.note,
     }
@@ -296,7 +316,7 @@ def frame_message(
         "seq": int(result.seq),
         "t_s": _num(result.timestamp_s, SEC),
         "wall_s": _num(wall_time_s, SEC),
-        "scan": scan_to_json(result.scan),
+        "scan": _live_scan_json(result),
         "cliff": None
         if result.cliff is None
         else _cliff_to_json(result.cliff, max_cliff_points, dropoffs_trusted(result)),

@@ -25,6 +25,16 @@ Mount trust: a STATUSTEXT (MAV_SEVERITY_WARNING) is sent once when the mount bec
 saying why and what happens to drop-offs, e.g. "depthnav: floor contradicts mount, cliffs sent",
 and one (MAV_SEVERITY_INFO) "depthnav: mount trusted again" when it is trusted again.
 
+An unconfirmed mount (nobody configured it and the floor has not given it yet: the daemon does not
+know where the floor is): OBSTACLE_DISTANCE keeps going out at ``rate`` with every sector unknown
+(UINT16_MAX), whatever ``cliff`` and ``untrusted_dropoffs`` say, and a STATUSTEXT says "depthnav:
+mount unconfirmed, sectors unknown"; "depthnav: mount confirmed by the floor" when it is found.
+Sent rather than withheld: a silent sensor looks to the autopilot like a sensor that is gone
+(ArduPilot times it out after 500 ms, PX4 after its own timeout), while unknown sectors say on
+each bearing that nothing is known, which PX4's collision prevention treats as blocked unless
+CP_GO_NO_DATA is set; ArduPilot skips unknown sectors, as it would a missing sensor, and the
+STATUSTEXT tells the operator why.
+
 Memory: when the obstacle memory is on (odometry available, result.memory with a scan), the
 message is built from the 360 deg memory scan instead: 72 sectors of 5 deg all around the robot,
 so the autopilot also sees what is in the sensors' dead zones, beside and behind; the memory holds
@@ -45,12 +55,15 @@ floor(cm) clipped to [min_distance, max_distance]; -inf (closer than range_min) 
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import os
 import socket
 import threading
 import time
 from typing import TYPE_CHECKING, Any
+
+import numpy as np
 
 from depthnav_daemon.errors import ConfigError, SinkError
 from depthnav_daemon.sinks.base import (
@@ -62,10 +75,17 @@ from depthnav_daemon.sinks.base import (
     number_option,
     parse_host_port,
 )
-from depthnav_daemon.sinks.mavlink.sectors import Schedule, sectors_for, trust_statustext
+from depthnav_daemon.sinks.mavlink.sectors import (
+    MAV_SEVERITY_INFO,
+    MAV_SEVERITY_WARNING,
+    UNKNOWN,
+    Schedule,
+    sectors_for,
+    trust_statustext,
+)
 
 if TYPE_CHECKING:
-    from depthnav_daemon.pipeline import Result
+    from depthnav_daemon.pipeline import MountTrust, Result
     from depthnav_daemon.sinks.mavlink.sectors import Sectors
     from drivers.base import Frame
 
@@ -187,7 +207,8 @@ class MavlinkSink:
         self.rate_hz, self.stale_s = rate_hz, stale_s
         self.sysid, self.compid, self.sensor_type, self.cliff = sysid, compid, sensor_type, cliff
         self.untrusted_dropoffs = untrusted_dropoffs
-        self._trusted: bool | None = None  # the last frame's drop-off trust (None: no frame yet)
+        # the last frame's (mount known, drop-offs trusted), None before the first frame
+        self._trusted: tuple[bool, bool] | None = None
         self._texts: list[tuple[int, str]] = []  # STATUSTEXT (severity, text) for the thread
         self.sent_text = 0
         self._link: _SerialLink | _UdpLink | None = None
@@ -300,18 +321,35 @@ class MavlinkSink:
         if self._thread is None:
             raise SinkError(f"sink {self.name!r} is not open")
         trust = result.mount_trust
+        known = trust is None or trust.trusted
         trusted = trust is None or trust.dropoffs_trusted
-        text = None
-        if trusted != self._trusted and not (self._trusted is None and trusted):
-            text = trust_statustext(trust, self.cliff, self.untrusted_dropoffs)
-        self._trusted = trusted
+        text = self._trust_text(trust, known, trusted)
+        self._trusted = (known, trusted)
         cliff = self.cliff and (trusted or self.untrusted_dropoffs == "send")
         sectors = sectors_for(result, cliff)
+        if not known:  # nothing is known where the floor is not: every sector unknown
+            sectors = dataclasses.replace(
+                sectors, distances_cm=np.full_like(sectors.distances_cm, UNKNOWN)
+            )
         now = time.monotonic()
         with self._lock:
             self._latest = (sectors, int(now * 1e6), now)
             if text is not None:
                 self._texts.append(text)
+
+    def _trust_text(
+        self, trust: MountTrust | None, known: bool, trusted: bool
+    ) -> tuple[int, str] | None:
+        """The STATUSTEXT for this frame's change of mount trust, or None (no change, or a
+        trusted first frame)."""
+        last = self._trusted
+        if last == (known, trusted) or (last is None and trusted):
+            return None
+        if not known:
+            return MAV_SEVERITY_WARNING, "depthnav: mount unconfirmed, sectors unknown"
+        if trusted and (last is None or not last[0]):
+            return MAV_SEVERITY_INFO, "depthnav: mount confirmed by the floor"
+        return trust_statustext(trust, self.cliff, self.untrusted_dropoffs)
 
     def latest_for(self, now: float) -> tuple[Sectors, int] | None:
         """Sectors to send at monotonic time ``now``: the newest unless older than ``stale_s``."""
