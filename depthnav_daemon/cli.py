@@ -1,5 +1,5 @@
 """The ``depthnav`` command line: run, replay, calibrate, record, mount, snapshot, devices, info,
-bench.
+bench, warmup.
 
 The only module that prints to stderr or chooses exit codes: 0 ok (or stopped by SIGTERM), 1 runtime
 failure, 2 bad usage or config, 130 interrupted (Ctrl-C).
@@ -226,7 +226,7 @@ def _add_setup_commands(sub: Any) -> None:
 
 
 def _add_tool_commands(sub: Any) -> None:
-    """``devices``, ``info``, ``snapshot`` and ``bench``."""
+    """``devices``, ``info``, ``snapshot``, ``bench`` and ``warmup``."""
     p = sub.add_parser("devices", help="list the devices that can be opened here")
     p.set_defaults(handler="info:cmd_devices")
     p = sub.add_parser("info", help="versions, drivers and native libraries found")
@@ -289,6 +289,26 @@ def _add_tool_commands(sub: Any) -> None:
         "--quick", action="store_true", help="one short round (a smoke test, not a measurement)"
     )
     p.set_defaults(handler="bench.command:cmd_bench")
+
+    p = sub.add_parser(
+        "warmup",
+        help="compile every kernel now, into the cache the daemon (or the service) uses",
+        description="Compile every numeric kernel the daemon can use into a cache, so that its "
+        "first start compiles nothing. scripts/install.sh runs it for the service.",
+    )
+    p.add_argument(
+        "--cache-dir",
+        type=Path,
+        metavar="DIR",
+        help="the cache (default: $NUMBA_CACHE_DIR, else ~/.cache/depthnav/numba); the service "
+        "uses /var/cache/depthnav/numba",
+    )
+    p.add_argument(
+        "--owner",
+        metavar="USER",
+        help="give the cache to this user (as root: the service's user, depthnav)",
+    )
+    p.set_defaults(handler="warmup:cmd_warmup")
 
 
 # syslog priorities (sd-daemon(3)): journald reads a "<N>" prefix as the line's priority

@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # Install everything depthnav needs on a Debian machine: the native sensor libraries (apt, when
-# root), and a virtual environment in .venv with depthnav and its test tools. Safe to run again.
+# root), a virtual environment in .venv with depthnav and its test tools, and the compiled kernels
+# (this user's and, as root, the service's). Safe to run again.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
@@ -37,5 +38,23 @@ if ! { .venv/bin/python -m pip install --disable-pip-version-check --upgrade pip
   echo "depthnav install: pip failed; the whole log is in $log" >&2
   exit 1
 fi
-# compile and cache the numeric kernels now, not at the robot's first frame
-.venv/bin/python -m depthnav_daemon.tools.warmup
+# compile the numeric kernels now, not at the robot's first start: into this user's cache (the
+# tests, depthnav at a terminal) and, as root, into the service's: the unit's NUMBA_CACHE_DIR,
+# owned by the unit's User= (a root-owned cache would stop the service at its first import)
+.venv/bin/depthnav warmup
+UNIT=configs/systemd/depthnav.service
+svc_cache=$(sed -n 's/^Environment=NUMBA_CACHE_DIR=//p' "$UNIT")
+svc_user=$(sed -n 's/^User=//p' "$UNIT")
+again="sudo $PWD/.venv/bin/depthnav warmup --cache-dir $svc_cache --owner $svc_user"
+if [ "$(id -u)" -ne 0 ]; then
+  echo "depthnav install: for the service, compile its kernels as root: $again" >&2
+elif ! id "$svc_user" >/dev/null 2>&1; then
+  echo "depthnav install: no user '$svc_user' yet (systemd-sysusers, see the README); then: $again" >&2
+else
+  # the kernels just compiled are this machine's: start the service's cache from them
+  user_cache=$(.venv/bin/python -c \
+    'from depthnav_daemon.daemon.kernel_cache import cache_dir; print(cache_dir())')
+  install -d -o "$svc_user" -g "$(id -gn "$svc_user")" "${svc_cache%/*}" "$svc_cache"
+  cp -a "$user_cache/." "$svc_cache/"
+  .venv/bin/depthnav warmup --cache-dir "$svc_cache" --owner "$svc_user"
+fi

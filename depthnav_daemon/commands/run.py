@@ -14,6 +14,7 @@ from depthnav_daemon.commands.common import (
     install_stop_handlers,
     load_config,
     overrides,
+    stopped_code,
 )
 from depthnav_daemon.errors import ConfigError
 from drivers.errors import DeviceSpecError
@@ -24,7 +25,11 @@ log = logging.getLogger(__name__)
 def _run(args: argparse.Namespace, device: str | None) -> int:
     stop = threading.Event()
     got = install_stop_handlers(stop)  # before the heavy imports: see install_stop_handlers
+    from depthnav_daemon.daemon.kernel_cache import cache_dir, check_writable, warm_kernels
+
+    check_writable(cache_dir())  # else every kernel's import fails ("no locator available")
     from depthnav_daemon.daemon.loop import run
+    from depthnav_daemon.daemon.notify import ServiceNotifier
 
     announce_compiles()
 
@@ -45,6 +50,11 @@ def _run(args: argparse.Namespace, device: str | None) -> int:
             m.tilt_deg,
             m.roll_deg,
         )
+    notifier = ServiceNotifier()
+    # a cold cache is filled by a child process, stopped at once by a signal (kernel_cache.py)
+    if not warm_kernels(stop, notifier):
+        notifier.give_up("stopped while compiling the kernels")
+        return stopped_code(got)
     serial = None
     if cfg.daemon.serial_tilt:
         from drivers.tilt import create_tilt_source
@@ -52,7 +62,7 @@ def _run(args: argparse.Namespace, device: str | None) -> int:
         serial = create_tilt_source(cfg.daemon.serial_tilt)
         serial.start()
     try:
-        report = run(cfg, stop, args.max_frames, serial_tilt=serial)
+        report = run(cfg, stop, args.max_frames, serial_tilt=serial, notifier=notifier)
     finally:
         if serial is not None:
             serial.stop()

@@ -3,7 +3,9 @@ result out to every sink. Data flows one way: driver -> loop -> stages -> sinks.
 
 A device that stops delivering is reconnected with backoff and reported; a sink that fails is
 dropped and reported while the others go on; a stop event (set by SIGINT/SIGTERM) ends the loop
-within a second and every sink is closed (flushed).
+within a second and every sink is closed (flushed). Under systemd, start-up is over (READY=1)
+once the first frame went out: the wait for the device and the first frame are start-up steps
+that ask systemd for more time while they last (notify.py).
 
 What the several-sensor loop (multi.py) shares with this one lives apart, so neither imports the
 other back: the run's report (report.py), the device's frames (frames.py) and the sinks' side
@@ -23,7 +25,7 @@ from depthnav_daemon.daemon.frame_step import FrameStep
 from depthnav_daemon.daemon.frames import frames_of
 from depthnav_daemon.daemon.memory_keeper import MemoryKeeper, open_odometry
 from depthnav_daemon.daemon.multi import run_sensors
-from depthnav_daemon.daemon.notify import ServiceNotifier
+from depthnav_daemon.daemon.notify import FIRST_FRAME_S, OPEN_MARGIN_S, ServiceNotifier
 from depthnav_daemon.daemon.outputs import close_outputs, fan_out, open_sinks, with_memory
 from depthnav_daemon.daemon.report import RunReport
 from depthnav_daemon.daemon.source import DeviceSource
@@ -32,7 +34,9 @@ from depthnav_daemon.pipeline import Result, StageParams
 from depthnav_daemon.sinks import create_sink
 from depthnav_daemon.sinks.base import Sink, SinkContext
 from drivers import create_driver
-from drivers.base import Driver
+from drivers.base import DeviceInfo, Driver
+from drivers.errors import DriverError
+from drivers.odometry import OdometrySource
 from drivers.tilt import TiltSource
 
 log = logging.getLogger(__name__)
@@ -45,6 +49,7 @@ def run(
     driver_factory: Callable[[str], Driver] = create_driver,
     sink_factory: Callable[[str], Sink] = create_sink,
     serial_tilt: TiltSource | None = None,
+    notifier: ServiceNotifier | None = None,
 ) -> RunReport:
     """Run the frame loop until the source ends, ``max_frames`` frames, or ``stop`` is set.
 
@@ -55,38 +60,40 @@ def run(
         max_frames: stop after this many frames; None = no limit.
         driver_factory, sink_factory: how specs become drivers and sinks.
         serial_tilt: a started drivers.tilt.TiltSource, or None.
+        notifier: tells systemd how start-up goes and the loop runs (default: from the
+            environment).
 
     Raises:
         DepthnavError, DriverError: what ended the run; the message is fit for the user.
     """
+    notifier = notifier or ServiceNotifier()
     if cfg.sensors:
-        return run_sensors(cfg, stop, max_frames, driver_factory, sink_factory)
+        return run_sensors(cfg, stop, max_frames, driver_factory, sink_factory, notifier)
     report = RunReport()
     params = StageParams(scan=cfg.scan, cliff=cfg.cliff if cfg.daemon.cliff else None)
     step = FrameStep(cfg, params, serial_tilt)
     source = DeviceSource(cfg.device, cfg.daemon, stop, driver_factory)
-    info = source.open()
+    opened = _open_inputs(cfg, source, step, notifier, stop)
+    if opened is None:  # stopped while waiting for the device
+        report.stopped = True
+        return report
+    info, odometry = opened
     sinks: list[Sink] = []
-    try:
-        odometry = open_odometry(cfg.odometry) if cfg.memory.enabled is not False else None
-    except BaseException:  # it cannot open: nothing else is left open
-        source.close()
-        step.close()
-        raise
     keeper = MemoryKeeper(cfg.memory, cfg.odometry, odometry)
-    notifier = ServiceNotifier()
+    notifier.starting(f"opening the sinks, first frame of {info.name}", FIRST_FRAME_S)
     try:
         context = SinkContext(info, cfg.scan, cfg.cliff.block_size, __version__, cfg.mount)
         sinks = open_sinks(cfg.sinks, context, sink_factory)
         # the obstacle mask costs a pass over the image: only when a sink draws it
         wanted = any(getattr(sink, "needs_obstacle_mask", False) for sink in sinks)
         step.params = dataclasses.replace(params, obstacle_mask=wanted)
-        notifier.ready(f"running on {info.name}")
         for frame, arrival_s in frames_of(source, cfg, stop, report):
             try:
                 result = step.run(frame)
             except FrameError as exc:
                 log.warning("frame %d skipped: %s", frame.seq, exc)
+                if not notifier.is_ready:  # the stages ran: start-up is over all the same
+                    notifier.ready(f"running on {info.name}")
                 continue
             if not keeper.idle_for(frame):
                 result = with_memory(keeper, frame, arrival_s, [(result, step.params)], result)
@@ -95,6 +102,8 @@ def run(
             fan_out(sinks, frame, result, report)
             report.frames += 1
             report.last_result = result
+            if not notifier.is_ready:
+                notifier.ready(f"running on {info.name}")
             notifier.frame(report.frames, lambda fps, r=result: _status(fps, r))
             if max_frames is not None and report.frames >= max_frames:
                 break
@@ -110,6 +119,35 @@ def run(
         report.reconnects = source.reconnects
         report.rejected_pose_jumps = step.rejected_pose_jumps
     return report
+
+
+def _open_inputs(
+    cfg: Config,
+    source: DeviceSource,
+    step: FrameStep,
+    notifier: ServiceNotifier,
+    stop: threading.Event,
+) -> tuple[DeviceInfo, OdometrySource | None] | None:
+    """Open the device (waiting for it, a start-up step) and the odometry; None when stopped
+    meanwhile. When either fails, what is open is closed and systemd is told."""
+    notifier.starting(f"opening {cfg.device}", cfg.daemon.wait_for_device_s + OPEN_MARGIN_S)
+    try:
+        info = source.open()
+    except BaseException as exc:
+        step.close()
+        if stop.is_set() and isinstance(exc, DriverError):  # a stop, not a failure
+            notifier.give_up("stopped while waiting for the device")
+            return None
+        notifier.give_up("the device could not be opened")
+        raise
+    try:
+        odometry = open_odometry(cfg.odometry) if cfg.memory.enabled is not False else None
+    except BaseException:  # it cannot open: nothing else is left open
+        notifier.give_up("the odometry could not be opened")
+        source.close()
+        step.close()
+        raise
+    return info, odometry
 
 
 def _status(fps: float, result: Result) -> str:

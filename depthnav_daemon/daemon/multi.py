@@ -25,7 +25,7 @@ from depthnav_daemon.config.loader import Config, SensorConfig
 from depthnav_daemon.daemon.frame_step import FrameStep
 from depthnav_daemon.daemon.frames import frames_of
 from depthnav_daemon.daemon.memory_keeper import MemoryKeeper, open_odometry
-from depthnav_daemon.daemon.notify import ServiceNotifier
+from depthnav_daemon.daemon.notify import FIRST_FRAME_S, OPEN_MARGIN_S, ServiceNotifier
 from depthnav_daemon.daemon.outputs import close_outputs, fan_out, open_sinks, with_memory
 from depthnav_daemon.daemon.report import RunReport
 from depthnav_daemon.daemon.source import DeviceSource
@@ -182,15 +182,32 @@ def run_sensors(
     max_frames: int | None,
     driver_factory: Callable[[str], Driver],
     sink_factory: Callable[[str], Sink],
+    notifier: ServiceNotifier | None = None,
 ) -> RunReport:
-    """The frame loop for several sensors (module docstring); returns the loop's RunReport."""
+    """The frame loop for several sensors (module docstring); returns the loop's RunReport.
+    Start-up is over (READY=1) once the first merged frame went out."""
+    notifier = notifier or ServiceNotifier()
     report = RunReport()
     halt = threading.Event()
     inbox: queue.Queue[Item] = queue.Queue(maxsize=4 * len(cfg.sensors))
     workers = [SensorWorker(sc, cfg, halt, driver_factory, inbox) for sc in cfg.sensors]
+    # a stop ends the workers' wait for their devices too (they watch ``halt``)
+    threading.Thread(target=_follow, args=(stop, halt), name="stop to halt", daemon=True).start()
+    notifier.starting(
+        f"opening {len(workers)} sensors",
+        len(workers) * (cfg.daemon.wait_for_device_s + OPEN_MARGIN_S),
+    )
     infos = [w.open() for w in workers]
     opened = [i for i in infos if i is not None]
+    if not opened and stop.is_set():  # stopped while waiting for them
+        notifier.give_up("stopped while waiting for the sensors")
+        for w in workers:
+            w.step.close()
+        report.stopped = True
+        return report
     if not opened:
+        halt.set()
+        notifier.give_up("no sensor could be opened")
         raise DepthnavError(
             "no sensor could be opened", hint="check the [[sensor]] device specs and cables"
         )
@@ -198,12 +215,14 @@ def run_sensors(
     try:
         odometry = open_odometry(cfg.odometry) if cfg.memory.enabled is not False else None
     except BaseException:  # it cannot open: nothing else is left open (no thread started yet)
+        halt.set()
+        notifier.give_up("the odometry could not be opened")
         for w in workers:
             w.source.close()
             w.step.close()
         raise
     keeper = MemoryKeeper(cfg.memory, cfg.odometry, odometry)
-    notifier = ServiceNotifier()
+    notifier.starting("opening the sinks, first merged frame", FIRST_FRAME_S)
     try:
         context = SinkContext(opened[0], cfg.scan, cfg.cliff.block_size, __version__)
         sinks = open_sinks(cfg.sinks, context, sink_factory)
@@ -211,7 +230,6 @@ def run_sensors(
         for w in started:
             w.thread.start()
         merger = Merger([w.name for w in workers], cfg.daemon.sensor_max_age_s)
-        notifier.ready(f"running on {len(started)} of {len(workers)} sensors")
         _serve(started, workers, inbox, merger, keeper, sinks, stop, max_frames, report, notifier)
         report.stopped = stop.is_set()
     finally:
@@ -226,6 +244,13 @@ def run_sensors(
         report.memory_resets = keeper.resets
         report.reconnects = sum(w.source.reconnects for w in workers)
     return report
+
+
+def _follow(stop: threading.Event, halt: threading.Event) -> None:
+    """Set ``halt`` once ``stop`` is set; ends with ``halt`` either way."""
+    while not halt.is_set():
+        if stop.wait(POLL_S):
+            halt.set()
 
 
 def _serve(
@@ -266,6 +291,8 @@ def _serve(
         report.frames += 1
         report.last_result = out
         sensors = len(running)
+        if not notifier.is_ready:
+            notifier.ready(f"running on {len(started)} of {len(workers)} sensors")
         notifier.frame(
             report.frames,
             lambda fps, n=sensors: f"{fps:.1f} frames/s from {n} sensors",

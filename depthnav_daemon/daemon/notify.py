@@ -1,9 +1,13 @@
 """The systemd notify protocol, spoken by the daemon itself (no extra dependency).
 
 Under a ``Type=notify`` unit systemd sets ``NOTIFY_SOCKET``; the daemon sends, as single datagrams:
-``READY=1`` once the device and the sinks are open, ``STATUS=...`` (frame rate and mount) every
-few seconds, ``WATCHDOG=1`` only while frames flow (so a stalled loop is restarted under
-``WatchdogSec=``), and ``STOPPING=1`` when it stops. Outside systemd every call does nothing.
+while it starts, ``STATUS=`` and ``EXTEND_TIMEOUT_USEC=`` every few seconds for each step that may
+take long (waiting for the device, compiling the kernels, the first frame; each step within its
+own budget, so a start-up that hangs still meets ``TimeoutStartSec=``); ``READY=1`` once the
+first frame went out; then ``STATUS=...`` (frame rate and mount) every few seconds, ``WATCHDOG=1``
+only while frames flow (so a stalled loop is restarted under ``WatchdogSec=``; none before
+READY=1, which would start systemd's watchdog early), and ``STOPPING=1`` when it stops. Outside
+systemd every call does nothing.
 
 The protocol is a few lines over an AF_UNIX datagram socket (sd_notify(3)); a path starting with
 ``@`` is in the abstract namespace.
@@ -14,11 +18,21 @@ from __future__ import annotations
 import logging
 import os
 import socket
+import threading
 from collections.abc import Callable, Mapping
 
 log = logging.getLogger(__name__)
 
 STATUS_PERIOD_S = 5.0
+# while a start-up step lasts: EXTEND_TIMEOUT_USEC every EXTEND_PERIOD_S, each asking for
+# EXTEND_BY_S more (three periods: one late message is no failure)
+EXTEND_PERIOD_S = 5.0
+EXTEND_BY_S = 15.0
+# the start-up steps' budgets: opening a device that is there (USB enumeration, a firmware
+# upload; on top of [daemon] wait_for_device_s), and the sinks' opening (a ROS 2 participant, a
+# viewer) with the first frame's tables
+OPEN_MARGIN_S = 30.0
+FIRST_FRAME_S = 60.0
 
 
 class ServiceNotifier:
@@ -42,6 +56,11 @@ class ServiceNotifier:
         self._next_status = 0.0
         self._frames_at_status = 0
         self._status_t = 0.0
+        self._lock = threading.RLock()  # the start-up thread sends too
+        self.is_ready = False
+        self.extend_period_s = EXTEND_PERIOD_S
+        self._step_until = 0.0  # the current start-up step's budget ends (clock seconds)
+        self._started: threading.Event | None = None  # set when start-up is over
         self.sent: list[str] = []  # what was sent, for the summary and tests
 
     @property
@@ -49,8 +68,42 @@ class ServiceNotifier:
         """True under systemd (a notify socket was given)."""
         return self._address is not None
 
+    def starting(self, status: str, budget_s: float) -> None:
+        """A start-up step that may take long begins (it ends with the next step, ``ready`` or
+        ``stopping``): says ``status``, and asks systemd to wait, again every few seconds, for
+        at most ``budget_s``.
+        """
+        if not self.enabled or self.is_ready:
+            return
+        with self._lock:
+            self._step_until = self._clock() + budget_s
+            if self._started is None:
+                self._started = threading.Event()
+                threading.Thread(
+                    target=self._extend, args=(self._started,), name="systemd start-up", daemon=True
+                ).start()
+        self._send(f"STATUS={status}\nEXTEND_TIMEOUT_USEC={int(EXTEND_BY_S * 1e6)}")
+
+    def status(self, status: str) -> None:
+        """Say how a start-up step goes (``STATUS=`` only)."""
+        self._send(f"STATUS={status}")
+
+    def _extend(self, started: threading.Event) -> None:
+        """The start-up thread: EXTEND_TIMEOUT_USEC while the step's budget lasts."""
+        while not started.wait(self.extend_period_s):
+            with self._lock:  # never after READY=1 or STOPPING=1 (they set ``started`` first)
+                if not started.is_set() and self._clock() < self._step_until:
+                    self._send(f"EXTEND_TIMEOUT_USEC={int(EXTEND_BY_S * 1e6)}")
+
+    def _start_up_over(self) -> None:
+        with self._lock:
+            if self._started is not None:
+                self._started.set()
+
     def ready(self, status: str) -> None:
-        """The device and the sinks are open: start-up is over."""
+        """The first frame went out: start-up is over."""
+        self._start_up_over()
+        self.is_ready = True
         now = self._clock()
         self._status_t, self._next_status = now, now  # the first frame says the mount at once
         self._send(f"READY=1\nSTATUS={status}")
@@ -77,25 +130,36 @@ class ServiceNotifier:
 
     def stopping(self, status: str) -> None:
         """The daemon is stopping (a signal, the end of a recording, a failure)."""
+        self._start_up_over()
         self._send(f"STOPPING=1\nSTATUS={status}")
 
+    def give_up(self, why: str) -> None:
+        """Start-up failed before the frame loop: say so, and stop asking systemd to wait."""
+        self.stopping(why)
+        self.close()
+
     def close(self) -> None:
-        if self._sock is not None:
-            self._sock.close()
-            self._sock = None
+        self._start_up_over()
+        with self._lock:
+            if self._sock is not None:
+                self._sock.close()
+                self._sock = None
 
     def _send(self, message: str) -> None:
-        if self._address is None:
-            return
-        try:
-            if self._sock is None:
-                self._sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM | socket.SOCK_CLOEXEC)
-            self._sock.sendto(message.encode(), self._address)
-            self.sent.append(message)
-        except OSError as exc:
-            # systemd gone or the socket full: the daemon's job goes on, say so once
-            log.warning("systemd notify socket: %s; no more notifications", exc)
-            self._address = None
+        with self._lock:
+            if self._address is None:
+                return
+            try:
+                if self._sock is None:
+                    self._sock = socket.socket(
+                        socket.AF_UNIX, socket.SOCK_DGRAM | socket.SOCK_CLOEXEC
+                    )
+                self._sock.sendto(message.encode(), self._address)
+                self.sent.append(message)
+            except OSError as exc:
+                # systemd gone or the socket full: the daemon's job goes on, say so once
+                log.warning("systemd notify socket: %s; no more notifications", exc)
+                self._address = None
 
 
 def _address(path: str) -> str | bytes | None:

@@ -227,13 +227,21 @@ def test_tilt_sensor_narrows_the_floor_search_window() -> None:
     from depthnav_daemon.pipeline.pose import PoseParams
 
     base = PoseParams(tilt_min_deg=-10.0, tilt_max_deg=60.0)
-    t = MountTracker(Mount(0.5, 0.0, 0.0), TrackerParams())
+    t = MountTracker(Mount(0.55, 5.0, 0.0), TrackerParams())
     assert pose_prior(base, t) is base  # configured mount: the configured window
     t.from_tilt_sensor(15.3, 0.0, "accel")
     p = pose_prior(base, t)
     assert (p.tilt_min_deg, p.tilt_max_deg) == (5.0, 25.0)  # 15 +- 10, whole degrees
+    assert (p.height_min_m, p.height_max_m) == (base.height_min_m, base.height_max_m)
     t.from_floor(0.5, 15.0, 0.0)
     assert pose_prior(base, t) is base  # the floor speaks for itself
+    # the built-in mount nobody configured: the tilt sensor's +-10 deg at any height (calibrate's
+    # search, tests/daemon/test_unconfigured_mount.py)
+    t = MountTracker(Mount(), TrackerParams())
+    t.from_tilt_sensor(71.6, -4.2, "accel")
+    p = pose_prior(PoseParams(), t)
+    assert (p.tilt_min_deg, p.tilt_max_deg, p.roll_max_deg) == (62.0, 82.0, 14.0)
+    assert (p.height_min_m, p.height_max_m) == (0.05, 3.0)
 
 
 def test_serial_tilt_source_gives_the_mount_through_a_pty() -> None:
