@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
-from depthnav_daemon.pipeline._jit import inlined, kernel
+from depthnav_daemon.pipeline._jit import kernel
 
 I32 = NDArray[np.int32]
 
@@ -23,7 +23,7 @@ MAX_CODE_INDEX = CODE_MASK
 # columns per block of the exact scan kernel (scan_blocks): 4 AVX2 vectors of uint16; smaller
 # blocks skip the floor more finely but cost more per block
 BLOCK = 64
-UNKNOWN = 2  # a row's "has a reading" flag before it is looked at
+# a row's "has a reading" flag before it is looked at
 
 
 def run_flush_codes(
@@ -100,15 +100,6 @@ def flush_codes_kernel(cb_lo, cb_hi, n_bins, row_block):
 # (2026-12-02: 10-18 % of the kernel at every mount).
 
 
-@inlined
-def _any_reading(depth, r, n):
-    """True if some depth of depth[r, :n] is non-zero."""
-    mx = np.uint16(0)
-    for jj in range(n):
-        mx = max(mx, depth[r, np.uint64(jj)])
-    return mx != 0
-
-
 @kernel
 def exact_scan_kernel(
     depth,
@@ -120,9 +111,8 @@ def exact_scan_kernel(
     blk,
     fl_blk,
     fl_code,
-    probe_start,
-    probe,
-    spans,
+    reach_start,
+    reach_code,
     short,
     range_max,
     acc,
@@ -137,9 +127,9 @@ def exact_scan_kernel(
 
     Each row is looked at in blocks of BLOCK columns (scan_blocks): a block none of whose
     depths can be an obstacle or too close is not read further, and its flushes are skipped while
-    its columns hold nothing (+inf). A bin left at +inf is NaN unless one of its pixels reads at
-    or beyond ``range_max`` (horizontal range), found by looking its pixels up from the top
-    (usually the first has such a reading).
+    its columns hold nothing (+inf). A bin left at +inf is NaN unless one of its runs reads at or
+    beyond ``range_max`` (horizontal range) at its last row whose floor point lies at or beyond
+    range_max: that ray was seen free that far (asked while the row is in cache).
 
     Args:
         depth: (H, Ws) uint16 mm, already reduced to the used columns (a strided view is fine).
@@ -153,8 +143,10 @@ def exact_scan_kernel(
             fl_blk[i * nb + k]:fl_blk[i * nb + k + 1].
         fl_code: (F,) int32 ``col | last << 15 | bin << 16``: a flush takes column col's run
             minimum into bin; ``last``: the run ends here, the column starts again.
-        probe_start, probe: the runs (column, first row, last row) feeding each bin.
-        spans: (2, n) int16 the first and last row of each bin's runs.
+        reach_start: (Hs + 1,) int32, reach_code: (E,) int32 ``col | bin << 15``: each run's
+            range_max row (its last row whose floor point lies at or beyond range_max,
+            scan_table.reach_limits), by row: row ii's are reach_code[reach_start[ii]:
+            reach_start[ii + 1]], asked while the row is in cache.
         short: (n,) bool: bins whose view does not reach range_max (coverage.floor_extent):
             NaN where no obstacle is found, without looking.
         range_max: float32 m, the scan's range_max.
@@ -172,13 +164,21 @@ def exact_scan_kernel(
     for j in range(n_cols):
         acc[j] = inf
     dirty = np.zeros(nb, np.bool_)  # some column of the block holds a run minimum below +inf
-    # per row: UNKNOWN not looked at yet, else whether some d > 0; only the rows a bin's
-    # +inf/NaN question reaches are looked at
-    seen = np.full(n_rows, UNKNOWN, np.uint8)
     kind = np.zeros(nb, np.uint8)
+    # per bin: a run's range_max row reads that far
+    reach = np.zeros(out.shape[0], np.bool_)
     for ii in range(n_rows):
         i = np.uint64(ii)
         r = np.uint64(rows[ii])
+        # the +inf question, asked of each run's range_max row while it is in cache (asked at
+        # the end, the rows were cold: twice the kernel's time on the fixture)
+        for e in range(reach_start[ii], reach_start[ii + 1]):
+            x = np.uint32(reach_code[e])
+            b = x >> np.uint32(CODE_BITS)
+            c = np.uint64(x & np.uint32(CODE_MASK))
+            d = depth[r, c]
+            if d != 0 and np.float32(d) * kr[i, c] >= range_max:
+                reach[b] = True
         # no software prefetch of the rows ahead: the CPU's own prefetcher keeps up, and 20 hints
         # a row cost more than they saved (2026-12-02, 12 frames in turn: 3.5-9 % faster without
         # at every mount and at both sizes, 2.4 % on 150 frames that are not in the cache; hints
@@ -278,53 +278,13 @@ def exact_scan_kernel(
             k = k2
     n = out.shape[0] - 1
     nan = np.float32(np.nan)
-    walked = 0  # pixels looked at so far
-    with_reading = np.zeros(n_rows + 1, np.int32)  # rows with a reading before row ri (late)
-    counted = False
     for b in range(n):
-        if out[b] != inf:
-            continue
-        if short[b]:
-            out[b] = nan  # the view does not reach range_max: nothing to look up
-            continue
-        r0 = spans[0, b]
-        r1 = spans[1, b]
-        if r1 < r0 or (counted and with_reading[r1 + 1] == with_reading[r0]):
-            out[b] = nan  # no pixel, or no reading in any row of its pixels
-            continue
-        found = False
-        # +inf only if some pixel of the bin reads at or beyond range_max (its ray was seen free
-        # that far; the safety contract): a bin whose readings all end nearer (something below
-        # the obstacle band in the way, the top rows without a reading) is unknown. Top rows
-        # first: they look farthest, so the first pixel with a reading usually decides
-        for e in range(probe_start[b], probe_start[b + 1]):
-            c = probe[0, e]
-            r0 = probe[1, e]
-            r1 = probe[2, e]
-            if counted and with_reading[r1 + 1] == with_reading[r0]:
-                continue  # every row of this run is all zeros
-            for ri in range(r0, r1 + 1):
-                walked += 1
-                r = np.uint64(rows[ri])
-                if seen[ri] == UNKNOWN:  # once a row: a frame of zeros costs a pass, not one a bin
-                    seen[ri] = _any_reading(depth, r, n_cols)
-                d = depth[r, c]
-                if seen[ri] and d != 0 and np.float32(d) * kr[ri, c] >= range_max:
-                    found = True
-                    break
-            if found:
-                break
-        if not found:
+        # +inf only where the view reaches range_max and a run of the bin reads that far at its
+        # range_max row (its ray was seen free that far; the safety contract): a bin whose
+        # readings end nearer (something below the obstacle band in the way, no return from
+        # far away) is unknown
+        if out[b] == inf and (short[b] or not reach[b]):
             out[b] = nan
-        if not counted and walked > 4 * n_rows:
-            # many pixels without a reading (a blind or covered sensor): count the rows with a
-            # reading once, so that a run over rows of zeros is skipped whole (~5 ms -> ~0.2 ms
-            # for a frame of zeros at 1280x720)
-            for ri in range(n_rows):
-                if seen[ri] == UNKNOWN:
-                    seen[ri] = _any_reading(depth, np.uint64(rows[ri]), n_cols)
-                with_reading[ri + 1] = with_reading[ri] + np.int32(seen[ri])
-            counted = True
 
 
 @kernel

@@ -22,7 +22,7 @@ from depthnav_daemon.pipeline.geometry import (
 )
 from depthnav_daemon.pipeline.params import ScanParams
 from depthnav_daemon.pipeline.scan_blocks import block_tables
-from depthnav_daemon.pipeline.scan_kernels import MAX_CODE_INDEX
+from depthnav_daemon.pipeline.scan_kernels import CODE_BITS, MAX_CODE_INDEX
 from depthnav_daemon.pipeline.table_kernels import bin_map_kernel, exact_codes_kernel
 from drivers.base import Intrinsics
 
@@ -60,6 +60,9 @@ class ExactTable:
     blk: npt.NDArray[np.uint16]  # (4, Hs, nb) block bounds (scan_blocks.block_tables)
     fl_blk: npt.NDArray[np.int32]  # (Hs * nb + 1,) where each block's flushes of a row start
     probe_start: npt.NDArray[np.int32]  # (n + 1,) the runs feeding each bin: probe[:, s[b]:s[b+1]]
+    probe_lim: npt.NDArray[np.int16]  # (P,) each run's last row looking to range_max (reach_limits)
+    reach_start: npt.NDArray[np.int32]  # (Hs + 1,) the runs' range_max rows by row (reach_codes)
+    reach_code: npt.NDArray[np.int32]  # (E,) col | bin << 15
     probe: npt.NDArray[np.int16]  # (3, P) column, first and last row of each run
     spans: npt.NDArray[np.int16]  # (2, n) first and last row of each bin's runs
     n_bins: int
@@ -192,6 +195,57 @@ def _grid(intr: Intrinsics, rows: tuple[int, int, int], col_step: int) -> _Grid:
     return frozen_table(_Grid(x, y, xe, ye, (px, py)))
 
 
+def _floor_range(g: _Grid, rot: F64, height_m: float) -> F64:
+    """(Hs, Ws) horizontal range of each used pixel's floor point, m; +inf at or above the
+    horizon."""
+    v = [rot[k, 0] * g.x + rot[k, 1] * g.y + rot[k, 2] for k in range(3)]  # level (F, L, U)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = np.where(v[2] < 0, height_m / -v[2], np.inf)
+        return np.where(np.isfinite(t), t * np.hypot(v[0], v[1]), np.inf)
+
+
+def reach_limits(probe: npt.NDArray[np.int16], floor_m: F64, range_max_m: float) -> np.ndarray:
+    """(P,) int16 per run (column, first row, last row): its last row, from the first on, whose
+    floor point (``floor_m`` (Hs, Ws), m) lies at or beyond range_max; first - 1 where even the
+    first row's lies nearer. The +inf question looks at these rows only (scan_kernels)."""
+    c, r0, r1 = (probe[k].astype(np.int64) for k in range(3))
+    lim = r0 - 1
+    for k in range(int((r1 - r0).max(initial=-1)) + 1):  # a floor range falls down a column
+        row = np.minimum(r0 + k, floor_m.shape[0] - 1)
+        lim = np.where((r0 + k <= r1) & (lim == r0 + k - 1) & (floor_m[row, c] >= range_max_m),
+                       r0 + k, lim)  # fmt: skip
+    return lim.astype(np.int16)
+
+
+def reach_codes(
+    probe_start: npt.NDArray[np.int32],
+    probe: npt.NDArray[np.int16],
+    probe_lim: npt.NDArray[np.int16],
+    n_rows: int,
+) -> tuple[npt.NDArray[np.int32], npt.NDArray[np.int32]]:
+    """The range_max rows (``probe_lim``, where it is not before the run) of up to three runs a
+    bin as the kernel's codes ``col | bin << 15``, grouped by kernel row: (start (n_rows + 1,),
+    code (E,))."""
+    bins = np.repeat(np.arange(probe_start.size - 1), np.diff(probe_start))
+    ok = probe_lim >= probe[1]
+    # at most three runs a bin (its first, middle and last such, as listed): a bin has ~10,
+    # and asking every one cost ~25 % of the kernel on the fixture; a bin's runs are its
+    # neighbouring columns, so three still see past one pixel without a reading
+    idx = np.flatnonzero(ok)
+    first = np.searchsorted(bins[idx], bins[idx], side="left")
+    count = np.bincount(bins[idx], minlength=probe_start.size - 1)[bins[idx]]
+    k = np.arange(idx.size) - first
+    pick = (k == 0) | (k == count - 1) | (k == count // 2)
+    ok = np.zeros_like(ok)
+    ok[idx[pick]] = True
+    row = probe_lim[ok].astype(np.int64)
+    code = probe[0][ok].astype(np.int64) | (bins[ok].astype(np.int64) << CODE_BITS)
+    by_row = np.argsort(row, kind="stable")
+    start = np.zeros(n_rows + 1, np.int32)
+    np.cumsum(np.bincount(row, minlength=n_rows), out=start[1:])
+    return start, code[by_row].astype(np.int32)
+
+
 @functools.lru_cache(maxsize=16)
 def exact_table(intr: Intrinsics, mount: Mount, params: ScanParams) -> ExactTable:
     """The exact scan's tables for this camera, mount and parameters (cached).
@@ -247,6 +301,8 @@ def exact_table(intr: Intrinsics, mount: Mount, params: ScanParams) -> ExactTabl
             f"(accepted: up to {MAX_BINS})"
         )
     blk, fl_blk, probe_start, probe, spans = block_tables(k_lo, k_mid, k_hi, fl_start, fl_code, n)
+    probe_lim = reach_limits(probe, _floor_range(g, rot, mount.height_m), params.range_max_m)
+    reach_start, reach_code = reach_codes(probe_start, probe, probe_lim, shape[0])
     row_idx = np.arange(intr.height, dtype=np.int32)[rows]
     _, far = floor_extent(intr, mount, angle_min, inc, n, (rows.start, rows.stop, rows.step or 1))
     short_view = np.flatnonzero(~seen_to(far, params.range_max_m)).astype(np.intp)
@@ -268,6 +324,9 @@ def exact_table(intr: Intrinsics, mount: Mount, params: ScanParams) -> ExactTabl
         fl_blk=fl_blk,
         probe_start=probe_start,
         probe=probe,
+        probe_lim=probe_lim,
+        reach_start=reach_start,
+        reach_code=reach_code,
         spans=spans,
         n_bins=n,
         angle_min=angle_min,

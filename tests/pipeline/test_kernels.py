@@ -50,6 +50,19 @@ def noisy_frame(intr: Intrinsics, mount: Mount, seed: int) -> np.ndarray:
     ).depth_mm
 
 
+def floor_range_m(intr: Intrinsics, mount: Mount, v: np.ndarray, u: np.ndarray) -> np.ndarray:
+    """Horizontal range (m) of the floor point of pixels (v rows (R, 1), u columns (1, C)), +inf
+    at or above the horizon, from the conventions (camera x right, y down, z forward; roll left
+    side up about forward, then tilt positive down), not from the stage's tables."""
+    x, y = (u - intr.cx) / intr.fx + 0.0 * v, (v - intr.cy) / intr.fy + 0.0 * u
+    t, r = mount.tilt_rad, mount.roll_rad
+    x1, y1 = math.cos(r) * x - math.sin(r) * y, math.sin(r) * x + math.cos(r) * y  # rolled
+    fwd, down = math.cos(t) - math.sin(t) * y1, math.sin(t) + math.cos(t) * y1  # pitched
+    with np.errstate(divide="ignore", invalid="ignore"):
+        k = np.where(down > 0, mount.height_m / down, np.inf)
+        return np.where(np.isfinite(k), k * np.hypot(fwd, x1), np.inf)
+
+
 def reference_exact_scan(
     depth: np.ndarray, intr: Intrinsics, mount: Mount, params: ScanParams
 ) -> np.ndarray:
@@ -80,6 +93,7 @@ def reference_exact_scan(
     )
     val[close] = -np.inf
     val_range = d.astype(np.float32) * t.kr_m_per_mm  # horizontal range of every reading
+    fl = floor_range_m(intr, mount, v, u)  # of every pixel's floor point
     ws = d.shape[1]
     out = np.full(t.n_bins, np.inf, dtype=np.float32)
     seen = np.zeros(t.n_bins, dtype=bool)
@@ -87,9 +101,20 @@ def reference_exact_scan(
         for b in np.flatnonzero(g_lo[i] < ws):
             c0, c1 = int(g_lo[i, b]), int(min(g_hi[i, b], ws - 1))
             out[b] = min(out[b], val[i, c0 : c1 + 1].min())
-            # +inf only where a reading reaches range_max (the ray was seen free that far)
-            reach = val_range[i, c0 : c1 + 1] >= np.float32(params.range_max_m)
-            seen[b] |= bool(((d[i, c0 : c1 + 1] != 0) & reach).any())
+    # +inf only where one of the bin's runs asked (the table's runs: a column's rows feeding the
+    # same bins) reads at or beyond range_max at its last row whose floor point lies at or
+    # beyond range_max (this file's projection): that ray was seen free that far
+    rm = np.float32(params.range_max_m)
+    for b in range(t.n_bins):
+        asked = []  # the runs that look that far; the first, middle and last of them are asked
+        for c, r0, r1 in t.probe[:, t.probe_start[b] : t.probe_start[b + 1]].T.astype(int):
+            lim = r0 - 1
+            while lim + 1 <= r1 and fl[lim + 1, c] >= params.range_max_m:
+                lim += 1
+            if lim >= r0:
+                asked.append((lim, c))
+        for lim, c in {asked[0], asked[len(asked) // 2], asked[-1]} if asked else ():
+            seen[b] |= bool(d[lim, c] != 0 and val_range[lim, c] >= rm)
     out[(out == np.inf) & ~seen] = np.nan
     # the view's reach (coverage.floor_extent, tested on its own in test_coverage): a bin whose
     # floor is not seen to range_max says NaN where it found nothing
