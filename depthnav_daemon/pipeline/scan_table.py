@@ -204,6 +204,11 @@ def _floor_range(g: _Grid, rot: F64, height_m: float) -> F64:
         return np.where(np.isfinite(t), t * np.hypot(v[0], v[1]), np.inf)
 
 
+# how far beyond range_max (a fraction of it) the floor point of a run's asked row lies: covers
+# depth rounding and a structured-light sensor's noise at 5 m (sigma ~1 %)
+REACH_MARGIN = 0.02
+
+
 def reach_limits(probe: npt.NDArray[np.int16], floor_m: F64, range_max_m: float) -> np.ndarray:
     """(P,) int16 per run (column, first row, last row): its last row, from the first on, whose
     floor point (``floor_m`` (Hs, Ws), m) lies at or beyond range_max; first - 1 where even the
@@ -301,7 +306,11 @@ def exact_table(intr: Intrinsics, mount: Mount, params: ScanParams) -> ExactTabl
             f"(accepted: up to {MAX_BINS})"
         )
     blk, fl_blk, probe_start, probe, spans = block_tables(k_lo, k_mid, k_hi, fl_start, fl_code, n)
-    probe_lim = reach_limits(probe, _floor_range(g, rot, mount.height_m), params.range_max_m)
+    # the asked row's floor lies a margin beyond range_max: a reading of a floor at range_max
+    # itself falls short half the time by depth rounding and noise (a 640x480 fixture bin read
+    # 4.99 m there and was unknown)
+    reach_m = params.range_max_m * (1.0 + REACH_MARGIN)
+    probe_lim = reach_limits(probe, _floor_range(g, rot, mount.height_m), reach_m)
     reach_start, reach_code = reach_codes(probe_start, probe, probe_lim, shape[0])
     row_idx = np.arange(intr.height, dtype=np.int32)[rows]
     _, far = floor_extent(intr, mount, angle_min, inc, n, (rows.start, rows.stop, rows.step or 1))
