@@ -228,7 +228,11 @@ def _note_sensor(state: MemoryState, v: SensorView, near: F32) -> None:
         return  # it sees no floor straight ahead: no dead zone to speak of
     d = float(near[i0])
     tip = (m.x_m + d * math.cos(m.yaw_rad), m.y_m + d * math.sin(m.yaw_rad))
-    state.blind_by_sensor[key] = max(math.hypot(m.x_m, m.y_m), math.hypot(*tip))
+    # + 1.5 cell diagonals: the fill marks a cell known free only whole, so the cells within a
+    # diagonal of the dead zone's edge stay unknown (memory_update_kernels.fill_view), and the
+    # read-back judges every cell reaching beyond blind_m (half a diagonal)
+    edge = max(math.hypot(m.x_m, m.y_m), math.hypot(*tip))
+    state.blind_by_sensor[key] = edge + 1.5 * math.sqrt(2.0) * state.params.cell_m
 
 
 def update(

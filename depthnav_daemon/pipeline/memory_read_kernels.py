@@ -158,6 +158,7 @@ def memory_read(grid, offx, offy, known, wx0, wy0, cell, rx, ry, ryaw, blind, rm
     ones = np.uint64(_ONES)
     reach = rmax + hdb
     outer = rmax + hd  # a cell is judged while its centre lies within this
+    inner = blind - hd  # and beyond this
     bx0 = np.int64(math.floor((rx - reach) / cell)) // BLOCK
     bx1 = np.int64(math.floor((rx + reach) / cell)) // BLOCK
     by0 = np.int64(math.floor((ry - reach) / cell)) // BLOCK
@@ -181,7 +182,7 @@ def memory_read(grid, offx, offy, known, wx0, wy0, cell, rx, ry, ryaw, blind, rm
             px = (gx0 + 0.5 * BLOCK) * cell - rx
             py = (gy0 + 0.5 * BLOCK) * cell - ry
             rb = math.sqrt(px * px + py * py)
-            if rb - spread > outer or rb + spread < blind:
+            if rb - spread > outer or rb + spread < inner:
                 continue  # no cell of it judged
             inside = x_in and wy0 <= gy0 and gy0 + BLOCK <= wy0 + n
             unknown = x_out or gy0 + BLOCK <= wy0 or gy0 >= wy0 + n  # wholly outside the window
@@ -197,7 +198,7 @@ def memory_read(grid, offx, offy, known, wx0, wy0, cell, rx, ry, ryaw, blind, rm
                     unknown = unknown and wd == 0
                 if all_known:
                     continue
-            if unknown and rb - spread >= blind and rb + spread <= outer:
+            if unknown and rb - spread >= inner and rb + spread <= outer:
                 # every cell unknown and judged: the block's disc holds theirs (a block that
                 # crosses the blind radius or range_max is judged cell by cell, below)
                 undecided -= _judge(bad, c0 * px + s0 * py, -s0 * px + c0 * py, hdb, inc, True)
@@ -225,7 +226,7 @@ def memory_read(grid, offx, offy, known, wx0, wy0, cell, rx, ry, ryaw, blind, rm
                 gy = gy0 + b
                 qy = (gy + 0.5) * cell - ry
                 rc = math.sqrt(qx * qx + qy * qy)
-                if rc < blind or rc > outer:
+                if rc < inner or rc > outer:
                     continue
                 if x_in and wy0 <= gy < wy0 + n:
                     iy = gy - wy0 + byn

@@ -201,9 +201,14 @@ def fill_view(grid, known, free_t, wx0, wy0, cell, sx, sy, syaw, a0, inc, lo, hi
     Samples lie on spokes from the sensor's foot (sx, sy, heading syaw), FILL_STEP_CELLS apart
     along each spoke and between neighbouring spokes: the ranges are cut into bands 1.5 times
     wider each (narrower bands cost more spokes than they save samples), each band with its own
-    spokes spread over the scan's bearings at most a step apart at the band's outer edge. A
-    spoke lies in one bin i and walks only [lo[i], hi[i]] within its band, so no sample falls
-    outside the seen region.
+    spokes spread over the scan's bearings at most a step apart at the band's outer edge.
+
+    A sample marks the whole cell it falls in, and that cell lies within a cell's diagonal of it:
+    so a spoke walks only where the disc of that radius about each sample lies inside the seen
+    region (every bin the disc touches saw free floor from the disc's near to its far side, and
+    the disc stays within the view's bearings). A cell straddling the seen region's edge stays
+    unknown: marked free, it let the memory scan read +inf through the unseen part (a hole's
+    interior in the dead zone, behind a cell whose far part was seen).
     """
     n = grid.shape[0]
     m = lo.shape[0]
@@ -216,6 +221,7 @@ def fill_view(grid, known, free_t, wx0, wy0, cell, sx, sy, syaw, a0, inc, lo, hi
     if not r1 >= r0:
         return 0
     step = FILL_STEP_CELLS * cell
+    diag = math.sqrt(2.0) * cell  # a sample's cell lies within this of it
     span = m * inc
     th0 = syaw + a0 - 0.5 * inc  # the first bin's lower edge, odometry frame
     c_start = math.cos(th0)
@@ -234,10 +240,20 @@ def fill_view(grid, known, free_t, wx0, wy0, cell, sx, sy, syaw, a0, inc, lo, hi
         sd = math.sin(dth)
         c = c_start
         s = s_start
+        # the bearings a sample's disc spans either side of its spoke, in bins
+        half_w = math.asin(diag / band_lo) / inc if band_lo > diag else np.inf
         for k in range(k_n):
-            i = min(np.int64(k * q), m - 1)
-            a = max(lo[i], band_lo)
-            b = min(hi[i], band_hi)
+            a = band_lo
+            b = band_hi
+            t = k * q  # the spoke's bearing from the first bin's lower edge, in bins
+            j0 = np.int64(math.floor(t - half_w)) if half_w < m else np.int64(-1)
+            j1 = np.int64(math.floor(t + half_w)) if half_w < m else m
+            if j0 < 0 or j1 >= m:
+                b = -1.0  # the disc reaches past the view's side: nothing seen there
+            else:
+                for j in range(j0, j1 + 1):
+                    a = max(a, lo[j] + diag)
+                    b = min(b, hi[j] - diag)
             if a <= b:
                 count = np.int64(math.ceil((b - a) / step)) + 1
                 dr = (b - a) / (count - 1) if count > 1 else 0.0

@@ -23,7 +23,11 @@ sensor sees (geometry only, no stage code) and the judge reads the contract so:
   unsafe. The bearing is exact to one bin here too: a +inf bin whose truth (the nearest claimed
   point) a neighbour bin reports (finite <= truth + err, or -inf) is counted ``beside`` (and
   again as ``clear_held``, the table's "(held)"), not unsafe. A truth within the stated error of
-  range_max may read beyond it: +inf there is not unsafe (it is counted nowhere).
+  range_max may read beyond it: +inf there is not unsafe (it is counted nowhere). For the memory
+  the bearing is exact to one bin plus its odometry's drift seen at the truth's range (heading
+  + position / r, in bins, rounded up): its points are where the odometry put them, so a drift
+  turns them as much as it moves them (a box corner 1.28 m away read 1.5 bins over with a
+  0.015 rad heading drift).
 - +inf, the memory (``memory``, ``memory_sectors``): unsafe if anything is on the bin within its
   range_max, except table tops no sensor ever saw (``overhang``) and what lies nearer the robot
   than the memory's ``blind_m`` (the disc round the base origin it does not judge; the value the
@@ -144,21 +148,24 @@ def judge(
     tag: str = "",
     circular: bool = False,
     err_claim: F64 | None = None,
+    reach: npt.NDArray[np.int64] | None = None,
 ) -> Counts:
     """Judge one output's REP 117 ranges (n,) against its truth, with the stated error (n,) m at
     the visible truth (``err_claim``: at the claimed truth, default ``err``); ``circular``: the
-    bins go round the circle (the first and last are neighbours)."""
+    bins go round the circle (the first and last are neighbours); ``reach`` (n,): how many bins
+    either side a bin's truth may be reported on (default 1: the bearing's resolution)."""
     r = np.asarray(ranges, dtype=np.float64)
     near = np.minimum(t.visible, t.visible_edge)
     fin, ninf, inf = np.isfinite(r), r == -np.inf, r == np.inf
     with np.errstate(invalid="ignore"):
         lim = near + err
         far = fin & (r > lim)
-        left, right = _neighbours(np.where(fin, r, np.inf), circular)  # finite: what they hold
-        held = (left <= lim) | (right <= lim)
-        lc, rc = _neighbours(np.where(fin | ninf, r, np.inf), circular)  # also -inf for +inf
+        reach = np.ones(r.size, np.int64) if reach is None else reach
+        near_fin = _nearest_around(np.where(fin, r, np.inf), reach, circular)  # what they hold
+        held = near_fin <= lim
         claim_lim = t.claim + (err if err_claim is None else err_claim)
-        held_claim = (lc <= claim_lim) | (rc <= claim_lim)
+        near_any = _nearest_around(np.where(fin | ninf, r, np.inf), reach, circular)  # and -inf
+        held_claim = near_any <= claim_lim
         truth_in = near <= range_max
         good = (fin & (np.abs(r - near) <= err)) | (ninf & (near < range_min + TOO_CLOSE_SLACK_M))
         # within the stated error of range_max a surface may read beyond it (noise, mm steps)
@@ -203,12 +210,17 @@ def judge(
     return c
 
 
-def _neighbours(side: F64, circular: bool) -> tuple[F64, F64]:
-    """What bins j - 1 and j + 1 hold (n,) each (+inf past the ends unless ``circular``)."""
-    left, right = np.roll(side, 1), np.roll(side, -1)
-    if not circular and side.size:
-        left[0] = right[-1] = np.inf
-    return left, right
+def _nearest_around(side: F64, reach: npt.NDArray[np.int64], circular: bool) -> F64:
+    """(n,) the least value bins j - reach[j] .. j + reach[j] other than j hold (+inf past the
+    ends unless ``circular``)."""
+    out = np.full(side.size, np.inf)
+    for k in range(1, int(reach.max(initial=0)) + 1):
+        left, right = np.roll(side, k), np.roll(side, -k)
+        if not circular:
+            left[: min(k, side.size)] = np.inf
+            right[max(side.size - k, 0) :] = np.inf
+        out = np.where(reach >= k, np.minimum(out, np.minimum(left, right)), out)
+    return out
 
 
 def live_claims(s: vis.Sight) -> Claims:
@@ -291,7 +303,12 @@ def _judge(
     t = truth(bd, claims, origin, lay, kinds)
     circular = lay[1] * lay[2] >= 2 * math.pi - 1e-6
     ec = stated_error(t, *err, at_claim=True)
-    out.add(judge(r, rmin, rmax, t, stated_error(t, *err), tag, circular, ec))
+    _, odom_m, odom_rad = err
+    reach = None
+    if odom_m or odom_rad:  # the memory: its points turned by the odometry's drift (docstring)
+        at = np.maximum(np.minimum(np.minimum(t.visible, t.visible_edge), t.claim), 0.1)
+        reach = 1 + np.ceil((odom_rad + odom_m / at) / lay[1]).astype(np.int64)
+    out.add(judge(r, rmin, rmax, t, stated_error(t, *err), tag, circular, ec, reach))
 
 
 def _of(scan: LaserScan) -> tuple[F64, vis.Layout, float, float]:

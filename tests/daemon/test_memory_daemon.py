@@ -244,7 +244,9 @@ def test_the_keeper_gives_the_memory_each_stages_rows_and_its_sensors_limits(dri
         sc.ranges.size,
         view.rows,
     )
-    assert blind == pytest.approx(float(near[int(np.argmin(np.abs(sc.angles)))]))
+    # the dead zone straight ahead and a cell's diagonal (the fill marks cells only whole)
+    diag = 1.5 * math.sqrt(2) * keeper.state.params.cell_m
+    assert blind == pytest.approx(float(near[int(np.argmin(np.abs(sc.angles)))]) + diag)
     assert rmax == out.scan.range_max == pytest.approx(3.9)
 
 
