@@ -20,6 +20,7 @@ import subprocess
 import sys
 import threading
 import time
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -219,6 +220,46 @@ def test_a_discovery_only_subscriber_sees_every_topic_with_its_ros_type(tmp_path
     assert image["data"] == {"bytes": 320 * 240 * 2}
 
 
+# --- the recording's time, and /clock for use_sim_time ----------------------------------------
+
+
+def test_stamp_recording_stamps_with_the_frames_times_and_publishes_clock(tmp_path, recording):
+    require_cyclonedds()
+    domain = free_domain()
+    got, msgs, _ = live_run(
+        tmp_path,
+        [sys.executable, str(LISTENER), str(domain), "6", str(WAIT_S), "rt/scan", "rt/clock"],
+        f"ros2:?domain={domain}&stamp=recording",
+        recording,
+    )
+    times = {round(m["t_s"] * 1e6) for m in msgs}  # the frames' own times (the loop offsets too)
+    scans = [x for x in got if x.get("event") == "sample" and x["topic"] == "rt/scan"]
+    clocks = [x for x in got if x.get("event") == "sample" and x["topic"] == "rt/clock"]
+    assert len(scans) == 6 and len(clocks) == 6
+    for s in scans:
+        stamp = s["data"]["header"]["stamp"]
+        t_us = round((stamp["sec"] + stamp["nanosec"] * 1e-9) * 1e6)
+        assert t_us in times  # not the wall clock: the recording starts at 0.5 s
+        found = matching_frames(s["data"]["ranges"], msgs)
+        assert any(round(msgs[i]["t_s"] * 1e6) == t_us for i in found)  # its own frame's time
+    ticks = [c["data"]["clock"]["sec"] + c["data"]["clock"]["nanosec"] * 1e-9 for c in clocks]
+    assert all(round(t * 1e6) in times for t in ticks)
+    assert ticks == sorted(ticks) and len(set(ticks)) == len(ticks)  # the clock only goes on
+
+
+def test_stamp_recording_refuses_a_live_device_in_one_line(context):
+    from depthnav_daemon.sinks.ros.ros2 import plays_a_recording
+
+    assert plays_a_recording("replay:rec?rate=max") and plays_a_recording("openni:a/b.ONI")
+    assert plays_a_recording("realsense?file=rec.db3")
+    assert not plays_a_recording("kinect://0") and not plays_a_recording("openni://")
+    live = replace(context, device=replace(context.device, spec="kinect://0"))
+    sink = create_sink("ros2:?stamp=recording")
+    with pytest.raises(ConfigError, match="stamp=recording needs a recording") as exc:
+        sink.open(live)
+    assert "stamp=wall" in exc.value.hint
+
+
 # --- never blocking ------------------------------------------------------------------------------
 
 
@@ -300,6 +341,9 @@ def test_our_cdr_is_what_cyclonedds_makes_of_the_same_message(pairs):
         ("ros2:?scan_topic=/a//b", "not a ROS 2 topic name"),
         ("ros2:?scan_topic=cliff/scan", "are the same ROS 2 topic"),
         ("ros2:somewhere", "takes no target"),
+        ("ros2:?stamp=bogus", "is not one of wall, recording"),
+        ("ros2:?clock=1", "only stamp=recording uses"),
+        ("ros2:?stamp=recording&scan_topic=/clock", "which clock=1 publishes"),
     ],
 )
 def test_a_bad_spec_is_one_line_before_anything_opens(spec, says):

@@ -24,8 +24,15 @@ Options:
         memory on, its topics (``/memory/grid``, ``/memory/scan``, ``/memory/cliff/points``) get
         their writers at its first frame.
 
-Stamps are the wall clock when the frame is published (ROS time, which Nav2 compares against its
-transforms); the bags keep the frames' own times. Cyclone DDS reads its configuration from
+    stamp: ``wall`` (default): each message is stamped with the wall clock when it is published
+        (ROS time, which Nav2 compares against its transforms); ``recording``: with the frame's
+        own time, the recording's stamps (a replay, an ``.oni`` or a ``file=`` recording only: a
+        live device's clock is monotonic, not ROS time), for nodes run with ``use_sim_time``.
+    clock: 1 publishes ``/clock`` (``rosgraph_msgs/msg/Clock``, the frame's time, once per frame
+        before its messages) so ``use_sim_time`` nodes follow the replay; default 1 with
+        ``stamp=recording``, refused with ``stamp=wall``.
+
+The bags keep the frames' own times. Cyclone DDS reads its configuration from
 ``CYCLONEDDS_URI`` as for a ROS 2 node (network interface, peers). Publishing never waits for a
 subscriber: a KEEP_LAST writer drops the oldest unacknowledged sample instead of blocking, and
 ``max_blocking_time`` is 0.
@@ -44,6 +51,7 @@ from depthnav_daemon.sinks.base import (
     RateLimitedLog,
     SinkContext,
     SinkSpec,
+    bool_option,
     check_options,
     number_option,
 )
@@ -54,8 +62,10 @@ from depthnav_daemon.sinks.ros.messages import (
     OPTIONS,
     MessageBuilder,
     RosNames,
+    stamp_ns,
     typestore,
 )
+from drivers.values import short_repr
 
 if TYPE_CHECKING:
     from depthnav_daemon.pipeline import Result
@@ -64,9 +74,13 @@ if TYPE_CHECKING:
 log = logging.getLogger(__name__)
 
 GRAMMAR = (
-    "ros2[?domain=0..232&tf=0|1&image=0|1&cliff_z=-0.05&grid_rate=2&odom_tf=0|1&base_frame=.."
-    "&scan_topic=..]"
+    "ros2[?domain=0..232&stamp=wall|recording&clock=0|1&tf=0|1&image=0|1&cliff_z=-0.05"
+    "&grid_rate=2&odom_tf=0|1&base_frame=..&scan_topic=..]"
 )
+STAMPS = ("wall", "recording")
+CLOCK_TOPIC = "/clock"
+CLOCK_TYPE = "rosgraph_msgs/msg/Clock"
+TIME_TYPE = "builtin_interfaces/msg/Time"
 MAX_DOMAIN = 232  # the highest domain whose RTPS ports (7400 + 250 * domain + ...) fit in 16 bits
 HISTORY_DEPTH = 5
 PIP_HINT = "pip install 'depthnav[ros2]'"
@@ -143,6 +157,17 @@ class IdlTypes:
         return t.sequence[self._field(sub), size] if size else t.sequence[self._field(sub)]
 
 
+def plays_a_recording(device_spec: str) -> bool:
+    """Whether a device spec plays a recording (its frames carry the recording's times): a
+    ``replay:`` source, an ``openni:`` ``.oni`` file, or any device given ``file=``."""
+    scheme, _, rest = device_spec.partition(":")
+    if scheme == "replay":
+        return True
+    if scheme == "openni" and rest.split("?")[0].lower().endswith(".oni"):
+        return True
+    return "file=" in device_spec.partition("?")[2]
+
+
 def _import_cyclonedds() -> Any:
     try:
         import cyclonedds.domain
@@ -164,15 +189,26 @@ def _import_cyclonedds() -> Any:
 class Ros2Sink:
     """Publishes each frame's messages on ROS 2 DDS topics (see the module docstring)."""
 
-    def __init__(self, name: str, domain: int, names: RosNames) -> None:
+    def __init__(
+        self, name: str, domain: int, names: RosNames, stamp: str = "wall", clock: bool = False
+    ) -> None:
         self.name = name
         self.domain = domain
         self.names = names
+        self.stamp = stamp
+        self.clock = clock
         self.topics = {  # ROS topic -> DDS topic, checked now so a bad name fails before open
             names[key]: dds_topic(names[key], name)
             for key in NAME_OPTIONS
             if key.endswith("_topic")
         }
+        if clock:
+            if CLOCK_TOPIC in self.topics:
+                raise ConfigError(
+                    f"sink spec {name!r} names a topic {CLOCK_TOPIC}, which clock=1 publishes",
+                    hint="give that topic another name, or clock=0",
+                )
+            self.topics[CLOCK_TOPIC] = dds_topic(CLOCK_TOPIC, name)
         seen: dict[str, str] = {}
         for ros_topic, dds in self.topics.items():
             if dds in seen:
@@ -190,13 +226,14 @@ class Ros2Sink:
         self._memory: MemoryMessages | None = None
         self._memory_types: dict[str, str] = {}
         self._add_writer: Any = None
+        self._clock_msg: tuple[Any, Any] | None = None  # (Clock, Time) classes with clock=1
         self.failures = RateLimitedLog(log)
         self.samples = 0
 
     @classmethod
     def from_spec(cls, spec: SinkSpec) -> Ros2Sink:
         """Build from a parsed spec (no I/O). Raises ConfigError for a bad option or name."""
-        check_options(spec, ("domain", *OPTIONS), GRAMMAR)
+        check_options(spec, ("domain", "stamp", "clock", *OPTIONS), GRAMMAR)
         if spec.target.strip("/"):
             raise ConfigError(
                 f"sink spec {spec.text!r}: ros2 takes no target, only options",
@@ -210,7 +247,22 @@ class Ros2Sink:
             )
         default = int(env) if env else 0
         domain = int(number_option(spec, "domain", default, 0, MAX_DOMAIN, integer=True))
-        return cls(spec.text, domain, RosNames.from_spec(spec))
+        stamp = spec.options.get("stamp", "wall").strip()
+        if stamp not in STAMPS:
+            raise ConfigError(
+                f"sink spec {spec.text!r}: stamp={short_repr(stamp)} is not one of "
+                f"{', '.join(STAMPS)}",
+                hint="stamp=wall (live, the default) or stamp=recording (a replay's own times)",
+            )
+        recording = stamp == "recording"
+        clock = bool_option(spec, "clock", recording)
+        if clock and not recording:
+            raise ConfigError(
+                f"sink spec {spec.text!r}: clock=1 publishes the frames' own time, which only "
+                "stamp=recording uses",
+                hint="add stamp=recording (replay with use_sim_time), or leave clock out",
+            )
+        return cls(spec.text, domain, RosNames.from_spec(spec), stamp, clock)
 
     def open(self, context: SinkContext) -> None:
         """Join the domain and create one writer per topic.
@@ -219,6 +271,13 @@ class Ros2Sink:
             SinkError: cyclonedds is not installed, or DDS cannot start (its configuration in
                 CYCLONEDDS_URI, no usable network interface).
         """
+        if self.stamp == "recording" and not plays_a_recording(context.device.spec):
+            raise ConfigError(
+                f"sink {self.name!r}: stamp=recording needs a recording, and "
+                f"{short_repr(context.device.spec)} is a live device (its clock is monotonic "
+                "time, not ROS time)",
+                hint="use stamp=wall (the default) with a live device",
+            )
         cdds = _import_cyclonedds()
         from cyclonedds._clayer import ddspy_write
         from cyclonedds.core import DDSException
@@ -249,6 +308,9 @@ class Ros2Sink:
             publisher = cdds.pub.Publisher(self._participant)
             for ros_topic, msgtype in self._builder.msgtypes().items():
                 add_writer(ros_topic, msgtype)
+            if self.clock:
+                add_writer(CLOCK_TOPIC, CLOCK_TYPE)
+                self._clock_msg = (store.types[CLOCK_TYPE], store.types[TIME_TYPE])
         except DDSException as exc:
             self.close()
             code = str(exc).split("]")[0].lstrip("[") if str(exc).startswith("[") else "error"
@@ -271,9 +333,13 @@ class Ros2Sink:
         """Serialise and publish the frame's messages; never waits for a subscriber."""
         if self._encoder is None or self._write is None or self._memory is None:
             raise SinkError(f"sink {self.name!r} is not open")
-        t_ns = time.time_ns()
+        t_ns = stamp_ns(result.timestamp_s) if self.stamp == "recording" else time.time_ns()
         # rosbags' CDR of the messages, padded to whole 4-byte words (sinks/ros/cdr.py)
         out = self._encoder.encode(frame, result, t_ns=t_ns)
+        if self._clock_msg is not None:  # first: a use_sim_time node's clock is there already
+            clock, stamp = self._clock_msg
+            now = clock(clock=stamp(sec=t_ns // 10**9, nanosec=t_ns % 10**9))
+            out.insert(0, (CLOCK_TOPIC, self._encoder.serialize(now)))
         for topic, msg in self._memory.messages(result, t_ns):
             if topic not in self._writers:
                 self._new_writer(topic)
