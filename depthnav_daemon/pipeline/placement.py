@@ -13,8 +13,11 @@ frame without per-pixel trigonometry on every frame (5-10x the scan's cost). Ins
 is placed exactly: bin i holds the nearest obstacle over its bearing footprint
 [phi_i - inc/2, phi_i + inc/2] at range r_i, i.e. an arc of radius r_i about the sensor. That arc is
 mapped to the base frame (its end points exactly, through the sensor's translation and yaw) and
-every base bin whose centre it covers takes the range where the arc crosses that bearing; an arc
-narrower than a base bin feeds the bin holding its centre, so no bin is left empty by the mapping.
+every base bin whose centre it covers takes the arc's nearest range within the bin's wedge; an
+arc narrower than a base bin feeds the bin holding its centre, so no bin is left empty by the
+mapping. (Feeding every bin an arc overlaps, as the sensor's nearest obstacle may lie anywhere in
+its bin, took the far bins over 200 drives from 21 to 17 but the merged scan's and the sectors'
+coverage from 94 % and 88 % to 90 % and 81 %: not taken.)
 Several arcs in one base bin: the nearest wins (REP 117 order: -inf, ranges, +inf, then no data).
 This is O(bins) per frame (a few microseconds). What it cannot show is what the sensor did not see
 as nearest along its own bearings: base bins that only the base origin could see past an
@@ -30,7 +33,7 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
-from depthnav_daemon.pipeline._jit import kernel
+from depthnav_daemon.pipeline._jit import helper, kernel
 from depthnav_daemon.pipeline.geometry import F32, F64, Mount, frozen_table
 from depthnav_daemon.pipeline.memory_kernels import fast_atan2
 from depthnav_daemon.pipeline.placement_rays import ray_table, rays_to_base_kernel
@@ -246,13 +249,21 @@ def _arc_bins(phi, a, c, s, inc_s, a0, inc, n, lo, hi):
         rho2 = w * w + c[i] * c[i]
         beta = phi[i] + np.arctan2(c[i], w)
         hw = 0.5 * inc_s * abs(s[i] * w) / max(rho2, 1e-12)
-        j0 = np.int64(np.ceil((beta - hw - a0) / inc - 1e-9))
-        j1 = np.int64(np.floor((beta + hw - a0) / inc + 1e-9))
-        if j0 > j1:  # an arc narrower than a base bin: the bin holding its centre
-            j0 = np.int64(np.floor((beta - a0) / inc + 0.5))
-            j1 = j0
+        j0, j1 = _overlapped(beta, hw, a0, inc)
         lo[i] = max(j0, 0)
         hi[i] = min(j1, n - 1)
+
+
+@helper
+def _overlapped(beta, hw, a0, inc):
+    """First and last base bin (centred on a0 + j inc) whose centre the bearings
+    [beta - hw, beta + hw] cover; the bin holding beta when they cover none (a narrow arc)."""
+    j0 = np.int64(np.ceil((beta - hw - a0) / inc - 1e-9))
+    j1 = np.int64(np.floor((beta + hw - a0) / inc + 1e-9))
+    if j0 > j1:
+        j0 = np.int64(np.floor((beta - a0) / inc + 0.5))
+        j1 = j0
+    return j0, j1
 
 
 @kernel
@@ -291,12 +302,10 @@ def arcs_to_base_kernel(ranges, phi, a, c, far_lo, far_hi, near_lo, near_hi, inc
         beta = phi[i] + fast_atan2(c[i], w)  # within 2e-6 rad
         hw = 0.5 * inc_s * abs(s * w) / max(rho2, 1e-12)
         slope = c[i] * rho / w if w != 0.0 else 0.0
-        j0 = np.int64(np.ceil((beta - hw - a0) / inc - 1e-9))
-        j1 = np.int64(np.floor((beta + hw - a0) / inc + 1e-9))
-        if j0 > j1:  # an arc narrower than a base bin: the bin holding its centre
-            j0 = np.int64(np.floor((beta - a0) / inc + 0.5))
-            j1 = j0
+        j0, j1 = _overlapped(beta, hw, a0, inc)
         for j in range(max(j0, 0), min(j1, n - 1) + 1):
-            db = min(max(a0 + j * inc - beta, -hw), hw)
-            val = np.float32(rho + slope * db)
+            # the arc's nearest point within the bin's wedge: at one end of its part inside
+            lo_b = min(max(a0 + (j - 0.5) * inc - beta, -hw), hw)
+            hi_b = min(max(a0 + (j + 0.5) * inc - beta, -hw), hw)
+            val = np.float32(rho + min(slope * lo_b, slope * hi_b))
             out[j] = min(out[j], val)
