@@ -20,6 +20,7 @@ from typing import Any
 from depthnav_daemon.config.robot import (
     MemorySettings,
     OdometrySettings,
+    RobotSettings,
     SensorConfig,
     parse_sensors,
 )
@@ -120,6 +121,7 @@ class Config:
     daemon: DaemonParams = field(default_factory=DaemonParams)
     memory: MemorySettings = field(default_factory=MemorySettings)
     odometry: OdometrySettings = field(default_factory=OdometrySettings)
+    robot: RobotSettings = field(default_factory=RobotSettings)
     sensors: tuple[SensorConfig, ...] = ()
 
 
@@ -131,6 +133,7 @@ SECTIONS: dict[str, type] = {
     "daemon": DaemonParams,
     "memory": MemorySettings,
     "odometry": OdometrySettings,
+    "robot": RobotSettings,
 }
 TOP_LEVEL = ("device", "sinks", "sensor")
 # keys whose values are checked by their section's class rather than by the default's type

@@ -1,6 +1,6 @@
-"""The robot's side of the configuration: the obstacle memory ([memory]), the odometry
-([odometry]) and several sensors ([[sensor]] tables). The loader (loader.py) reads them like the
-other sections."""
+"""The robot's side of the configuration: its body ([robot]), the obstacle memory ([memory]), the
+odometry ([odometry]) and several sensors ([[sensor]] tables). The loader (loader.py) reads them
+like the other sections."""
 
 from __future__ import annotations
 
@@ -10,8 +10,49 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from depthnav_daemon.errors import ConfigError
+from depthnav_daemon.pipeline.footprint import Footprint, checked_polygon
 from depthnav_daemon.pipeline.geometry import Mount, check_range
 from depthnav_daemon.pipeline.memory import MemoryParams
+from drivers.values import short_repr
+
+
+@dataclass(frozen=True, slots=True)
+class RobotSettings:
+    """The robot's own body ([robot]): readings inside it are ignored by every stage and the
+    memory (pipeline/footprint.py).
+
+    Attributes:
+        footprint_m: the body's outline on the floor, a convex polygon of [x, y] vertices in the
+            base frame (REP 103: x forward, y left, origin on the floor under the robot), metres;
+            () = no footprint.
+        height_m: the body's top above the floor, metres (needed with a footprint).
+    """
+
+    footprint_m: tuple[tuple[float, float], ...] = ()
+    height_m: float = 0.0
+
+    def __post_init__(self) -> None:
+        given = self.footprint_m
+        if isinstance(given, (list, tuple)) and len(given) == 0:
+            object.__setattr__(self, "footprint_m", ())
+            if self.height_m != 0.0:
+                raise ConfigError(
+                    f"robot.height_m={self.height_m!r} is set but robot.footprint_m is empty",
+                    hint="give the body's outline too, e.g. robot.footprint_m = [[0.3, 0.25], "
+                    "[-0.3, 0.25], [-0.3, -0.25], [0.3, -0.25]]",
+                )
+            return
+        polygon = checked_polygon(given)  # one line on a bad outline
+        if self.height_m == 0.0:
+            raise ConfigError(
+                "robot.footprint_m is set but robot.height_m is not",
+                hint="robot.height_m: the body's top above the floor, metres",
+            )
+        object.__setattr__(self, "footprint_m", Footprint(polygon, self.height_m).polygon_m)
+
+    def footprint(self) -> Footprint | None:
+        """The body for the stages, or None when no footprint is configured."""
+        return Footprint(self.footprint_m, self.height_m) if self.footprint_m else None
 
 
 @dataclass(frozen=True, slots=True)
@@ -85,6 +126,7 @@ class OdometrySettings:
 
 SENSOR_KEYS = ("name", "device", "mount")
 MAX_SENSORS = 16
+MAX_SENSOR_NAME_CHARS = 60  # a name goes into every log line and JSON line about its sensor
 
 
 @dataclass(frozen=True, slots=True)
@@ -102,6 +144,29 @@ class SensorConfig:
     mount: Mount = field(default_factory=Mount)
 
 
+def check_sensor_name(name: str, where: str) -> None:
+    """Refuse a sensor name that would not fit a log line: over MAX_SENSOR_NAME_CHARS
+    characters, or holding a control or other unprintable character (a newline, NUL or ESC
+    would split or colour the log lines that name it).
+
+    Raises:
+        ConfigError: naming it as ``short_repr`` shows it (cut and escaped).
+    """
+    hint = "a short name of letters, digits and punctuation, e.g. front or rear_left"
+    if len(name) > MAX_SENSOR_NAME_CHARS:
+        raise ConfigError(
+            f"{where}: name {short_repr(name)} is {len(name)} characters long "
+            f"(accepted: up to {MAX_SENSOR_NAME_CHARS})",
+            hint=hint,
+        )
+    bad = next((c for c in name if not c.isprintable()), None)
+    if bad is not None:
+        raise ConfigError(
+            f"{where}: name {short_repr(name)} holds the unprintable character {bad!r}",
+            hint=hint,
+        )
+
+
 def parse_sensors(
     value: Any, coerce: Callable[[str, Any, Any], Any], origin: str = "config"
 ) -> tuple[SensorConfig, ...]:
@@ -113,7 +178,9 @@ def parse_sensors(
         origin: where they come from, for messages.
     """
     if not isinstance(value, (list, tuple)) or not all(isinstance(v, Mapping) for v in value):
-        raise ConfigError(f"{origin}: sensor must be a list of [[sensor]] tables, got {value!r}")
+        raise ConfigError(
+            f"{origin}: sensor must be a list of [[sensor]] tables, got {short_repr(value)}"
+        )
     if len(value) > MAX_SENSORS:
         raise ConfigError(f"{origin}: {len(value)} sensors (accepted: up to {MAX_SENSORS})")
     out: list[SensorConfig] = []
@@ -122,11 +189,13 @@ def parse_sensors(
         unknown = [k for k in table if k not in SENSOR_KEYS]
         if unknown:
             raise ConfigError(
-                f"{where}: unknown key {unknown[0]!r}", hint=f"valid keys: {', '.join(SENSOR_KEYS)}"
+                f"{where}: unknown key {short_repr(unknown[0])}",
+                hint=f"valid keys: {', '.join(SENSOR_KEYS)}",
             )
         name, device = table.get("name"), table.get("device")
         if not isinstance(name, str) or not name.strip():
             raise ConfigError(f"{where}: needs a name (a non-empty string)")
+        check_sensor_name(name, where)
         where = f"sensor {name!r}"
         if not isinstance(device, str) or not device.strip():
             raise ConfigError(f"{where}: needs a device spec")
@@ -141,7 +210,8 @@ def parse_sensors(
         for k in mount_table:
             if k not in defaults:
                 raise ConfigError(
-                    f"{where}: unknown key 'mount.{k}'", hint=f"valid keys: {', '.join(defaults)}"
+                    f"{where}: unknown key {short_repr('mount.' + str(k))}",
+                    hint=f"valid keys: {', '.join(defaults)}",
                 )
         checked = {k: coerce(f"{where} mount.{k}", v, defaults[k]) for k, v in mount_table.items()}
         try:

@@ -9,6 +9,11 @@ every frame over every plausible mount (``depthnav calibrate``'s range, ``pose.w
 every range the frame reports (the scan and the cliff scan) is unknown (NaN), its trust saying
 ``trusted`` False. Once the floor's mount serves the frames (its tables built), the output is
 normal and the search narrows to the mount (:func:`pose_prior`), for good.
+
+The robot's own body ([robot] footprint): the readings inside it become "no reading" before the
+stages see the frame (``pipeline.footprint``; its table per camera and mount is built with the
+stages' tables): the stages with the table of the mount they use, the floor search with that of
+the mount the last frame used (while that mount is known).
 """
 
 from __future__ import annotations
@@ -22,8 +27,9 @@ import numpy as np
 
 from depthnav_daemon.config.loader import Config
 from depthnav_daemon.daemon.mount_tracker import MountTracker, TrackerParams
-from depthnav_daemon.daemon.stage_tables import SmallChange, StageTables
+from depthnav_daemon.daemon.stage_tables import SmallChange, StageTables, with_body
 from depthnav_daemon.pipeline import MountState, MountTrust, Result, StageParams, prepare, process
+from depthnav_daemon.pipeline.footprint import body_table, remove_body
 from depthnav_daemon.pipeline.geometry import MAX_MOUNT_HEIGHT_M, MAX_ROLL_DEG, MAX_TILT_DEG, Mount
 from depthnav_daemon.pipeline.laser_scan import LaserScan
 from depthnav_daemon.pipeline.pose import (
@@ -76,8 +82,14 @@ class FrameStep:
                 "= 0): the mount stays unknown and every range is reported unknown (NaN); set "
                 "[mount] or run depthnav calibrate"
             )
+        self._body = cfg.robot.footprint()  # None: no footprint
+        self._body_used: Mount | None = None  # the mount the last frame's stages used
+        self._said_body = False
+        # the frame the stages processed last (without the body's readings), for sinks that
+        # draw the depth as the stages saw it
+        self.stage_frame: Frame | None = None
         self._tables = StageTables(
-            lambda intr, mount: prepare(intr, mount, self.params),
+            with_body(lambda intr, mount: prepare(intr, mount, self.params), self._body),
             prepare_prior=prepare_pose,
             defer_start=True,
         )
@@ -102,6 +114,14 @@ class FrameStep:
             self._read_tilt_source(frame)  # (a call that finds nothing to read cost ~0.5 %)
         want_pose = self._pose_due(frame)
         pose, pose_s = None, None
+        raw, body_s, masked_with = frame, 0.0, None
+        if want_pose and self._body is not None and self._known:
+            # the floor search sees the frame without the body as the last frame's mount (on
+            # the first frame the configured one) saw it: that mount's table exists
+            t0 = time.perf_counter()
+            masked_with = self._body_used or self._tracker.mount
+            frame = self._without_body(raw, masked_with)
+            body_s = time.perf_counter() - t0
         if want_pose:
             # a new prior window's table is built on the worker: meanwhile the estimate searches
             # the last window (whose table exists) rather than this frame building it
@@ -125,7 +145,16 @@ class FrameStep:
         state = MountState(
             mount=used, source=self._tracker.source, trust=trust, pose=pose, pose_s=pose_s
         )
+        if self._body is not None:
+            t0 = time.perf_counter()
+            if used != masked_with:
+                frame = self._without_body(raw, used)
+            self._body_used = used
+            body_s += time.perf_counter() - t0
+        self.stage_frame = frame
         result = process(frame, state, self.params, time.perf_counter)
+        if self._body is not None:
+            result.timings_s["body"] = body_s
         if not trust.trusted:
             result = unknown_ranges(result, trust.note)
         if want_pose:
@@ -133,6 +162,22 @@ class FrameStep:
         self._since_pose += 1
         self._tables.start_queued()  # a build decided on this frame starts after its stages
         return result
+
+    def _without_body(self, frame: Frame, mount: Mount) -> Frame:
+        """``frame`` with the readings of the robot's body (seen from ``mount``) removed (0);
+        ``frame`` itself when none are."""
+        assert self._body is not None
+        table = body_table(frame.intrinsics, mount, self._body)
+        depth, removed = remove_body(frame.depth_mm, table)
+        if not self._said_body:
+            self._said_body = True
+            log.info(
+                "robot footprint: %d pixels of this camera can see the robot's body; %d readings "
+                "of it removed from the first frame",
+                table.size,
+                removed,
+            )
+        return frame if removed == 0 else dataclasses.replace(frame, depth_mm=depth)
 
     def _prior_for_wanted(self) -> PoseParams | None:
         """The pose stage's window around the tracker's mount (for a build to make ahead), or

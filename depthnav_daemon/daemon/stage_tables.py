@@ -9,6 +9,9 @@ tables exist; the new mount is used from the first frame after they are ready (o
 frames later). Only a camera's first frame, with no tables at all to go on with, builds them on
 the frame itself.
 
+The table of the robot's body (``with_body``: the pixels that can see it, per camera and mount)
+is built with the stages' tables, in the same job.
+
 The floor pose stage's table for its prior window (``pose.prepare_pose``, 4-14 ms) is built the
 same way: the job of a new mount also builds the window the pose stage will search around it,
 and an estimate whose window has no table yet searches the window of the camera's last
@@ -33,6 +36,7 @@ from collections.abc import Callable, Hashable
 from dataclasses import dataclass
 from typing import TypeVar, cast
 
+from depthnav_daemon.pipeline.footprint import Footprint, body_table
 from depthnav_daemon.pipeline.geometry import Mount
 from drivers.base import Intrinsics
 
@@ -131,6 +135,23 @@ def _serve(tables: weakref.ref[StageTables], jobs: queue.SimpleQueue[_Job | None
         if owner is None:
             return
         del owner
+
+
+def with_body(
+    prepare: Callable[[Intrinsics, Mount], None], body: Footprint | None
+) -> Callable[[Intrinsics, Mount], None]:
+    """``prepare``, then the table of the robot's body (``pipeline.footprint.body_table``, 3-4
+    ms at 640x480, compiled and releasing the interpreter) for the same camera and mount, so
+    that a new mount's first frame finds it built too; ``prepare`` itself when the robot has no
+    footprint."""
+    if body is None:
+        return prepare
+
+    def both(intr: Intrinsics, mount: Mount) -> None:
+        prepare(intr, mount)
+        body_table(intr, mount, body)
+
+    return both
 
 
 def _same_placement(a: Mount, b: Mount) -> bool:

@@ -5,8 +5,8 @@ Afterwards ``depthnav run`` compiles nothing: numba keeps the machine code on di
 pipeline/_jit.py), keyed to this CPU. numba compiles one version per argument type, and a read-only
 array, a writable one and a strided view are different types, so every kernel is run here with each
 kind of array the stages can hand it; then the daemon's own loop runs on a rendered scene with
-what only it reaches: a mount placed on the robot (placement), the obstacle memory with its
-expiry, a lens with distortion and several sensors merged.
+what only it reaches: a mount placed on the robot (placement), the robot's body (footprint), the
+obstacle memory with its expiry, a lens with distortion and several sensors merged.
 """
 
 from __future__ import annotations
@@ -42,14 +42,18 @@ SCENE = Scene(boxes=(Box(1.5, 0.0, 0.3, 0.3, 0.3),), holes=(step_down(2.0, 0.2),
 # the daemon's runs (a 640x480 camera: the defaults' row bands fit it); a mount placed on the
 # robot, so the outputs go through the base frame, and memory expiry on
 PLACED = {"height_m": 0.5, "tilt_deg": 15.0, "x_m": 0.2, "y_m": 0.1, "yaw_deg": 10.0}
+# a robot body the placed sensor sees (the floor in front of it, under the polygon), so that
+# its table and per-frame kernels run (pipeline/footprint.py)
+ROBOT = {"footprint_m": [[0.9, 0.3], [-0.3, 0.3], [-0.3, -0.3], [0.9, -0.3]], "height_m": 0.3}
 DAEMON_RUNS: tuple[dict[str, Any], ...] = (
-    {"mount": PLACED, "memory": {"max_age_s": 5.0}},
+    {"mount": PLACED, "memory": {"max_age_s": 5.0}, "robot": ROBOT},
     {"mount": PLACED, "scan": {"method": "paper"}},
     {
         "sensor": [
             {"name": "left", "device": "warmup:", "mount": PLACED},
             {"name": "right", "device": "warmup:", "mount": {**PLACED, "y_m": -0.1}},
-        ]
+        ],
+        "robot": ROBOT,
     },
 )
 DAEMON_FRAMES = 4
