@@ -11,7 +11,6 @@ Conventions (pinned by tests/pipeline/test_conventions.py and tests/drivers/):
 
 from __future__ import annotations
 
-import functools
 import math
 import numbers
 from dataclasses import dataclass, field
@@ -20,6 +19,21 @@ from typing import Any, Protocol
 import numpy as np
 import numpy.typing as npt
 
+# the lens maps live in drivers.lens_model; the pipeline (which imports only this module of
+# drivers, tests/test_layering.py) reaches them here
+from drivers.lens_model import (  # noqa: F401 - re-exported
+    COEFF_KEYS,
+    EQUIDISTANT,
+    MODEL_KEYS,
+    MODELS,
+    MODELS_TEXT,
+    PLUMB_BOB,
+    distortion_problem,
+    lens_map,
+    plumb_bob,
+    rational_coeffs,
+    theta_d,
+)
 from drivers.values import short_repr
 
 DepthMM = npt.NDArray[np.uint16]  # (H, W) millimetres, 0 = no reading
@@ -48,90 +62,19 @@ def tilt_roll_to_accel(
     )
 
 
-DISTORTION_KEYS = ("k1", "k2", "p1", "p2", "k3")  # OpenCV / ROS plumb_bob order
-MAX_RADIAL_COEFF = 100.0  # |k1|, |k2|, |k3|: far beyond any real lens (Kinect-like: |k| < 1)
+DISTORTION_KEYS = MODEL_KEYS[PLUMB_BOB]  # OpenCV / ROS plumb_bob order
+LENS_KEYS = ("distortion_model", *COEFF_KEYS)  # every lens field of Intrinsics
+MAX_RADIAL_COEFF = 100.0  # |k1| .. |k6|: far beyond any real lens (Kinect-like: |k| < 1)
 MAX_TANGENTIAL_COEFF = 1.0  # |p1|, |p2| (real lenses: |p| < 0.01)
-# the lens model must stay invertible this far beyond the image's edges (pixels, share of the side)
-LENS_MARGIN_PX = 16.0
-LENS_MARGIN_SHARE = 0.05
-_FOLD_LIMIT_R = 20.0  # ideal normalised radius (87 deg off axis) the invertibility walk stops at
-
-
-def plumb_bob(
-    x: npt.NDArray[np.float64], y: npt.NDArray[np.float64], coeffs: tuple[float, ...]
-) -> tuple[npt.NDArray[np.float64], ...]:
-    """The plumb-bob (Brown-Conrady) lens map and its Jacobian, OpenCV's formula.
-
-    Ideal normalised coordinates (x, y) = (X/Z, Y/Z) map to distorted ones
-    xd = x R + 2 p1 x y + p2 (r2 + 2 x2), yd = y R + p1 (r2 + 2 y2) + 2 p2 x y,
-    R = 1 + k1 r2 + k2 r4 + k3 r6, r2 = x2 + y2; pixels are then (fx xd + cx, fy yd + cy).
-
-    Args:
-        x, y: ideal normalised coordinates, equal shapes.
-        coeffs: (k1, k2, p1, p2, k3).
-
-    Returns:
-        (xd, yd, dxd/dx, dxd/dy, dyd/dx, dyd/dy), each shaped like ``x``.
-    """
-    k1, k2, p1, p2, k3 = coeffs
-    xx, yy, xy = x * x, y * y, x * y
-    r2 = xx + yy
-    radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
-    slope = k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2)  # dR/d(r2)
-    xd = x * radial + 2.0 * p1 * xy + p2 * (r2 + 2.0 * xx)
-    yd = y * radial + p1 * (r2 + 2.0 * yy) + 2.0 * p2 * xy
-    cross = 2.0 * xy * slope + 2.0 * p1 * x + 2.0 * p2 * y
-    dxx = radial + 2.0 * xx * slope + 2.0 * p1 * y + 6.0 * p2 * x
-    dyy = radial + 2.0 * yy * slope + 6.0 * p1 * y + 2.0 * p2 * x
-    return xd, yd, dxx, cross, cross, dyy
-
-
-@functools.lru_cache(maxsize=64)
-def _distortion_problem(
-    width: int, height: int, fx: float, fy: float, cx: float, cy: float, coeffs: tuple[float, ...]
-) -> str | None:
-    """Why this lens model cannot be inverted over the image, or None when it can.
-
-    Walks outwards from the principal point along 94 directions in ideal normalised coordinates
-    until the distorted point leaves the image (a margin beyond its edges): on the way the
-    map must keep a positive Jacobian and move outwards, so every pixel has exactly one ray. A
-    model that folds back (a polynomial's turning point inside the image) fails.
-    """
-    # 90 directions and the corners' (radial distortion keeps a point's direction)
-    edges_u, edges_v = (-PIXEL_HALF, width - PIXEL_HALF), (-PIXEL_HALF, height - PIXEL_HALF)
-    corners = [math.atan2(b - cy, a - cx) for a in edges_u for b in edges_v]
-    theta = np.concatenate((np.linspace(0.0, 2.0 * math.pi, 90, endpoint=False), corners))
-    theta = theta[:, None]
-    # steps of 0.004 (2.3 pixels at fx 580) near the axis, coarser out where only a fold can be
-    r = np.concatenate((np.linspace(0.0, 4.0, 1001)[1:], np.linspace(4.0, _FOLD_LIMIT_R, 81)[1:]))
-    r = r[None, :]
-    x, y = r * np.cos(theta), r * np.sin(theta)
-    xd, yd, dxx, dxy, dyx, dyy = plumb_bob(x, y, coeffs)
-    u, v = fx * xd + cx, fy * yd + cy
-    # the table builders also look half a sample step past the edge pixels
-    margin_u = min(LENS_MARGIN_PX, LENS_MARGIN_SHARE * width) + PIXEL_HALF
-    margin_v = min(LENS_MARGIN_PX, LENS_MARGIN_SHARE * height) + PIXEL_HALF
-    inside = (np.abs(u - (width - 1) / 2) <= (width - 1) / 2 + margin_u) & (
-        np.abs(v - (height - 1) / 2) <= (height - 1) / 2 + margin_v
-    )
-    outward = np.diff(xd * np.cos(theta) + yd * np.sin(theta), axis=1, prepend=0.0) > 0
-    good = (dxx * dyy - dxy * dyx > 0) & outward
-    # each direction is fine up to where it first leaves the image
-    first_out = np.where(inside.all(axis=1), r.shape[1], np.argmin(inside, axis=1))
-    before = np.arange(r.shape[1])[None, :] < first_out[:, None]
-    if np.any(before & ~good):
-        return "folds back inside the image"
-    if np.any(first_out == r.shape[1]):
-        return "never reaches the image edge"
-    return None
 
 
 @dataclass(frozen=True, slots=True)
 class Intrinsics:
-    """Intrinsics of a depth image, in pixels (pixel centres at integer coordinates), with the
-    plumb-bob lens model (OpenCV / ROS ``plumb_bob``: radial k1, k2, k3, tangential p1, p2;
-    all 0 = an ideal pinhole). See ``plumb_bob`` for the formula; depth images of a distorting
-    lens are read as recorded and their rays undistorted (pipeline/lens.py).
+    """Intrinsics of a depth image, in pixels (pixel centres at integer coordinates), with a lens
+    model as ROS CameraInfo names it (``drivers.lens_model``): ``plumb_bob`` (k1, k2, p1, p2,
+    k3; all 0 = an ideal pinhole, the default), ``rational_polynomial`` (k1-k6, p1, p2) or
+    ``equidistant`` (fisheye, k1-k4). Coefficients outside the model must be 0. Depth images of
+    a distorting lens are read as recorded and their rays undistorted (pipeline/lens.py).
     """
 
     width: int
@@ -145,6 +88,10 @@ class Intrinsics:
     p1: float = 0.0
     p2: float = 0.0
     k3: float = 0.0
+    k4: float = 0.0
+    k5: float = 0.0
+    k6: float = 0.0
+    distortion_model: str = PLUMB_BOB
 
     def __post_init__(self) -> None:
         if not (isinstance(self.width, int) and isinstance(self.height, int)):
@@ -166,39 +113,73 @@ class Intrinsics:
                 raise ValueError(
                     f"intrinsics {name}={value!r} is outside the image (-0.5..{limit - 0.5} pixels)"
                 )
+        self._check_lens_fields()
         if self.has_distortion:
             self._check_distortion()
 
     @property
-    def distortion(self) -> tuple[float, float, float, float, float]:
-        """(k1, k2, p1, p2, k3), the plumb_bob order of OpenCV and ROS CameraInfo D."""
-        return (self.k1, self.k2, self.p1, self.p2, self.k3)
+    def distortion(self) -> tuple[float, ...]:
+        """The lens model's coefficients in its ROS CameraInfo D order (``distortion_keys``):
+        (k1, k2, p1, p2, k3) for plumb_bob, as OpenCV orders them."""
+        return tuple(getattr(self, key) for key in self.distortion_keys)
+
+    @property
+    def distortion_keys(self) -> tuple[str, ...]:
+        """The names of ``distortion``'s coefficients, in order."""
+        return MODEL_KEYS[self.distortion_model]
 
     @property
     def has_distortion(self) -> bool:
-        """True when any lens coefficient is non-zero (else an ideal pinhole)."""
-        return any(self.distortion)
+        """True unless an ideal pinhole (plumb_bob with every coefficient 0); a fisheye always
+        distorts."""
+        return self.distortion_model != PLUMB_BOB or any(self.distortion)
 
-    def _check_distortion(self) -> None:
-        for name, value in zip(DISTORTION_KEYS, self.distortion, strict=True):
+    def _check_lens_fields(self) -> None:
+        """A known model, finite coefficients in range, and none set outside the model (a k4
+        given with plumb_bob is refused: silently dropping it would be a wrong lens)."""
+        model = self.distortion_model
+        if model not in MODELS:
+            raise ValueError(
+                f"lens model {short_repr(model)} cannot be expressed (depthnav models "
+                f"{MODELS_TEXT})"
+            )
+        for name in COEFF_KEYS:
+            value = getattr(self, name)
             limit = MAX_TANGENTIAL_COEFF if name.startswith("p") else MAX_RADIAL_COEFF
             if not (isinstance(value, (int, float)) and math.isfinite(value)):
-                raise ValueError(f"intrinsics {name}={value!r} is not a finite number")
+                raise ValueError(f"intrinsics {name}={short_repr(value)} is not a finite number")
             if abs(value) > limit:
                 raise ValueError(
                     f"intrinsics {name}={value!r} is out of range (-{limit:g}..{limit:g})"
                 )
+            if value and name not in MODEL_KEYS[model]:
+                raise ValueError(
+                    f"intrinsics {name}={value!r} is not a coefficient of the {model} lens model "
+                    f"({', '.join(MODEL_KEYS[model])}); depthnav models {MODELS_TEXT}: say which "
+                    "with distortion_model"
+                )
+
+    def _check_distortion(self) -> None:
         coeffs = tuple(float(c) for c in self.distortion)
-        problem = _distortion_problem(
-            self.width, self.height, float(self.fx), float(self.fy), self.cx, self.cy, coeffs
+        problem = distortion_problem(
+            self.width,
+            self.height,
+            float(self.fx),
+            float(self.fy),
+            float(self.cx),
+            float(self.cy),
+            self.distortion_model,
+            coeffs,
         )
         if problem:
-            listed = ", ".join(f"{k}={v:g}" for k, v in zip(DISTORTION_KEYS, coeffs, strict=True))
+            keys, model = self.distortion_keys, self.distortion_model
+            listed = ", ".join(f"{k}={v:g}" for k, v in zip(keys, coeffs, strict=True))
+            named = "" if model == PLUMB_BOB else f"{model} "
             raise ValueError(
-                f"lens distortion ({listed}) {problem} ({self.width}x{self.height}, "
-                f"fx={self.fx:g}), "
-                "so it cannot be undone (check the order is k1, k2, p1, p2, k3 as OpenCV and ROS "
-                "plumb_bob give it, and that the coefficients belong to this camera)"
+                f"lens distortion {named}({listed}) {problem} ({self.width}x{self.height}, "
+                f"fx={self.fx:g}), so it cannot be undone (check the order is {', '.join(keys)} "
+                f"as OpenCV and ROS {model} give it, and that the coefficients belong to this "
+                "camera)"
             )
 
     @classmethod
@@ -227,7 +208,7 @@ class Intrinsics:
             self.fy * sy,
             (self.cx + 0.5) * sx - 0.5,
             (self.cy + 0.5) * sy - 0.5,
-            *self.distortion,
+            **{key: getattr(self, key) for key in LENS_KEYS},
         )
 
     def as_array(self) -> npt.NDArray[np.float64]:

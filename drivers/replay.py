@@ -43,7 +43,7 @@ from pathlib import Path
 import numpy as np
 import numpy.typing as npt
 
-from drivers.base import KINECT_V1, DeviceInfo, Driver, Frame, Intrinsics, TiltState
+from drivers.base import KINECT_V1, LENS_KEYS, DeviceInfo, Driver, Frame, Intrinsics, TiltState
 from drivers.errors import DeviceSpecError, DriverError, RecordingError
 from drivers.files import check_path_length, check_regular
 from drivers.formats import fakenect, png_folder, rosbag
@@ -165,7 +165,10 @@ class ReplayDriver:
                 )
             values = dict(self.overrides)
         else:
-            values = {key: getattr(base, key) for key in INTRINSICS_OPTIONS} | self.overrides
+            # every lens field, not only the options': a rational or fisheye lens kept whole
+            values = {
+                k: getattr(base, k) for k in (*INTRINSICS_OPTIONS, *LENS_KEYS)
+            } | self.overrides
         try:
             return Intrinsics(width, height, **values)
         except ValueError as exc:
@@ -254,7 +257,8 @@ class ReplayDriver:
     def _fakenect_items(self) -> tuple[Iterator[Item], Intrinsics, str]:
         entries = fakenect.read_index(self.path)  # fail at open, not at the first frame
         self._has_accel = any(e.kind == "a" for e in entries)
-        intr = self._intrinsics_with(KINECT_V1, None)
+        # the camera.toml write_fakenect leaves for another camera than the format's Kinect v1
+        intr = self._intrinsics_with(fakenect.folder_intrinsics(self.path) or KINECT_V1, None)
 
         def items() -> Iterator[Item]:
             for stamp, depth, dump in fakenect.iter_fakenect(self.path, self.const_shift):

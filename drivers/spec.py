@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import re
 from collections.abc import Iterable, Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from urllib.parse import quote, unquote, urlencode
 
 from drivers.base import (
@@ -215,8 +215,7 @@ def with_overrides(base: Intrinsics, overrides: Mapping[str, float], what: str) 
     """
     if not overrides:
         return base
-    values = {key: getattr(base, key) for key in INTRINSICS_OPTIONS} | dict(overrides)
-    try:
-        return Intrinsics(base.width, base.height, **values)
+    try:  # the rest of base (its lens model too) as it is
+        return replace(base, **dict(overrides))
     except ValueError as exc:
         raise DeviceSpecError(f"{what}: intrinsics options do not fit the image: {exc}") from None

@@ -45,10 +45,12 @@ def _device_text(args: argparse.Namespace) -> str:
 FORMATS = {
     "depthnav": "depth, timestamps, intrinsics, accelerometer, odometry and description",
     "png": "depth (mm), timestamps and intrinsics (camera.toml); no accelerometer or odometry",
-    "oni": "depth (mm), timestamps and fx, fy (as a field of view; the principal point comes "
-    "back at the image centre); no lens distortion, accelerometer or odometry",
+    "oni": "depth (mm), timestamps and the camera (fx, fy in the file as a field of view; a "
+    "principal point off the centre or a lens in NAME.camera.toml beside it, which depthnav's "
+    "replay reads); no accelerometer or odometry",
     "fakenect": "640x480 depth as 11-bit Kinect disparity (quantised) with the accelerometer; "
-    "replay assumes Kinect v1 intrinsics",
+    "the camera, when not a Kinect v1's, in camera.toml beside INDEX.txt (depthnav's replay reads "
+    "it; libfreenect's assumes a Kinect v1)",
 }
 
 
@@ -58,8 +60,13 @@ def _check_out(args: argparse.Namespace) -> None:
     if fmt == "oni":
         if out.suffix.lower() != ".oni":
             raise ConfigError(f"{out}: an .oni recording is a file named *.oni", hint="e.g. x.oni")
-        if out.exists() or out.is_symlink():
-            raise ConfigError(f"{out}: exists; refusing to overwrite", hint="choose a new name")
+        # its camera.toml too (drivers.formats.oni.sidecar_path, not imported: numpy would load
+        # before the stop handlers): an old one beside the new file would be read as its camera
+        for target in (out, out.with_suffix(".camera.toml")):
+            if target.exists() or target.is_symlink():
+                raise ConfigError(
+                    f"{target}: exists; refusing to overwrite", hint="choose a new name"
+                )
     elif fmt != "depthnav" and out.exists() and (not out.is_dir() or any(out.iterdir())):
         # (write_recording checks its own target, before the first frame)
         raise ConfigError(

@@ -339,7 +339,7 @@ class FoxgloveSink:
         i = frame.intrinsics
         return m.CameraCalibration(
             timestamp=stamp, frame_id=self.names["optical_frame"], width=i.width,
-            height=i.height, distortion_model="plumb_bob" if i.has_distortion else "",
+            height=i.height, distortion_model=i.distortion_model if i.has_distortion else "",
             D=list(i.distortion) if i.has_distortion else [],
             K=[i.fx, 0.0, i.cx, 0.0, i.fy, i.cy, 0.0, 0.0, 1.0],
             R=[1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0],

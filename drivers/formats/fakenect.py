@@ -24,9 +24,10 @@ from pathlib import Path
 import numpy as np
 import numpy.typing as npt
 
-from drivers.base import Frame
+from drivers.base import KINECT_V1, Frame, Intrinsics
 from drivers.errors import RecordingError
 from drivers.files import INDEX_MAX_BYTES, check_folder, check_regular, read_bytes
+from drivers.formats.png_folder import camera_toml_text, read_camera_toml, sidecar_intrinsics
 from drivers.kinect.axes import camera_to_accel_counts
 from drivers.values import NumberError, short_repr, to_number
 
@@ -200,6 +201,26 @@ def iter_fakenect(
             yield entry.time_s - t0, disparity_to_mm(read_depth_pgm(entry.path), const_shift), accel
 
 
+SIDECAR = "camera.toml"  # the camera of frames that are not a Kinect v1's (not in INDEX.txt)
+
+
+def folder_intrinsics(folder: Path) -> Intrinsics | None:
+    """The camera a fakenect folder's ``camera.toml`` gives (written by ``write_fakenect`` for
+    frames of another camera than the Kinect v1 the format assumes), None without one.
+
+    Raises:
+        RecordingError: unreadable, an unknown key, or bad intrinsics for 640x480 depth.
+    """
+    path = folder / SIDECAR
+    if not os.path.lexists(path):
+        return None
+    table = read_camera_toml(path, ("intrinsics",))
+    intr = sidecar_intrinsics(folder, table, (HEIGHT, WIDTH), where=path)
+    if intr is None:
+        raise RecordingError(f"{path}: has no [intrinsics] table", hint="add fx, fy, cx, cy")
+    return intr
+
+
 def write_fakenect(
     folder: str | os.PathLike[str],
     frames: Iterable[Frame],
@@ -209,7 +230,9 @@ def write_fakenect(
     """Write frames as a fakenect recording (depth quantised to 11-bit disparity).
 
     Each frame with an accelerometer vector gets an ``a-`` dump after its depth file, as
-    fakenect-record does; the tilt angle is written as 0 and the status as stopped.
+    fakenect-record does; the tilt angle is written as 0 and the status as stopped. The format
+    has no intrinsics (libfreenect's replay is a Kinect v1, ``KINECT_V1``): frames of another
+    camera or with a lens get a ``camera.toml`` beside INDEX.txt, which depthnav's replay reads.
 
     Returns:
         The number of depth frames written.
@@ -222,7 +245,14 @@ def write_fakenect(
         raise RecordingError(f"{out}: folder is not empty; refusing to overwrite")
     names = []
     count = 0
+    camera: Intrinsics | None = None
     for frame in frames:
+        if camera is not None and frame.intrinsics != camera:
+            raise RecordingError(
+                f"{out}: frame {frame.seq} has another camera than the first",
+                hint="a recording holds one camera setting; record each mode separately",
+            )
+        camera = frame.intrinsics
         if frame.depth_mm.shape != (HEIGHT, WIDTH):
             raise RecordingError(
                 f"{out}: fakenect holds 640x480 depth only, frame {frame.seq} is "
@@ -242,5 +272,10 @@ def write_fakenect(
             names.append(aname)
         count += 1
     out.mkdir(parents=True, exist_ok=True)
+    if count and camera != KINECT_V1 and camera is not None:
+        (out / SIDECAR).write_text(
+            "# the camera of these frames, which fakenect cannot hold\n" + camera_toml_text(camera),
+            encoding="utf-8",
+        )
     (out / "INDEX.txt").write_text("".join(n + "\n" for n in names), encoding="ascii")
     return count

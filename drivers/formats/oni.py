@@ -25,7 +25,9 @@ import numpy as np
 from drivers.base import Frame, Intrinsics
 from drivers.errors import RecordingError
 from drivers.files import open_input
+from drivers.formats.png_folder import camera_toml_text, read_camera_toml, sidecar_intrinsics
 from drivers.limits import image_size_problem
+from drivers.values import short_repr
 
 MAGIC_FILE = b"NI10"
 MAGIC_RECORD = 0x0052494E
@@ -54,6 +56,7 @@ KNOWN_TYPES = {
 }
 NODE_TYPE_DEPTH = 2
 PIXEL_FORMAT_DEPTH_1_MM = 100
+SIDECAR_SUFFIX = ".camera.toml"  # NAME.oni -> NAME.camera.toml: what the file cannot hold
 XN_PIXEL_FORMAT_GRAYSCALE_16 = 4
 
 
@@ -146,39 +149,96 @@ def _write_body(fh: BinaryIO, first: Frame, frames: Iterator[Frame], fps: int, w
     return n
 
 
+def sidecar_path(path: Path) -> Path:
+    """The ``camera.toml`` beside an ``.oni`` file: ``NAME.oni`` -> ``NAME.camera.toml``."""
+    return path.with_suffix(SIDECAR_SUFFIX)
+
+
+def needs_sidecar(intr: Intrinsics) -> bool:
+    """True when an ``.oni`` file cannot hold this camera: it keeps fx, fy as a field of view,
+    and no principal point (playback puts it at the image centre) or lens."""
+    centre = ((intr.width - 1) / 2.0, (intr.height - 1) / 2.0)
+    return intr.has_distortion or (intr.cx, intr.cy) != centre
+
+
 def write_oni(path: str | os.PathLike[str], frames: Iterable[Frame], fps: int = 30) -> int:
     """Write depth frames to an uncompressed ``.oni`` file (DEPTH_1_MM), one frame in memory at
     a time (the seek table keeps 16 bytes a frame); written as ``PATH.partial``, renamed when
     complete.
 
-    The field of view is derived from the first frame's fx, fy; OpenNI has no principal point, so
-    playback recovers intrinsics with the principal point at the image centre.
+    The field of view is derived from the first frame's fx, fy; OpenNI has no principal point or
+    lens, so a camera with either (``needs_sidecar``) also gets ``NAME.camera.toml`` beside the
+    file, which depthnav's playback (drivers.openni) reads: nothing is lost. Other players see
+    the principal point at the image centre and no lens.
 
     Returns:
         The number of frames written.
 
     Raises:
-        RecordingError: no frames, frames that change size, the file exists, a failed write.
+        RecordingError: no frames, frames that change size or camera, the file or its sidecar
+            exists, a failed write.
     """
     out = Path(path)
     items = iter(frames)
     first = next(items, None)
     if first is None:
         raise RecordingError(f"{out}: no frames to write")
-    if os.path.lexists(out):
-        raise RecordingError(f"{out}: exists; refusing to overwrite", hint="choose a new name")
+    side = sidecar_path(out) if needs_sidecar(first.intrinsics) else None
+    for target in (out, side):
+        if target is not None and os.path.lexists(target):
+            raise RecordingError(
+                f"{target}: exists; refusing to overwrite", hint="choose a new name"
+            )
     partial = out.with_name(out.name + ".partial")
+    side_partial = None if side is None else side.with_name(side.name + ".partial")
     try:
         with open(partial, "xb") as fh:
             n = _write_body(fh, first, items, fps, str(out))
+        if side is not None and side_partial is not None:
+            with open(side_partial, "x", encoding="utf-8") as sh:
+                sh.write(f"# the camera of {out.name}, which OpenNI cannot hold\n")
+                sh.write(camera_toml_text(first.intrinsics))
+            os.replace(side_partial, side)
         os.replace(partial, out)
     except OSError as exc:
-        partial.unlink(missing_ok=True)
+        _remove(partial, side_partial, side)
         raise RecordingError(f"{out}: cannot write: {exc.strerror or exc}") from None
     except BaseException:
-        partial.unlink(missing_ok=True)
+        _remove(partial, side_partial, side)
         raise
     return n
+
+
+def _remove(*paths: Path | None) -> None:
+    for p in paths:
+        if p is not None:
+            p.unlink(missing_ok=True)
+
+
+def read_sidecar_intrinsics(path: Path, width: int, height: int) -> Intrinsics | None:
+    """The camera an ``.oni`` file's ``NAME.camera.toml`` gives for its (width, height) depth
+    stream, or None when there is no such file.
+
+    Raises:
+        RecordingError: unreadable, an unknown key, bad intrinsics, or a size other than the
+            stream's.
+    """
+    side = sidecar_path(path)
+    if not os.path.lexists(side):
+        return None
+    table = read_camera_toml(side, ("intrinsics",))
+    intr = sidecar_intrinsics(side.parent, table, (height, width), where=side)
+    if intr is None:
+        raise RecordingError(f"{side}: has no [intrinsics] table", hint="add fx, fy, cx, cy")
+    given = table["intrinsics"]
+    for key, size in (("width", width), ("height", height)):
+        if key in given and given[key] != size:
+            raise RecordingError(
+                f"{side}: [intrinsics] {key} = {short_repr(given[key])}, but the depth stream of "
+                f"{path.name} is {width}x{height}",
+                hint=f"it belongs to another recording; remove it or fix {key}",
+            )
+    return intr
 
 
 @dataclass(frozen=True, slots=True)

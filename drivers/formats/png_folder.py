@@ -25,8 +25,9 @@ a sidecar ``camera.toml``::
     cy = 239.5
     k1 = -0.28                  # optional lens distortion (plumb_bob: k1 k2 p1 p2 k3), 0 if absent
 
-or from the replay spec options ``fx``, ``fy``, ``cx``, ``cy``, ``k1``.. ``k3``, ``scale`` (which
-win).
+with, for other lenses, ``distortion_model = "rational_polynomial"`` (k1-k6, p1, p2) or
+``"equidistant"`` (fisheye, k1-k4), as ROS CameraInfo names them (drivers.lens_model); or from the
+replay spec options ``fx``, ``fy``, ``cx``, ``cy``, ``k1``.. ``k3``, ``scale`` (which win).
 """
 
 from __future__ import annotations
@@ -42,12 +43,13 @@ import numpy as np
 import numpy.typing as npt
 from PIL import Image
 
-from drivers.base import DISTORTION_KEYS, UINT16_MAX, Frame, Intrinsics
+from drivers.base import LENS_KEYS, UINT16_MAX, Frame, Intrinsics
 from drivers.errors import RecordingError
 from drivers.files import INDEX_MAX_BYTES, check_regular, read_bytes, read_toml
 from drivers.formats.depth_images import MAX_IMAGE_BYTES, SUFFIXES, read_depth_image
 from drivers.formats.image_kinds import DIGITS, image_kinds
 from drivers.formats.tum import INDEX, TUM_SCALE, recognise_tum
+from drivers.lens_model import lens_fields, lens_table
 from drivers.values import NumberError, short_repr, short_text, to_number
 
 log = logging.getLogger(__name__)
@@ -190,7 +192,7 @@ def list_frames(folder: Path, fps: float, pattern: str | None = None) -> list[tu
 
 
 SIDECAR_KEYS = ("depth_scale", "intrinsics")
-INTRINSICS_KEYS = ("width", "height", "fx", "fy", "cx", "cy", *DISTORTION_KEYS)
+INTRINSICS_KEYS = ("width", "height", "fx", "fy", "cx", "cy", *LENS_KEYS)
 SCALE_HINT = (
     "say how many depth units make a metre: scale=1000 for millimetre PNGs (most sensors and "
     "tools), scale=5000 for TUM RGB-D; as replay:PATH?scale=1000 or depth_scale = 1000 in "
@@ -208,13 +210,23 @@ def read_sidecar(folder: Path) -> dict[str, Any]:
     path = folder / SIDECAR
     if not os.path.lexists(path):
         return {}
-    side = read_toml(path, what=SIDECAR)
+    return read_camera_toml(path, SIDECAR_KEYS)
+
+
+def read_camera_toml(path: Path, keys: tuple[str, ...]) -> dict[str, Any]:
+    """A ``camera.toml`` (a folder's, or an ``.oni`` file's ``NAME.camera.toml``) as a dict.
+
+    Raises:
+        RecordingError: unreadable, or a key it does not know (outside ``keys`` at the top,
+            ``INTRINSICS_KEYS`` in ``[intrinsics]``).
+    """
+    side = read_toml(path, what=path.name)
     for key, value in side.items():
-        if key not in SIDECAR_KEYS:
+        if key not in keys:
             raise RecordingError(
-                f"{path}: unknown key {short_text(str(key))!r} (valid: {', '.join(SIDECAR_KEYS)})",
+                f"{path}: unknown key {short_text(str(key))!r} (valid: {', '.join(keys)})",
                 hint="depth_scale = units per metre; [intrinsics] fx, fy, cx, cy in pixels, "
-                "optional lens k1, k2, p1, p2, k3",
+                "optional lens distortion_model and k1, k2, p1, p2, k3 (k4-k6)",
             )
         if key == "intrinsics" and isinstance(value, dict):
             for sub in value:
@@ -224,6 +236,20 @@ def read_sidecar(folder: Path) -> dict[str, Any]:
                         f"(valid: {', '.join(INTRINSICS_KEYS)})"
                     )
     return side
+
+
+def camera_toml_text(intr: Intrinsics, depth_scale: float | None = None) -> str:
+    """The ``camera.toml`` text ``read_camera_toml`` and ``sidecar_intrinsics`` read back: the
+    intrinsics whole (pinhole and lens), and the depth scale when given."""
+    scale = "" if depth_scale is None else f"depth_scale = {depth_scale!r}\n\n"
+    return (
+        f"{scale}[intrinsics]\nwidth = {intr.width}\nheight = {intr.height}\n"
+        f"fx = {intr.fx!r}\nfy = {intr.fy!r}\ncx = {intr.cx!r}\ncy = {intr.cy!r}\n"
+        + "".join(
+            f"{key} = {value!r}\n"
+            for key, value in lens_table(intr.distortion_model, intr.distortion).items()
+        )
+    )
 
 
 def is_tum(folder: Path) -> bool:
@@ -272,18 +298,17 @@ def sidecar_scale(folder: Path, side: dict[str, Any]) -> float:
 
 
 def sidecar_intrinsics(
-    folder: Path, side: dict[str, Any], shape: tuple[int, ...]
+    folder: Path, side: dict[str, Any], shape: tuple[int, ...], *, where: Path | None = None
 ) -> Intrinsics | None:
-    """The sidecar's ``[intrinsics]`` for (H, W) images, or None when it has none."""
+    """The sidecar's ``[intrinsics]`` for (H, W) images, or None when it has none; ``where``
+    names the file in messages (default the folder's camera.toml)."""
     table = side.get("intrinsics")
     if not isinstance(table, dict):
         return None
-    where = folder / SIDECAR
-    values = {}
-    for key in ("fx", "fy", "cx", "cy", *DISTORTION_KEYS):
+    where = where or folder / SIDECAR
+    values: dict[str, float | str] = {}
+    for key in ("fx", "fy", "cx", "cy"):
         if key not in table:
-            if key in DISTORTION_KEYS:
-                continue  # no lens coefficient: an ideal pinhole
             raise RecordingError(f"{where}: bad [intrinsics]: {key!r} is missing")
         if isinstance(table[key], str):
             raise RecordingError(f"{where}: bad [intrinsics]: {key} is text, not a number")
@@ -293,6 +318,10 @@ def sidecar_intrinsics(
             raise RecordingError(
                 f"{where}: bad [intrinsics]: {key} = {short_repr(table[key])} {exc}"
             ) from None
+    try:  # the lens: no coefficient is an ideal pinhole
+        values |= lens_fields(table)
+    except ValueError as exc:
+        raise RecordingError(f"{where}: bad [intrinsics]: {exc}") from None
     try:
         return Intrinsics(shape[1], shape[0], **values)
     except ValueError as exc:
@@ -349,14 +378,5 @@ def write_png_folder(
     if intr is None:
         raise RecordingError(f"{out}: no frames to write")
     (out / INDEX).write_text("\n".join(lines) + "\n", encoding="utf-8")
-    (out / SIDECAR).write_text(
-        f"depth_scale = {scale!r}\n\n[intrinsics]\nwidth = {intr.width}\nheight = {intr.height}\n"
-        f"fx = {intr.fx!r}\nfy = {intr.fy!r}\ncx = {intr.cx!r}\ncy = {intr.cy!r}\n"
-        + "".join(
-            f"{key} = {float(value)!r}\n"
-            for key, value in zip(DISTORTION_KEYS, intr.distortion, strict=True)
-            if intr.has_distortion
-        ),
-        encoding="utf-8",
-    )
+    (out / SIDECAR).write_text(camera_toml_text(intr, scale), encoding="utf-8")
     return len(lines) - 2

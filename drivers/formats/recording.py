@@ -36,6 +36,7 @@ from drivers.base import DISTORTION_KEYS, MM_PER_M, UINT16_MAX, Frame, Intrinsic
 from drivers.errors import DeviceSpecError, RecordingError
 from drivers.files import read_toml
 from drivers.formats.npz import Archive, Member, is_numeric, open_archive
+from drivers.lens_model import lens_fields
 from drivers.limits import image_size_problem
 from drivers.values import NumberError, short_repr, to_number
 
@@ -94,11 +95,9 @@ def _intrinsics_from_meta(table: Any, shape: tuple[int, int], where: Path) -> In
         raise RecordingError(
             f"{where}: [intrinsics] table is missing", hint="add width, height, fx, fy, cx, cy"
         )
-    values: dict[str, int | float] = {}
-    for key in ("width", "height", "fx", "fy", "cx", "cy", *DISTORTION_KEYS):
+    values: dict[str, int | float | str] = {}
+    for key in ("width", "height", "fx", "fy", "cx", "cy"):
         if key not in table:
-            if key in DISTORTION_KEYS:
-                continue  # recordings of a pinhole (and those older than the lens model)
             raise RecordingError(f"{where}: [intrinsics] lacks {key!r}")
         try:
             values[key] = to_number(table[key], integer=key in ("width", "height"))
@@ -106,6 +105,10 @@ def _intrinsics_from_meta(table: Any, shape: tuple[int, int], where: Path) -> In
             raise RecordingError(
                 f"{where}: [intrinsics] {key} = {short_repr(table[key])} {exc}"
             ) from None
+    try:  # the lens: none in recordings of a pinhole (and those older than the lens models)
+        values |= lens_fields(table)
+    except ValueError as exc:
+        raise RecordingError(f"{where}: [intrinsics] {exc}") from None
     try:
         intr = Intrinsics(**values)  # type: ignore[arg-type]
     except (TypeError, ValueError) as exc:

@@ -23,9 +23,10 @@ import numpy as np
 import numpy.typing as npt
 import tomli_w
 
-from drivers.base import DISTORTION_KEYS, Frame, Intrinsics
+from drivers.base import Frame, Intrinsics
 from drivers.errors import RecordingError
 from drivers.formats.recording import DEPTH_MEMBER, FORMAT_VERSION, FRAMES_FILE, META_FILE
+from drivers.lens_model import lens_table
 
 log = logging.getLogger(__name__)
 
@@ -190,6 +191,7 @@ def _spool_frames(
     kept = _Kept()
     for frame in frames:
         if kept.intrinsics is None:
+            _check_reads_back(frame.intrinsics, folder)
             kept.intrinsics = frame.intrinsics
         elif frame.intrinsics != kept.intrinsics:
             raise RecordingError(
@@ -225,28 +227,44 @@ def _spool_frames(
     return kept
 
 
+def _check_reads_back(intrinsics: Intrinsics, folder: Path) -> None:
+    """Refuse, at the first frame, a camera the recording reader would not give back whole: a
+    lens replayed as another model (a fisheye as plumb_bob) is a wrong lens, not a lossy one."""
+    from drivers.formats.recording import _intrinsics_from_meta  # the reader's own parser
+
+    shape = (intrinsics.height, intrinsics.width)
+    try:
+        back = _intrinsics_from_meta(intrinsics_table(intrinsics), shape, folder / META_FILE)
+    except RecordingError:
+        back = None
+    if back != intrinsics:
+        raise RecordingError(
+            f"{folder}: the {intrinsics.distortion_model} lens of these frames would not read back "
+            "from a depthnav recording's recording.toml",
+            hint="record with --format png: its camera.toml carries every lens model",
+        )
+
+
+def intrinsics_table(intrinsics: Intrinsics) -> dict[str, Any]:
+    """recording.toml's ``[intrinsics]``: the pinhole, and the lens only when there is one (a
+    pinhole recording reads as before; plumb_bob as its coefficients, another model named)."""
+    return {
+        "width": intrinsics.width,
+        "height": intrinsics.height,
+        "fx": float(intrinsics.fx),
+        "fy": float(intrinsics.fy),
+        "cx": float(intrinsics.cx),
+        "cy": float(intrinsics.cy),
+    } | lens_table(intrinsics.distortion_model, intrinsics.distortion)
+
+
 def _meta_document(
     intrinsics: Intrinsics | None, description: str, device: str, truth: Mapping[str, Any] | None
 ) -> str:
     """The recording.toml text."""
     assert intrinsics is not None
     meta = {"format_version": FORMAT_VERSION, "description": description, "device": device}
-    tables: dict[str, Mapping[str, Any]] = {
-        "intrinsics": {
-            "width": intrinsics.width,
-            "height": intrinsics.height,
-            "fx": float(intrinsics.fx),
-            "fy": float(intrinsics.fy),
-            "cx": float(intrinsics.cx),
-            "cy": float(intrinsics.cy),
-        }
-        # lens coefficients only when there are any: a pinhole recording reads as before
-        | (
-            dict(zip(DISTORTION_KEYS, map(float, intrinsics.distortion), strict=True))
-            if intrinsics.has_distortion
-            else {}
-        )
-    }
+    tables: dict[str, Mapping[str, Any]] = {"intrinsics": intrinsics_table(intrinsics)}
     if truth:
         tables["truth"] = dict(truth)
     return _toml_document(meta, tables)

@@ -16,6 +16,8 @@ import numpy.typing as npt
 from drivers.base import Intrinsics
 from drivers.errors import RecordingError
 from drivers.formats.compressed_depth import codec_of, decode_compressed_depth, is_compressed_depth
+from drivers.lens_model import EQUIDISTANT, MODEL_KEYS, MODELS_TEXT
+from drivers.values import short_text
 
 log = logging.getLogger(__name__)
 
@@ -30,8 +32,8 @@ class CameraModel:
     """The camera of a CameraInfo message.
 
     Attributes:
-        intrinsics: fx, fy, cx, cy (pixels) for the depth image's size, with the lens
-            coefficients of a ``plumb_bob`` D (see ``camera_model`` for the other models).
+        intrinsics: fx, fy, cx, cy (pixels) for the depth image's size, with the lens model
+            and coefficients of D (see ``camera_model``).
         distortion_model: e.g. "plumb_bob", "" when none is given.
         distortion: the D coefficients as recorded.
         frame_id: the camera's frame.
@@ -133,21 +135,17 @@ def decode_depth(msg: Any, where: str) -> npt.NDArray[np.uint16]:
     return np.where(ok, mm, 0).astype(np.uint16)
 
 
-RATIONAL_MODEL = "rational_polynomial"  # D = k1 k2 p1 p2 k3 k4 k5 k6: plumb_bob when k4..k6 = 0
-
-
 def camera_model(info: Any, shape: tuple[int, int], where: str) -> CameraModel | None:
     """The camera of a CameraInfo for images of ``shape`` (H, W); None when K is all zero.
 
-    Lens distortion: a ``plumb_bob`` D (k1, k2, p1, p2, k3) is applied, and so is a
-    ``rational_polynomial`` D whose k4..k6 are zero (then the same model). Other models (a
-    rational D with a denominator, ``equidistant`` fisheye, unknown names) are not modelled:
-    the image is read as an ideal pinhole, with a warning (dropping a rational denominator alone
-    would be worse than ignoring the lens). An all-zero D is a rectified image (``image_rect``)
-    or an ideal camera.
+    Lens distortion: a ``plumb_bob``, ``rational_polynomial`` or ``equidistant`` D is applied
+    (drivers.lens_model); another model, or a D longer than its model's with a non-zero extra
+    (OpenCV's thin-prism terms), is refused: reading it as a pinhole, or a model cut short,
+    would be a wrong lens. An all-zero D of the other models is a rectified image
+    (``image_rect``) or an ideal camera.
 
     Raises:
-        RecordingError: K, or the plumb_bob D, that does not fit the image.
+        RecordingError: K, or a D, that does not fit the image; a lens depthnav cannot express.
     """
     k = np.asarray(_field(info, "k", "K"), dtype=np.float64)
     if k.shape != (9,) or not np.any(k):
@@ -156,7 +154,7 @@ def camera_model(info: Any, shape: tuple[int, int], where: str) -> CameraModel |
     info_w, info_h = int(info.width), int(info.height)
     d = tuple(float(x) for x in np.asarray(_field(info, "d", "D"), dtype=np.float64).reshape(-1))
     model = str(info.distortion_model).strip()
-    coeffs = _lens_coefficients(model, d, where)
+    lens = _lens_fields(model, d, where)
     try:
         intr = Intrinsics(
             info_w or width,
@@ -165,7 +163,7 @@ def camera_model(info: Any, shape: tuple[int, int], where: str) -> CameraModel |
             float(k[4]),
             float(k[2]),
             float(k[5]),
-            *coeffs,
+            **lens,
         )
         if (intr.width, intr.height) != (width, height):
             log.info("%s: CameraInfo is %dx%d, images %dx%d: intrinsics scaled", where,
@@ -176,18 +174,23 @@ def camera_model(info: Any, shape: tuple[int, int], where: str) -> CameraModel |
     return CameraModel(intr, model, d, str(info.header.frame_id))
 
 
-def _lens_coefficients(model: str, d: tuple[float, ...], where: str) -> tuple[float, ...]:
-    """(k1, k2, p1, p2, k3) to apply for a CameraInfo's distortion model and D; () for none."""
-    if not any(d):
-        return ()
-    shown = f"{model or 'unnamed'} D = [{', '.join(f'{x:.4g}' for x in d)}]"
-    if model == "plumb_bob" or (model == RATIONAL_MODEL and not any(d[5:])):
-        return (d + (0.0,) * 5)[:5]
-    log.warning(
-        "%s: lens distortion %s is not modelled (depthnav models plumb_bob); the depth image is "
-        "read as an ideal pinhole", where, shown,
-    )  # fmt: skip
-    return ()
+MAX_D_SHOWN = 14  # coefficients of a refused D a message lists (OpenCV's longest model has 14)
+
+
+def _lens_fields(model: str, d: tuple[float, ...], where: str) -> dict[str, float | str]:
+    """The Intrinsics lens keywords of a CameraInfo's distortion model and D; {} for none."""
+    if not d or (model != EQUIDISTANT and not any(d)):  # a fisheye's zero D is still a fisheye
+        return {}
+    keys = MODEL_KEYS.get(model)
+    if keys is None or any(d[len(keys) :]):
+        listed = ", ".join(f"{x:.4g}" for x in d[:MAX_D_SHOWN])
+        more = f", ... ({len(d)} in all)" if len(d) > MAX_D_SHOWN else ""
+        shown = f"{short_text(model, 60) or 'unnamed'} D = [{listed}{more}]"
+        raise RecordingError(
+            f"{where}: lens distortion {shown} cannot be expressed (depthnav models {MODELS_TEXT})",
+            hint="replay a rectified depth topic (?topic=), or give the lens as one of these",
+        )
+    return {"distortion_model": model} | dict(zip(keys, d + (0.0,) * len(keys), strict=False))
 
 
 def quat_matrix(q: Any) -> npt.NDArray[np.float64]:

@@ -3,11 +3,17 @@
 Spec: ``openni://[URI][?mode=WxH@FPS]`` for a live device (first device when URI is empty;
 ``openni://Dummy`` is OpenNI's built-in test device), or
 ``openni:FILE.oni[?rate=realtime|max&loop=0|1]``
-for a recording. ``rate=max`` (default for files) plays every frame in order as fast as it is read.
+for a recording. ``rate=max`` (default for files) plays every frame in order as fast as it is read;
+``rate=realtime`` delivers every frame too, each no sooner than its recorded time after the first.
+The player always runs in OpenNI2's manual mode (speed -1: the next frame is read when asked for)
+and the pacing is ours: at speed 1 the player's own thread pushes frames on its clock and a reader
+that falls behind (the first frame's compile, a slow sink) lost the frames in between (2 of 12).
 ``fx, fy, cx, cy`` (pixels) replace the intrinsics, which otherwise come from the stream's field of
-view with the principal point at the image centre (58 x 45 degrees when the device reports none).
+view with the principal point at the image centre (58 x 45 degrees when the device reports none),
+or for a file from ``NAME.camera.toml`` beside it (``drivers.formats.oni.write_oni`` writes one for
+a camera the file cannot hold: a principal point off the centre, any lens model).
 OpenNI2 reports no lens distortion for depth (its API has only the field of view; PS1080 sensors
-compute depth in the device), so the image is an ideal pinhole unless ``k1, k2, p1, p2, k3``
+compute depth in the device), so a live image is an ideal pinhole unless ``k1, k2, p1, p2, k3``
 (plumb_bob) are given as options.
 
 Uses PyPI ``openni`` over the system libOpenNI2 (Debian: ``apt-get install libopenni2-0``), found
@@ -21,6 +27,7 @@ looping uses the player's repeat), the Dummy device crashes if a stream is destr
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 import os
@@ -40,7 +47,7 @@ from drivers.errors import (
     OpenFailure,
     RecordingError,
 )
-from drivers.formats.oni import check_oni
+from drivers.formats.oni import check_oni, read_sidecar_intrinsics, sidecar_path
 from drivers.openni.native import LIB_NAME, find_library, initialize
 from drivers.spec import (
     INTRINSICS_OPTIONS,
@@ -49,7 +56,6 @@ from drivers.spec import (
     check_options,
     choice_option,
     intrinsics_options,
-    with_overrides,
 )
 from drivers.values import NumberError, short_repr, to_number
 
@@ -64,6 +70,7 @@ FILE_OPTIONS = ("rate", "loop", *INTRINSICS_OPTIONS)
 # PrimeSense PS1080 nominal field of view, used when a device does not report one (Dummy).
 DEFAULT_HFOV_DEG, DEFAULT_VFOV_DEG = 58.0, 45.0
 STOP_SETTLE_S = 0.1  # > 33 ms: stream threads outlive stop() by up to one frame period
+MANUAL_SPEED = -1.0  # OpenNI2 PlaybackControl: -1 = manual, a frame is read when asked for
 
 
 def _message(exc: Exception) -> str:
@@ -134,6 +141,7 @@ class OpenNIDriver:
         self._seq = 0
         self._t_offset_s = 0.0
         self._last_raw_t_s = -1.0
+        self._wall0: float | None = None  # monotonic time of recorded time 0 (rate=realtime)
 
     @classmethod
     def from_spec(cls, spec: Spec) -> OpenNIDriver:
@@ -230,9 +238,8 @@ class OpenNIDriver:
         try:
             if self._dev.playback is not None:
                 self._dev.playback.set_repeat_enabled(self.loop)
-                self._dev.playback.set_speed(
-                    1.0 if self.realtime else -1.0
-                )  # -1: manual, every frame
+                # manual at every rate: read_frame paces rate=realtime (see the module doc)
+                self._dev.playback.set_speed(MANUAL_SPEED)
             self._stream = self._dev.create_depth_stream()
             if self._stream is None:
                 raise DeviceOpenError(
@@ -241,10 +248,8 @@ class OpenNIDriver:
             if self.mode is not None:
                 self._set_mode(openni2)
             vm = self._stream.get_video_mode()
-            self._intrinsics = with_overrides(
-                self._intrinsics_for(vm.resolutionX, vm.resolutionY),
-                self.intrinsics_override,
-                self.spec_text,
+            self._intrinsics = self._with_options(
+                self._intrinsics_for(vm.resolutionX, vm.resolutionY)
             )
             self._stream.start()
             info = self._dev.get_device_info()
@@ -289,7 +294,24 @@ class OpenNIDriver:
             reason=OpenFailure.UNSUPPORTED,
         )
 
+    def _with_options(self, base: Intrinsics) -> Intrinsics:
+        """``base`` with the spec's fx, fy, cx, cy and lens options; the lens fields they do not
+        name (a sidecar's rational or fisheye model) kept whole."""
+        if not self.intrinsics_override:
+            return base
+        try:
+            return dataclasses.replace(base, **self.intrinsics_override)
+        except ValueError as exc:  # the one-line error with_overrides gives
+            raise DeviceSpecError(
+                f"{self.spec_text}: intrinsics options do not fit the image: {exc}"
+            ) from None
+
     def _intrinsics_for(self, width: int, height: int) -> Intrinsics:
+        if self.file is not None:  # a camera the file cannot hold, written beside it
+            side = read_sidecar_intrinsics(self.file, width, height)
+            if side is not None:
+                log.info("%s: intrinsics from %s", self.spec_text, sidecar_path(self.file).name)
+                return side
         try:
             hfov, vfov = self._stream.get_horizontal_fov(), self._stream.get_vertical_fov()
         except Exception:  # Dummy and some drivers lack the FOV property
@@ -340,6 +362,8 @@ class OpenNIDriver:
         if t_s < self._last_raw_t_s:  # the file looped: keep time increasing
             self._t_offset_s += self._last_raw_t_s - t_s + 1.0 / 30.0
         self._last_raw_t_s = t_s
+        if self.realtime and self.file is not None:
+            self._pace(t_s + self._t_offset_s, timeout_s)
         frame = Frame(
             seq=self._seq,
             timestamp_s=t_s + self._t_offset_s,
@@ -348,6 +372,20 @@ class OpenNIDriver:
         )
         self._seq += 1
         return frame
+
+    def _pace(self, t_s: float, timeout_s: float) -> None:
+        """Sleep until recorded time ``t_s`` (s) is due on the wall clock, anchored at the first
+        frame; never past ``timeout_s`` (a long gap in a recording is not a hang: the clock then
+        shifts). A reader that is late gets the frame at once, so no frame is skipped."""
+        now = time.monotonic()
+        if self._wall0 is None:
+            self._wall0 = now - t_s
+        delay = self._wall0 + t_s - now
+        if delay > timeout_s:
+            time.sleep(max(timeout_s, 0.0))
+            self._wall0 -= delay - timeout_s
+        elif delay > 0:
+            time.sleep(delay)
 
     def _copy(self, raw: Any) -> tuple[np.ndarray, float]:
         intr = self._intrinsics

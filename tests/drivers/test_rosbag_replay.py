@@ -297,31 +297,55 @@ def test_plumb_bob_distortion_is_applied(tmp_path: Path, caplog) -> None:
 
 
 @pytest.mark.parametrize(
-    ("model", "d", "applied"),
+    ("model", "d", "keys"),
     [
-        ("rational_polynomial", (0.1, -0.2, 0.0, 0.0, 0.05, 0.0, 0.0, 0.0), True),
-        ("rational_polynomial", (2.0, 0.5, 0.0, 0.0, 0.0, 2.1, 0.6, 0.0), False),
-        ("equidistant", (0.1, 0.01, 0.0, 0.0), False),
+        ("rational_polynomial", (0.1, -0.2, 0.0, 0.0, 0.05, 0.0, 0.0, 0.0), 8),
+        ("rational_polynomial", (2.0, 0.5, 0.0, 0.0, 0.0, 2.1, 0.6, 0.0), 8),
+        ("equidistant", (0.1, 0.01, 0.0, 0.0), 4),
+        ("equidistant", (0.0, 0.0, 0.0, 0.0), 4),  # the ideal fisheye, not a pinhole
     ],
-    ids=["rational_without_denominator", "rational", "equidistant"],
+    ids=["rational_without_denominator", "rational", "equidistant", "equidistant_zero"],
 )
-def test_other_lens_models_are_applied_only_when_plumb_bob(
-    tmp_path: Path, caplog, model: str, d: tuple[float, ...], applied: bool
+def test_other_lens_models_are_applied_whole(
+    tmp_path: Path, model: str, d: tuple[float, ...], keys: int
 ) -> None:
     from drivers.formats.rosbag import DepthBag
 
     spec = BagSpec("ros1", distortion=d, distortion_model=model)
     bag = write_bag(tmp_path / "d.bag", ramp_frames(1), spec)
-    with caplog.at_level(logging.WARNING):
-        probe = DepthBag(bag).probe()
+    probe = DepthBag(bag).probe()
     assert probe.camera is not None and probe.camera.distortion == d
     intr = probe.camera.intrinsics
-    if applied:
-        assert intr.distortion == d[:5] and "not modelled" not in caplog.text
-    else:
-        assert not intr.has_distortion
-        assert f"lens distortion {model} D = [" in caplog.text
-        assert "is not modelled" in caplog.text and "ideal pinhole" in caplog.text
+    assert intr.distortion_model == model and intr.distortion == d[:keys]
+    assert intr.has_distortion
+    # and the replayed frames carry the whole model (replay rebuilds intrinsics from the file's)
+    with drivers.opened(drivers.create_driver(f"replay:{bag}?rate=max")) as driver:
+        frame = driver.read_frame()
+    assert frame is not None and frame.intrinsics == intr
+
+
+@pytest.mark.parametrize(
+    ("model", "d"),
+    [
+        ("fisheye", (0.1, 0.01, 0.0, 0.0)),
+        ("", (0.1, 0.0, 0.0, 0.0, 0.0)),
+        ("plumb_bob", (0.1, 0.0, 0.0, 0.0, 0.0, 0.2)),  # a sixth term would be cut off
+        ("rational_polynomial", (0.1,) + (0.0,) * 8 + (1e-3,) * 40),  # thin prism and more
+    ],
+    ids=["unknown_name", "unnamed", "plumb_bob_with_k4", "rational_with_thin_prism"],
+)
+def test_a_lens_that_cannot_be_expressed_is_refused_in_one_line(
+    tmp_path: Path, model: str, d: tuple[float, ...]
+) -> None:
+    from drivers.formats.rosbag import DepthBag
+
+    spec = BagSpec("ros1", distortion=d, distortion_model=model)
+    bag = write_bag(tmp_path / "d.bag", ramp_frames(1), spec)
+    with pytest.raises(RecordingError, match="cannot be expressed") as info:
+        DepthBag(bag).probe()
+    text = str(info.value)
+    assert "\n" not in text and len(text) < 600 and "rational_polynomial (k1-k6" in text
+    assert f"{model or 'unnamed'} D = [0.1, " in text
 
 
 def test_a_folding_plumb_bob_d_is_a_one_line_error(tmp_path: Path) -> None:

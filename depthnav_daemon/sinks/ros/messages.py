@@ -346,7 +346,7 @@ class MessageBuilder:
             x_offset=0, y_offset=0, height=0, width=0, do_rectify=False
         )
         info = self.t["sensor_msgs/msg/CameraInfo"](
-            header=header, height=h, width=w, distortion_model="plumb_bob", binning_x=0,
+            header=header, height=h, width=w, distortion_model=i.distortion_model, binning_x=0,
             binning_y=0, roi=roi, **arrays,
         )  # fmt: skip
         return img, info
