@@ -131,6 +131,7 @@ class KinectDriver:
         self.const_shift = const_shift
         self.usb_backend = usb_backend
         self.intrinsics = KINECT_V1
+        self._intrinsics_given = False  # fx.. given in the spec (they win over a sidecar)
         self.spec_text = spec_text or f"kinect://{index}"
         self._depth: FreenectDepth | None = None
         self._motor: KinectMotor | None = None
@@ -169,7 +170,9 @@ class KinectDriver:
             or fakenect_format.CONST_SHIFT,
             spec_text=spec.text,
         )
-        driver.intrinsics = with_overrides(KINECT_V1, intrinsics_options(spec), spec.text)
+        overrides = intrinsics_options(spec)
+        driver.intrinsics = with_overrides(KINECT_V1, overrides, spec.text)
+        driver._intrinsics_given = bool(overrides)
         return driver
 
     @staticmethod
@@ -222,6 +225,12 @@ class KinectDriver:
         if self.fakenect_dir is not None:
             n, events = check_fakenect_recording(self.fakenect_dir)
             log.info("replaying %d fakenect frames from %s", n, self.fakenect_dir)
+            # the camera a record --format fakenect export of another camera kept beside it
+            # (the format itself assumes a Kinect v1); the spec's fx.. win
+            camera = fakenect_format.folder_intrinsics(self.fakenect_dir)
+            if camera is not None and not self._intrinsics_given:
+                self.intrinsics = camera
+                log.info("fakenect camera from %s", self.fakenect_dir / fakenect_format.SIDECAR)
             os.environ["FAKENECT_PATH"] = os.path.realpath(self.fakenect_dir)  # read by the C lib
         else:
             events = 0

@@ -139,3 +139,35 @@ def test_open_sets_led_and_tilt_on_the_motor(recording):
     out = run_kinect(recording, accel="usb", tilt=-10.0, led="red")
     assert out["motor_writes"] == [[0x40, 0x06, 2, 0, 0], [0x40, 0x31, 0xFFEC, 0, 0]]
     assert out["frames"][-1]["tilt"] == [-10.0, "moving"]
+
+
+CHILD_CAMERA = """
+import json, sys
+import drivers
+spec = sys.argv[1]
+with drivers.opened(drivers.create_driver(spec)) as driver:
+    f = driver.read_frame(5.0)
+i = f.intrinsics
+print(json.dumps([i.fx, i.fy, i.cx, i.cy, i.k1]))
+"""
+
+
+def test_a_fakenect_export_of_another_camera_replays_with_its_camera(tmp_path):
+    """record --format fakenect keeps a camera the format cannot hold in camera.toml beside it;
+    the Kinect driver's fakenect replay reads it (spec intrinsics still win)."""
+    import dataclasses
+
+    from drivers.base import KINECT_V1
+
+    camera = dataclasses.replace(KINECT_V1, fx=600.0, fy=601.0, cx=330.5, cy=250.25, k1=0.05)
+    frames = [dataclasses.replace(f, intrinsics=camera) for f in kinect_exact_frames(2)]
+    write_fakenect(tmp_path / "rec", frames)
+    assert (tmp_path / "rec" / "camera.toml").exists()
+    spec = f"kinect://0?fakenect={tmp_path / 'rec'}&accel=none"
+    proc = run_isolated(CHILD_CAMERA, spec)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert json.loads(proc.stdout.strip().splitlines()[-1]) == [600.0, 601.0, 330.5, 250.25, 0.05]
+    proc = run_isolated(CHILD_CAMERA, spec + "&fx=590&fy=590&cx=320&cy=240")
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    got = json.loads(proc.stdout.strip().splitlines()[-1])
+    assert got[:4] == [590.0, 590.0, 320.0, 240.0]
