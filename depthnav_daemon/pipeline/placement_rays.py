@@ -210,7 +210,11 @@ def rays_to_base_kernel(ranges, start, k, s, rho, a, centre, check, never, d2, r
         best = out[j]
         for e in range(start[j], start[j + 1]):
             v = ranges[k[e]]
-            if check[e] and not (v == inf or (v > s[e, 1] and v < inf)):
+            # checked: seen free past the crossing; in the dead zone: no obstacle seen at or
+            # before the crossing's far end (else the ray meets it or runs in its shadow: a
+            # wall's end 1.3 m off read +inf on the base bin beside it)
+            free = v == inf or (v > s[e, 1] and v < inf)
+            if not free and (check[e] or v <= s[e, 1]):
                 seen = False
             if not centre[e]:
                 continue
