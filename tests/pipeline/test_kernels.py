@@ -102,14 +102,16 @@ def reference_exact_scan(
             c0, c1 = int(g_lo[i, b]), int(min(g_hi[i, b], ws - 1))
             out[b] = min(out[b], val[i, c0 : c1 + 1].min())
     # +inf only where one of the bin's runs asked (the table's runs: a column's rows feeding the
-    # same bins) reads at or beyond range_max at its last row whose floor point lies at or
-    # beyond range_max (this file's projection): that ray was seen free that far
+    # same bins) reads at or beyond range_max at its last row whose floor point lies 2 % beyond
+    # range_max (this file's projection; the margin covers depth rounding and noise): that ray
+    # was seen free that far
     rm = np.float32(params.range_max_m)
+    reach_m = params.range_max_m * 1.02
     for b in range(t.n_bins):
         asked = []  # the runs that look that far; the first, middle and last of them are asked
         for c, r0, r1 in t.probe[:, t.probe_start[b] : t.probe_start[b + 1]].T.astype(int):
             lim = r0 - 1
-            while lim + 1 <= r1 and fl[lim + 1, c] >= params.range_max_m:
+            while lim + 1 <= r1 and fl[lim + 1, c] >= reach_m:
                 lim += 1
             if lim >= r0:
                 asked.append((lim, c))
