@@ -25,19 +25,31 @@ from depthnav_daemon.commands.common import (
     EXIT_OK,
     EXIT_USAGE,
     STOP_SIGNALS,
+    bound_message,
     note_stop_signal,
     stop_signal_received,
     stopped_code,
 )
 from depthnav_daemon.errors import DepthnavError
-from drivers.errors import DeviceSpecError, DriverError
-from drivers.spec_options import help_text
+from depthnav_daemon.stdio import configure_logging, guard_standard_fds, say
+
+# Light on purpose: this module is what the ``depthnav`` console script imports before
+# entry_point() can install the start-up stop handlers, so it imports nothing of drivers (whose
+# package imports numpy: 0.1-0.25 s in which SIGTERM killed the process by the signal). drivers
+# is imported in build_parser() and main(), after the handlers.
 
 DEVICE_HELP = (
     "device spec: kinect, openni://, replay:PATH, ... (options below; see depthnav devices)"
 )
-# the device spec options, from the table the drivers check them against, below a command's help
-WITH_SPEC_HELP = {"epilog": help_text(), "formatter_class": argparse.RawDescriptionHelpFormatter}
+
+
+def _with_spec_help() -> dict[str, Any]:
+    """The device spec options, from the table the drivers check them against, below a
+    command's help."""
+    from drivers.spec_options import help_text
+
+    return {"epilog": help_text(), "formatter_class": argparse.RawDescriptionHelpFormatter}
+
 
 TRACEBACK_VERBOSITY = 2  # -vv shows tracebacks
 log = logging.getLogger("depthnav_daemon.cli")
@@ -49,7 +61,8 @@ class _Parser(argparse.ArgumentParser):
     def error(self, message: str) -> None:  # type: ignore[override]
         self.exit(
             EXIT_USAGE,
-            f"depthnav: error: {message}\ndepthnav: hint: {self.prog} --help shows the options\n",
+            f"depthnav: error: {bound_message(message)}\n"
+            f"depthnav: hint: {self.prog} --help shows the options\n",
         )
 
 
@@ -130,12 +143,13 @@ def build_parser() -> argparse.ArgumentParser:
 
 def _add_run_commands(sub: Any) -> None:
     """``run`` and ``replay``."""
-    p = sub.add_parser("run", help="process a device and stream the results", **WITH_SPEC_HELP)
+    spec_help = _with_spec_help()
+    p = sub.add_parser("run", help="process a device and stream the results", **spec_help)
     _add_run_args(p, device_required=True)
     p.set_defaults(handler="run:cmd_run")
 
     p = sub.add_parser(
-        "replay", help="process a recording (alias of run --device replay:PATH)", **WITH_SPEC_HELP
+        "replay", help="process a recording (alias of run --device replay:PATH)", **spec_help
     )
     p.add_argument(
         "path",
@@ -156,10 +170,11 @@ def _add_run_commands(sub: Any) -> None:
 
 def _add_setup_commands(sub: Any) -> None:
     """``calibrate``, ``record`` and ``mount``: setting a sensor up."""
+    spec_help = _with_spec_help()
     p = sub.add_parser(
         "calibrate",
         help="estimate the sensor height, tilt and roll from the floor",
-        **WITH_SPEC_HELP,
+        **spec_help,
     )
     p.add_argument("--device", required=True, help=DEVICE_HELP)
     p.add_argument("--frames", type=int, default=30, metavar="N", help="frames to use (default 30)")
@@ -173,7 +188,7 @@ def _add_setup_commands(sub: Any) -> None:
     p = sub.add_parser(
         "record",
         help="record a device's frames as a depthnav recording (a fixture), or export them",
-        **WITH_SPEC_HELP,
+        **spec_help,
     )
     p.add_argument("--device", required=True, help=DEVICE_HELP)
     p.add_argument(
@@ -227,6 +242,7 @@ def _add_setup_commands(sub: Any) -> None:
 
 def _add_tool_commands(sub: Any) -> None:
     """``devices``, ``info``, ``snapshot``, ``bench`` and ``warmup``."""
+    spec_help = _with_spec_help()
     p = sub.add_parser("devices", help="list the devices that can be opened here")
     p.set_defaults(handler="info:cmd_devices")
     p = sub.add_parser("info", help="versions, drivers and native libraries found")
@@ -235,7 +251,7 @@ def _add_tool_commands(sub: Any) -> None:
     p = sub.add_parser(
         "snapshot",
         help="draw one frame: depth with obstacles and drop-offs, and a top-down view",
-        **WITH_SPEC_HELP,
+        **spec_help,
     )
     p.add_argument("--device", required=True, help=DEVICE_HELP)
     p.add_argument(
@@ -311,50 +327,6 @@ def _add_tool_commands(sub: Any) -> None:
     p.set_defaults(handler="warmup:cmd_warmup")
 
 
-# syslog priorities (sd-daemon(3)): journald reads a "<N>" prefix as the line's priority
-_PRIORITY = {logging.DEBUG: 7, logging.INFO: 6, logging.WARNING: 4, logging.ERROR: 3}
-
-
-class _JournalFormatter(logging.Formatter):
-    """``<priority>depthnav: LEVEL: message``: journald adds the time itself."""
-
-    def format(self, record: logging.LogRecord) -> str:
-        prio = _PRIORITY.get(record.levelno, 2 if record.levelno > logging.ERROR else 7)
-        return f"<{prio}>{super().format(record)}"
-
-
-def _stderr_is_journal() -> bool:
-    """True when stderr is systemd's journal stream (JOURNAL_STREAM names its device:inode)."""
-    want = os.environ.get("JOURNAL_STREAM", "")
-    try:
-        st = os.fstat(sys.stderr.fileno())
-    except (OSError, ValueError):
-        return False
-    return bool(want) and want == f"{st.st_dev}:{st.st_ino}"
-
-
-def _log_formatter() -> logging.Formatter:
-    """Plain lines at a terminal, journald priorities under systemd, timestamps elsewhere."""
-    fmt = "depthnav: %(levelname)s: %(message)s"
-    if _stderr_is_journal():
-        return _JournalFormatter(fmt)
-    if sys.stderr.isatty():
-        return logging.Formatter(fmt)
-    return logging.Formatter("%(asctime)s.%(msecs)03d " + fmt, datefmt="%Y-%m-%dT%H:%M:%S")
-
-
-def configure_logging(verbose: int, quiet: bool) -> None:
-    """Log lines to stderr at the level the flags ask for (-v debug, -q warnings)."""
-    level = logging.WARNING if quiet else (logging.DEBUG if verbose else logging.INFO)
-    handler = logging.StreamHandler(sys.stderr)
-    handler.setFormatter(_log_formatter())
-    root = logging.getLogger()
-    root.handlers[:] = [handler]
-    root.setLevel(logging.WARNING)
-    for name in ("depthnav_daemon", "drivers"):
-        logging.getLogger(name).setLevel(level)
-
-
 def _handler(name: str) -> Callable[[argparse.Namespace], int]:
     """The command function ``module:function`` of depthnav_daemon.commands, imported now: each
     command imports only what it needs, after installing its stop handlers."""
@@ -362,37 +334,65 @@ def _handler(name: str) -> Callable[[argparse.Namespace], int]:
     return getattr(importlib.import_module(f"depthnav_daemon.commands.{module}"), function)
 
 
+# commands whose result is what they print: with stdout closed it would be lost without a word
+_PRINTING = {"info:cmd_info", "info:cmd_devices", "mount:cmd_mount", "calibrate:cmd_calibrate"}
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the CLI; returns the exit code (never raises for bad input)."""
+    from drivers.errors import DriverError
+
     parser = build_parser()
     args = parser.parse_args(argv)
     configure_logging(args.verbose, args.quiet)
+    if sys.stdout is None and args.handler in _PRINTING:
+        log.warning("stdout is closed: what this command prints is lost")
     try:
         command = _handler(args.handler)
-        if _early["installed"] and stop_signal_received() is not None:
-            raise _EarlyStop(stop_signal_received())  # noted while the command was imported
+        if _early["installed"]:
+            _stop_ends_bag_reads()
+            if stop_signal_received() is not None:
+                raise _EarlyStop(stop_signal_received())  # noted while the command was imported
         return int(command(args))
     except (DepthnavError, DriverError) as exc:
-        log.debug("traceback", exc_info=args.verbose >= TRACEBACK_VERBOSITY)
-        sys.stderr.write(
-            f"depthnav: error: {str(exc).splitlines()[0] if str(exc) else type(exc).__name__}\n"
-        )
-        if getattr(exc, "hint", None):
-            sys.stderr.write(f"depthnav: hint: {exc.hint}\n")
-        if isinstance(exc, DeviceSpecError):
-            return EXIT_USAGE
-        return int(getattr(exc, "exit_code", EXIT_FAIL))
+        return _error_code(exc, args)
     except KeyboardInterrupt:
         return EXIT_INTERRUPTED
     except BrokenPipeError:
         return EXIT_OK  # the reader went away (e.g. `| head`); nothing left to say
     except Exception as exc:
         log.debug("traceback", exc_info=True)
-        sys.stderr.write(
+        say(
             f"depthnav: internal error: {type(exc).__name__}: {exc}\n"
             "depthnav: hint: run again with -vv for the traceback and report it\n"
         )
         return EXIT_FAIL
+
+
+def _error_code(exc: Exception, args: argparse.Namespace) -> int:
+    """Say a DepthnavError or DriverError in one line (and its hint); its exit code."""
+    from drivers.errors import DeviceSpecError
+    from drivers.formats.bag_limits import StoppedError
+
+    if isinstance(exc, StoppedError) and stop_signal_received() is not None:
+        # a bag's probing ended for the stop signal (bag_limits): a stop, not a failure
+        log.warning("stopped while opening %s: nothing done", getattr(args, "device", None))
+        return stopped_code({"signal": stop_signal_received()})
+    log.debug("traceback", exc_info=args.verbose >= TRACEBACK_VERBOSITY)
+    say(f"depthnav: error: {str(exc).splitlines()[0] if str(exc) else type(exc).__name__}\n")
+    if getattr(exc, "hint", None):
+        say(f"depthnav: hint: {exc.hint}\n")  # type: ignore[attr-defined]
+    if isinstance(exc, DeviceSpecError):
+        return EXIT_USAGE
+    return int(getattr(exc, "exit_code", EXIT_FAIL))
+
+
+def _stop_ends_bag_reads() -> None:
+    """A stop signal ends a ROS bag's reading between two pieces of a chunk (its probing at
+    start-up can inflate a 256 MiB chunk), in a process run by entry_point."""
+    from drivers.formats import bag_limits
+
+    bag_limits.set_stop_check(lambda: stop_signal_received() is not None)
 
 
 _early = {"installed": False}  # entry_point's start-up handlers are in place (not in-process use)
@@ -440,6 +440,7 @@ def entry_point() -> None:
     for sig in STOP_SIGNALS:
         signal.signal(sig, _stop_early)
     _early["installed"] = True
+    guard_standard_fds()
     code: int | None = None
     while True:  # a stop signal may land anywhere, even while main() returns: each lap takes one
         try:
@@ -474,6 +475,6 @@ def _exit_now_if_a_viewer_is_stuck(code: int, force: bool = False) -> None:
     for stream in (sys.stdout, sys.stderr):
         try:
             stream.flush()
-        except (OSError, ValueError):
+        except (OSError, ValueError, AttributeError):  # AttributeError: a closed stdout (None)
             pass
     os._exit(code)

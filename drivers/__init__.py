@@ -5,6 +5,7 @@ Specs (each driver module's docstring gives its full grammar and options):
     kinect | kinect://<index>[?accel=usb|freenect|none&lib=PATH&fakenect=DIR]   Kinect 360 (1414)
     openni:// | openni://<uri> | openni:<file.oni>[?mode=WxH@FPS&rate=..&loop=..]  OpenNI2
     replay:<path>[?rate=realtime|max&loop=0|1&...]                               recorded frames
+    realsense[://<serial>][?mode=WxH@FPS&preset=..] | realsense?file=REC.db3     Intel RealSense
 
 This package never imports depthnav_daemon.
 """
@@ -37,6 +38,7 @@ DRIVERS: dict[str, tuple[str, str]] = {  # scheme -> (module, class); imported o
     "kinect": ("drivers.kinect.driver", "KinectDriver"),
     "openni": ("drivers.openni.driver", "OpenNIDriver"),
     "replay": ("drivers.replay", "ReplayDriver"),
+    "realsense": ("drivers.realsense.driver", "RealSenseDriver"),
 }
 ALIASES = {"xtion": "openni://"}
 PIP_PACKAGES = {"openni": "openni", "usb": "pyusb", "serial": "pyserial", "PIL": "pillow"}

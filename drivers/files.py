@@ -1,4 +1,5 @@
-"""The one way depthnav opens a file it reads: a regular file, size-checked, never blocking.
+"""The one way depthnav opens a file it reads (and a figure it writes, ``open_output``): a regular
+file, size-checked, never blocking.
 
 Every reader (recordings, PNG folders, fakenect folders, ``.oni`` files, config and parameter
 files) opens its inputs here, so each refusal is one line and the same everywhere:
@@ -83,7 +84,8 @@ def check_path_length(path: str | os.PathLike[str], error: ErrorFactory = Record
     if len(raw) > PATH_MAX:
         raise error(
             f"{short_repr(text, _SHOWN_PATH)}: the path is {len(raw)} bytes long, "
-            f"longer than the {PATH_MAX} the system allows"
+            f"longer than the {PATH_MAX} the system allows",
+            hint="check the path",
         )
     parts = raw.split(b"/")
     for i, part in enumerate(parts):
@@ -175,6 +177,61 @@ def open_input(
             raise _too_big(text, st.st_size, max_bytes, what, error)
         os.set_blocking(fd, True)
         return os.fdopen(fd, "rb")
+    except BaseException:
+        os.close(fd)
+        raise
+
+
+def open_output(
+    path: str | os.PathLike[str], *, what: str = "output file", error: ErrorFactory = RecordingError
+) -> BinaryIO:
+    """Open a file for writing in binary, truncated: a regular file (or a symlink to one) or a
+    new one; the caller closes it. The inputs' guard for outputs (a figure, a config written back):
+
+    - a FIFO (``open()`` for writing blocks until a reader comes, and a signal could not end it),
+      a device (``/dev/full``, a terminal), a socket or a folder is refused from ``stat()``, and
+      the opened file is checked again (``fstat``); the open uses ``O_NONBLOCK`` (a FIFO swapped
+      in meanwhile fails with ENXIO instead of blocking) and never makes a controlling terminal;
+    - a name over NAME_MAX bytes or a path over PATH_MAX is refused by name.
+
+    Raises:
+        error: the reason in one line (``what`` names the file), with a hint.
+    """
+    text = check_path_length(path, error)
+    try:
+        st: os.stat_result | None = os.stat(text)
+    except FileNotFoundError:
+        st = None  # a new file (a dangling symlink is created at its target, as open() does)
+    except OSError as exc:
+        raise _os_error(text, exc, error) from None
+    except ValueError:
+        raise error(f"{short_repr(text)}: not a valid path (it holds a NUL byte)") from None
+    if st is not None and not stat.S_ISREG(st.st_mode):
+        link = " (through a symlink)" if os.path.islink(text) else ""
+        raise error(
+            f"{text}: is {_kind(st.st_mode)}{link}, not a regular file",
+            hint=f"name a regular file or a new one for the {what}",
+        )
+    flags = os.O_WRONLY | os.O_CREAT | os.O_TRUNC | os.O_NONBLOCK | os.O_CLOEXEC | os.O_NOCTTY
+    try:
+        fd = os.open(text, flags, 0o666)
+    except OSError as exc:
+        if exc.errno == errno.ENXIO:  # a FIFO with no reader, swapped in after the stat
+            raise error(f"{text}: is a FIFO (named pipe), not a regular file") from None
+        if exc.errno == errno.ENOENT and not os.path.isdir(os.path.dirname(text) or "."):
+            raise error(f"{text}: its folder does not exist", hint="check the path") from None
+        if exc.errno in (errno.ENOENT, errno.EACCES, errno.EPERM, errno.EROFS):
+            raise error(
+                f"{text}: cannot write there ({exc.strerror})",
+                hint="choose a writable place",
+            ) from None
+        raise _os_error(text, exc, error) from None
+    try:
+        st = os.fstat(fd)  # the file opened, which may not be the one stat() saw
+        if not stat.S_ISREG(st.st_mode):
+            raise error(f"{text}: is {_kind(st.st_mode)}, not a regular file")
+        os.set_blocking(fd, True)
+        return os.fdopen(fd, "wb")
     except BaseException:
         os.close(fd)
         raise

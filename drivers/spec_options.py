@@ -70,6 +70,20 @@ DEVICE_OPTIONS: dict[str, tuple[str, tuple[tuple[str, str], ...]]] = {
             *_intrinsics(),
         ),
     ),
+    "realsense": (
+        "realsense[://SERIAL][?OPTION=VALUE&...] (live) or realsense?file=REC.db3|REC.bag[&...]",
+        (
+            ("mode", "live: WIDTHxHEIGHT@FPS of the depth stream (default 640x480@30)"),
+            ("preset", "live: visual preset, default high_accuracy (high_density, ...)"),
+            ("emitter", "live: 1/0 the IR projector on/off"),
+            ("laser_power", "live: projector power, mW"),
+            ("filters", "SDK post-processing: decimation,spatial,temporal,hole_filling"),
+            ("accel", "1 (default): the IMU's accelerometer as the tilt prior; 0: not used"),
+            ("file", "play this RealSense recording through the SDK instead of a camera"),
+            ("rate", "file: max (default, every frame) or realtime"),
+            *_intrinsics(),
+        ),
+    ),
 }
 
 

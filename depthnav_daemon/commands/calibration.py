@@ -83,8 +83,10 @@ def calibrate(
     n_frames: int,
     stop: threading.Event,
     progress: Callable[[int, int], None] | None = None,
+    enough: int = 0,
 ) -> Calibration:
-    """Estimate the mount from the floor on up to ``n_frames`` frames of ``cfg.device``.
+    """Estimate the mount from the floor on up to ``n_frames`` frames of ``cfg.device``; with
+    ``enough``, say once when that many frames gave a floor estimate (enough to write it).
 
     Raises:
         DepthnavError: too little floor in too many frames (with a hint to point at open floor).
@@ -105,6 +107,8 @@ def calibrate(
                 log.info("calibrating %s over up to %d frames", cfg.device, n_frames)
             if est.ok:
                 good.append((est.height_m, est.tilt_deg, est.roll_deg, est.inlier_ratio))
+                if len(good) == enough:
+                    log.info("%d frames gave a floor estimate: enough to write the config", enough)
             else:
                 reasons.append(est.reason)
             if progress:

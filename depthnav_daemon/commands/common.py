@@ -1,6 +1,6 @@
-"""What several subcommands share: exit codes, stop handlers, config from the arguments and a
-progress bar. Light on purpose: commands import numpy and the stages only after their stop
-handlers are installed.
+"""What several subcommands share: exit codes, stop handlers, config from the arguments, a
+progress bar, the figure outputs' guarded path and bounded usage errors. Light on purpose:
+commands import numpy and the stages only after their stop handlers are installed.
 """
 
 from __future__ import annotations
@@ -9,14 +9,18 @@ import argparse
 import logging
 import os
 import signal
+import stat
 import sys
 import threading
 from collections.abc import Callable
+from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from depthnav_daemon.errors import ConfigError
+from depthnav_daemon.errors import ConfigError, DepthnavError
 
 if TYPE_CHECKING:
+    from matplotlib.figure import Figure
+
     from depthnav_daemon.config.loader import Config
 
 log = logging.getLogger(__name__)
@@ -167,3 +171,87 @@ def announce_compiles() -> None:
             log.info("compiling kernels: %d/%d", done, total)
 
     watch_compiles(progress)
+
+
+def _usage(option: str) -> Callable[..., Exception]:
+    """drivers.files' error factory for a figure path that is a usage error (exit 2)."""
+    return lambda message, hint=None: ConfigError(f"{option} {message}", hint=hint)
+
+
+def figure_output(path: str | os.PathLike[str], option: str) -> tuple[Path, str]:
+    """Where a figure goes and its format (``plots.check_output``), after the guarded path's own
+    checks: a name over NAME_MAX bytes or a path over PATH_MAX, and an existing FIFO, device or
+    socket (writing would block or go nowhere) are refused by name before any work.
+
+    Raises:
+        ConfigError: as above, or check_output's (extension, folder, directory).
+        DepthnavError: matplotlib is not installed.
+    """
+    from depthnav_daemon.plots import check_output
+    from drivers import files  # here: the drivers package imports numpy
+
+    text = files.check_path_length(path, _usage(option))
+    try:
+        mode: int | None = os.stat(text).st_mode
+    except (OSError, ValueError):  # missing (a new file) or unreadable: check_output says
+        mode = None
+    if mode is not None and not (stat.S_ISREG(mode) or stat.S_ISDIR(mode)):
+        files.open_output(text, what="figure", error=_usage(option))  # says what it is
+    return check_output(text, option)
+
+
+def save_figure(fig: Figure, path: str | os.PathLike[str], option: str) -> Path:
+    """Write ``fig`` to ``path`` (PNG or SVG by extension) through the guarded path
+    (``drivers.files.open_output``: a regular or new file, opened without blocking); a
+    half-written file is removed.
+
+    Raises:
+        ConfigError: see figure_output.
+        DepthnavError: it cannot be written (a read-only place, a full disk, a FIFO or device
+            swapped in after the check).
+    """
+    from depthnav_daemon.plots import render
+    from drivers import files
+
+    p, fmt = figure_output(path, option)
+    data = render(fig, fmt)
+
+    def failed(message: str, hint: str | None = None) -> DepthnavError:
+        return DepthnavError(
+            f"cannot write {option} {message}", hint=hint or "choose a writable place"
+        )
+
+    with files.open_output(p, what="figure", error=failed) as fh:
+        try:
+            fh.write(data)
+            fh.flush()
+        except OSError as exc:
+            _remove(p)
+            raise DepthnavError(
+                f"cannot write {option} {str(p)!r}: {exc.strerror or type(exc).__name__}",
+                hint="choose a writable place with free space",
+            ) from None
+    return p
+
+
+def _remove(p: Path) -> None:
+    """Remove a half-written figure (best effort)."""
+    try:
+        os.unlink(p)
+    except OSError:
+        pass
+
+
+def bound_message(message: str, limit: int = 300) -> str:
+    """A usage error as argparse words it (cli's parser shows it through here), bounded: each
+    quoted value ('...') as ``short_repr`` shows it (cut to about 60 characters, escaped; argparse
+    echoed a 5000-digit --frame in full), control characters escaped elsewhere, on one line of
+    at most about ``limit`` characters."""
+    from drivers.values import short_repr  # here: the drivers package imports numpy
+
+    parts = message.split("'")
+    text = "".join(
+        short_repr(part) if i % 2 and i < len(parts) - 1 else part for i, part in enumerate(parts)
+    )
+    text = "".join(c if c.isprintable() else repr(c)[1:-1] for c in text)
+    return text if len(text) <= limit + 3 else text[:limit] + "..."

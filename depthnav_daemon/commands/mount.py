@@ -9,13 +9,14 @@ from __future__ import annotations
 
 import argparse
 import math
+import os
 from pathlib import Path
 
-from depthnav_daemon.commands.common import EXIT_OK
+from depthnav_daemon.commands.common import EXIT_OK, figure_output, save_figure
 from depthnav_daemon.errors import ConfigError
 from depthnav_daemon.pipeline.geometry import MAX_MOUNT_HEIGHT_M, Mount, check_range
-from depthnav_daemon.plots import check_output
 from depthnav_daemon.plots.mount_side import MountPlan, describe_robot_top, plan_mount
+from drivers.values import short_repr
 
 MAX_DISTANCE_M = 100.0
 # vertical field of view of the depth image, degrees (vendor data sheets)
@@ -25,6 +26,17 @@ SENSOR_VFOV_DEG = {
     "kinect2": 60.0,
     "realsense-d435": 58.0,
     "astra": 49.5,
+    # Intel RealSense depth (data sheet: 87 x 58 deg each)
+    "d435": 58.0,
+    "d455": 58.0,
+    "d405": 58.0,
+}
+# depth range of a sensor, metres: (nearest reading, far end of the data sheet's ideal range)
+SENSOR_RANGE_M = {
+    "realsense-d435": (0.28, 3.0),
+    "d435": (0.28, 3.0),
+    "d455": (0.52, 6.0),
+    "d405": (0.07, 0.5),
 }
 
 
@@ -98,8 +110,14 @@ def _fmt(value: float) -> str:
 
 def cmd_mount(args: argparse.Namespace) -> int:
     # the figure files are checked before any work, so a bad name fails at once
-    plot = check_output(args.plot, "--plot")[0] if args.plot else None
-    sweep = check_output(args.sweep, "--sweep")[0] if args.sweep else None
+    plot = figure_output(args.plot, "--plot")[0] if args.plot else None
+    sweep = figure_output(args.sweep, "--sweep")[0] if args.sweep else None
+    if plot is not None and sweep is not None and _same_file(plot, sweep):
+        raise ConfigError(
+            f"--plot and --sweep name the same file {short_repr(str(plot))}: the sweep would "
+            "overwrite the side view",
+            hint="give each figure its own file, e.g. --plot side.png --sweep sweep.png",
+        )
     plan = mount_plan(
         args.height_m,
         args.tilt_deg,
@@ -109,6 +127,9 @@ def cmd_mount(args: argparse.Namespace) -> int:
         args.robot_height_m,
     )
     print(format_plan(plan))  # noqa: T201
+    if args.vfov_deg is None and args.sensor in SENSOR_RANGE_M:
+        near, far = SENSOR_RANGE_M[args.sensor]
+        print(f"{args.sensor} depth range: from {near:.2f} m, ideal to {far:.1f} m")  # noqa: T201
     if plot is not None:
         _write_side_view(plan, plot)
     if sweep is not None:
@@ -116,17 +137,25 @@ def cmd_mount(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def _same_file(a: Path, b: Path) -> bool:
+    """The two paths name one file (the same path, or an existing file through links)."""
+    if os.path.abspath(a) == os.path.abspath(b):
+        return True
+    try:
+        return os.path.samefile(a, b)
+    except (OSError, ValueError):  # one does not exist yet: different files
+        return False
+
+
 def _write_side_view(plan: MountPlan, path: Path) -> None:
-    from depthnav_daemon.plots import save
     from depthnav_daemon.plots.mount_side import draw_side_view
 
-    save(draw_side_view(plan), path, "--plot")
+    save_figure(draw_side_view(plan), path, "--plot")
     print(f"side view written to {path}")  # noqa: T201
 
 
 def _write_sweep(plan: MountPlan, sensor: str, path: Path) -> None:
-    from depthnav_daemon.plots import save
     from depthnav_daemon.plots.sweep import draw_sweep
 
-    save(draw_sweep(plan, sensor), path, "--sweep")
+    save_figure(draw_sweep(plan, sensor), path, "--sweep")
     print(f"dead-zone sweep written to {path}")  # noqa: T201

@@ -29,6 +29,7 @@ from depthnav_daemon.pipeline.cliff import CliffParams
 from depthnav_daemon.pipeline.geometry import Mount, check_int, check_range
 from depthnav_daemon.pipeline.pose import PoseParams
 from depthnav_daemon.pipeline.scan import ScanParams
+from depthnav_daemon.sinks import check_sink_set
 from drivers.files import check_path_length, read_toml
 from drivers.values import NumberError, short_repr, short_text, to_number
 
@@ -290,6 +291,7 @@ def config_from_dict(data: Mapping[str, Any]) -> Config:
         if not isinstance(sinks, (list, tuple)) or not all(isinstance(s, str) for s in sinks):
             raise ConfigError(f"sinks={short_repr(sinks)} must be a list of sink specs")
         kwargs["sinks"] = tuple(_coerce("sinks", s, "") for s in sinks)
+        check_sink_set(kwargs["sinks"])
     if "sensor" in data:
         kwargs["sensors"] = parse_sensors(data["sensor"], _coerce)
         if kwargs["sensors"] and data.get("device"):

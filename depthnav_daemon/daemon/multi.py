@@ -7,6 +7,11 @@ its cliff points those sensors' points, and ``sensors`` lists each sensor with i
 own latest Result. A sensor that falls silent is reported and left out until it delivers again; one
 that is lost for good (reconnects exhausted, a bad recording) is reported and the others go on;
 nothing one sensor does blocks another. The memory is updated with each sensor's view as it comes.
+
+A sensor whose device cannot be opened at start-up (within ``daemon.wait_for_device_s``) ends the
+start-up with one line naming it, exit 1, before any output: until a device has opened its field of
+view is not known, so the merged scan could not say that its bearings are unknown, and a robot
+configured with it would take their absence for "no data" rather than a fault.
 """
 
 from __future__ import annotations
@@ -36,6 +41,7 @@ from depthnav_daemon.pipeline.merge import SensorState, merge_scans
 from depthnav_daemon.sinks.base import Sink, SinkContext
 from drivers.base import DeviceInfo, Driver, Frame
 from drivers.errors import DriverError
+from drivers.values import short_repr
 
 log = logging.getLogger(__name__)
 
@@ -69,14 +75,20 @@ class SensorWorker:
         self.frames = 0
         self.thread = threading.Thread(target=self._run, name=f"sensor {sc.name}", daemon=True)
 
-    def open(self) -> DeviceInfo | None:
-        """Open the device; None (said in one line) when it cannot be opened."""
+    def open(self) -> DeviceInfo:
+        """Open the device.
+
+        Raises:
+            DepthnavError: it cannot be opened (the driver's reason and hint, naming the sensor).
+        """
         try:
             return self.source.open()
         except DriverError as exc:
             self.status = "lost"
-            log.error("sensor %s: %s; going on without it", self.name, exc)
-            return None
+            raise DepthnavError(
+                f"sensor {short_repr(self.name)}: {exc}",
+                hint=exc.hint or "check the [[sensor]] device spec and its cable",
+            ) from exc
 
     def _run(self) -> None:
         report = RunReport()
@@ -106,7 +118,8 @@ class SensorWorker:
                 continue
 
     def close(self) -> None:
-        self.thread.join(timeout=5.0)
+        if self.thread.ident is not None:  # a worker that never started has no thread to join
+            self.thread.join(timeout=5.0)
         self.source.close()
         self.step.close()
 
@@ -190,27 +203,22 @@ def run_sensors(
     report = RunReport()
     halt = threading.Event()
     inbox: queue.Queue[Item] = queue.Queue(maxsize=4 * len(cfg.sensors))
-    workers = [SensorWorker(sc, cfg, halt, driver_factory, inbox) for sc in cfg.sensors]
+    workers = _make_workers(cfg, halt, driver_factory, inbox)
     # a stop ends the workers' wait for their devices too (they watch ``halt``)
     threading.Thread(target=_follow, args=(stop, halt), name="stop to halt", daemon=True).start()
     notifier.starting(
         f"opening {len(workers)} sensors",
         len(workers) * (cfg.daemon.wait_for_device_s + OPEN_MARGIN_S),
     )
-    infos = [w.open() for w in workers]
-    opened = [i for i in infos if i is not None]
-    if not opened and stop.is_set():  # stopped while waiting for them
+    try:
+        opened = _open_all(workers, halt)
+    except DepthnavError:
+        notifier.give_up("a sensor could not be opened")
+        raise
+    if opened is None:  # stopped while waiting for a device
         notifier.give_up("stopped while waiting for the sensors")
-        for w in workers:
-            w.step.close()
         report.stopped = True
         return report
-    if not opened:
-        halt.set()
-        notifier.give_up("no sensor could be opened")
-        raise DepthnavError(
-            "no sensor could be opened", hint="check the [[sensor]] device specs and cables"
-        )
     sinks: list[Sink] = []
     try:
         odometry = open_odometry(cfg.odometry) if cfg.memory.enabled is not False else None
@@ -226,11 +234,10 @@ def run_sensors(
     try:
         context = SinkContext(opened[0], cfg.scan, cfg.cliff.block_size, __version__)
         sinks = open_sinks(cfg.sinks, context, sink_factory)
-        started = [w for w, info in zip(workers, infos, strict=True) if info is not None]
-        for w in started:
+        for w in workers:
             w.thread.start()
         merger = Merger([w.name for w in workers], cfg.daemon.sensor_max_age_s)
-        _serve(started, workers, inbox, merger, keeper, sinks, stop, max_frames, report, notifier)
+        _serve(workers, workers, inbox, merger, keeper, sinks, stop, max_frames, report, notifier)
         report.stopped = stop.is_set()
     finally:
         halt.set()
@@ -244,6 +251,45 @@ def run_sensors(
         report.memory_resets = keeper.resets
         report.reconnects = sum(w.source.reconnects for w in workers)
     return report
+
+
+def _make_workers(
+    cfg: Config,
+    halt: threading.Event,
+    factory: Callable[[str], Driver],
+    inbox: queue.Queue[Item],
+) -> list[SensorWorker]:
+    """One worker per [[sensor]]; a spec no driver takes is one line naming the sensor."""
+    workers: list[SensorWorker] = []
+    for sc in cfg.sensors:
+        try:
+            workers.append(SensorWorker(sc, cfg, halt, factory, inbox))
+        except DriverError as exc:  # nothing opened or started yet
+            for w in workers:
+                w.step.close()
+            raise DepthnavError(f"sensor {short_repr(sc.name)}: {exc}", hint=exc.hint) from exc
+    return workers
+
+
+def _open_all(workers: list[SensorWorker], halt: threading.Event) -> list[DeviceInfo] | None:
+    """Every sensor's device opened, in order; None when a stop came while waiting for one.
+
+    Raises:
+        DepthnavError: one cannot be opened (module docstring); every worker is closed then.
+    """
+    infos: list[DeviceInfo] = []
+    try:
+        for w in workers:
+            infos.append(w.open())
+    except DepthnavError:
+        stopped = halt.is_set()
+        halt.set()
+        for w in workers:
+            w.close()
+        if stopped:
+            return None
+        raise
+    return infos
 
 
 def _follow(stop: threading.Event, halt: threading.Event) -> None:

@@ -20,15 +20,23 @@ from drivers.base import Frame
 log = logging.getLogger(__name__)
 
 
+class OpenSinks(list[Sink]):
+    """The sinks that started, and (``never_started``) each asked for that could not: (spec,
+    why, hint), said again by close_outputs() in the run's summary."""
+
+    never_started: list[tuple[str, str, str | None]]
+
+
 def open_sinks(
     specs: tuple[str, ...], context: SinkContext, factory: Callable[[str], Sink]
-) -> list[Sink]:
+) -> OpenSinks:
     """Open every sink; one that cannot start is reported and left out while others started.
 
     Raises:
         DepthnavError: no sink could start (each failure is named in the message, once).
     """
-    sinks: list[Sink] = []
+    sinks = OpenSinks()
+    sinks.never_started = []
     failures: list[tuple[str, str | None]] = []  # (what failed, its hint)
     for spec in specs:
         sink = factory(spec)
@@ -38,6 +46,7 @@ def open_sinks(
             failures.append(
                 (f"sink {spec} could not start: {_one_line(exc)}", getattr(exc, "hint", None))
             )
+            sinks.never_started.append((spec, _one_line(exc), getattr(exc, "hint", None)))
             continue
         sinks.append(sink)
     if not sinks:
@@ -103,7 +112,13 @@ def with_memory(
 
 
 def close_outputs(sinks: list[Sink], notifier: ServiceNotifier, report: RunReport) -> None:
-    """At the end of a run: tell systemd it stops, then close (flush) every sink."""
+    """At the end of a run: tell systemd it stops, then close (flush) every sink.
+
+    A sink asked for that never started is said again here, last, in one WARNING line each
+    (``sink SPEC never ran: ...``; its ERROR came at start-up), and listed in the run's summary
+    as ``SPEC (never started)``: the run went on without it (exit 0), so the end of the log must
+    say that an output the user asked for holds nothing (a second daemon on the same ``.rrd``).
+    """
     notifier.stopping(f"stopping after {report.frames} frames")
     notifier.close()
     for sink in sinks:
@@ -111,3 +126,12 @@ def close_outputs(sinks: list[Sink], notifier: ServiceNotifier, report: RunRepor
             sink.close()
         except Exception as exc:
             log.error("sink %s did not close cleanly: %s", sink.name, exc)
+    for spec, why, hint in getattr(sinks, "never_started", ()):
+        log.warning(
+            "sink %s never ran: it could not start (%s)%s; %d frames went to the other sinks",
+            spec,
+            why,
+            f" ({hint})" if hint else "",
+            report.frames,
+        )
+        report.dropped_sinks.append(f"{spec} (never started)")

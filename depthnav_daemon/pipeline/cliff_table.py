@@ -24,6 +24,7 @@ from depthnav_daemon.pipeline.geometry import (
     normalized_coords,
     paper_floor_depth_m,
     paper_row_angles_rad,
+    pixel_rays,
 )
 from depthnav_daemon.pipeline.params import CliffParams
 from depthnav_daemon.pipeline.scan_kernels import (
@@ -32,6 +33,7 @@ from depthnav_daemon.pipeline.scan_kernels import (
     MAX_CODE_INDEX,
     run_flush_codes,
 )
+from depthnav_daemon.pipeline.scan_table import edge_coords, table_cache
 from drivers.base import Intrinsics
 
 MAX_SPAN_BINS = 64  # a sample looking almost straight down covers many bearings; cap its footprint
@@ -200,7 +202,7 @@ def _grid_coords(intr: Intrinsics, u: F64, v: F64) -> tuple[F64, F64]:
     return _coords(intr, tuple(u.ravel().tolist()), tuple(v.ravel().tolist()))
 
 
-@functools.lru_cache(maxsize=16)
+@table_cache(16)
 def cliff_table(
     intr: Intrinsics, mount: Mount, params: CliffParams, angle_min: float, inc: float, n_bins: int
 ) -> CliffTable:
@@ -354,9 +356,15 @@ def _pixel_tables(
     """The edge search's tables, per pixel of image rows row0..H-1 (every column): CliffTable's
     px_band_mm (2, Hu, W), px_xyt_m (Hu, W, 3) and px_bins (2, Hu, W) (edge_table_kernel)."""
     v = np.arange(row0, intr.height, dtype=np.float64)[:, None]
-    x, y = _grid_coords(intr, np.arange(intr.width, dtype=np.float64)[None, :], v)
+    # memory (scan_table.TABLE_BUDGET_B_PER_PX): the centres are views of the pixel rays the
+    # coverage and the pose stage hold anyway, a pinhole's edges broadcast views (edge_coords);
+    # the same values as full grids, bit for bit. Through a lens the edges are remembered per
+    # camera (the undistortion once, not once per mount)
+    rays = pixel_rays(intr)[row0:]
+    x, y = rays[..., 0], rays[..., 1]
     # the footprint's edges: u - 1/2 and u + 1/2, shared by neighbours (one grid of W + 1)
-    xe, ye = _grid_coords(intr, np.arange(intr.width + 1) - 0.5, v)
+    ue = (np.arange(intr.width + 1) - 0.5)[None, :]
+    xe, ye = _grid_coords(intr, ue, v) if intr.has_distortion else edge_coords(intr, ue, v)
     limits = np.array(
         [
             mount.height_m,

@@ -3,9 +3,14 @@ an obstacle, and which bearing bins each pixel's footprint feeds (built once, ca
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import math
+import threading
+from collections import OrderedDict
+from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import Any, TypeVar
 
 import numpy as np
 import numpy.typing as npt
@@ -19,14 +24,24 @@ from depthnav_daemon.pipeline.geometry import (
     cam_to_level,
     frozen_table,
     normalized_coords,
+    pixel_rays,
 )
 from depthnav_daemon.pipeline.params import ScanParams
 from depthnav_daemon.pipeline.scan_blocks import block_tables
 from depthnav_daemon.pipeline.scan_kernels import CODE_BITS, MAX_CODE_INDEX
-from depthnav_daemon.pipeline.table_kernels import bin_map_kernel, exact_codes_kernel
+from depthnav_daemon.pipeline.table_kernels import (
+    bin_map_kernel,
+    exact_codes_kernel,
+    reach_limits_kernel,
+)
 from drivers.base import Intrinsics
 
 MAX_BINS = 32000  # bins fit the kernels' packed codes (below 32768), with a scratch slot
+# The most memory the exact scan's and the cliff stage's tables take per pixel of the image at the
+# peak of their building, kept tables and scratch (a pinhole camera, the default [cliff] band; a
+# lens adds 16 B for the edge rays). Not counted: the camera rays they read, geometry.pixel_rays
+# (24 B a pixel, made first, shared with the pose stage). `depthnav bench` measures both
+TABLE_BUDGET_B_PER_PX = 64
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -72,6 +87,67 @@ class ExactTable:
     # there that found no obstacle is unknown (NaN), not clear (+inf); the safety contract
     short_view: npt.NDArray[np.intp] = field(default_factory=lambda: np.empty(0, np.intp))
     short: npt.NDArray[np.bool_] = field(default_factory=lambda: np.zeros(0, np.bool_))  # (n,)
+
+
+# tables kept for mounts met before (a mount tracker returns to them): at most this many bytes
+# of them, the newest two whatever their size (the one serving and the one being built)
+TABLE_CACHE_BYTES = 256 << 20
+KEEP_NEWEST = 2
+
+_T = TypeVar("_T")
+
+
+def table_bytes(table: object) -> int:
+    """Bytes of the numpy arrays a table dataclass holds (its own or viewed: views of shared
+    arrays count as their size, the safe side)."""
+    return sum(
+        v.nbytes
+        for f in dataclasses.fields(table)  # type: ignore[arg-type]
+        if isinstance(v := getattr(table, f.name), np.ndarray)
+    )
+
+
+def table_cache(max_entries: int, max_bytes: int = TABLE_CACHE_BYTES) -> Callable[..., Any]:
+    """functools.lru_cache for table builders, bounded by bytes as well as entries: 16 cached
+    tables of a 4096x8192 camera were 10 GB. Keeps ``cache_info()`` and ``cache_clear()``."""
+
+    def wrap(build: Callable[..., _T]) -> Callable[..., _T]:
+        tables: OrderedDict[tuple[Any, ...], tuple[_T, int]] = OrderedDict()
+        lock = threading.Lock()
+        counts = [0, 0]  # hits, misses
+
+        @functools.wraps(build)
+        def cached(*args: Any) -> _T:
+            with lock:
+                got = tables.get(args)
+                if got is not None:
+                    tables.move_to_end(args)
+                    counts[0] += 1
+                    return got[0]
+                counts[1] += 1
+            table = build(*args)  # outside the lock: builds of other keys run meanwhile
+            with lock:
+                tables[args] = (table, table_bytes(table))
+                tables.move_to_end(args)
+                while len(tables) > max_entries or (
+                    len(tables) > KEEP_NEWEST and sum(b for _, b in tables.values()) > max_bytes
+                ):
+                    tables.popitem(last=False)
+            return table
+
+        def cache_info() -> functools._CacheInfo:
+            return functools._CacheInfo(counts[0], counts[1], max_entries, len(tables))
+
+        def cache_clear() -> None:
+            with lock:
+                tables.clear()
+                counts[:] = [0, 0]
+
+        cached.cache_info = cache_info  # type: ignore[attr-defined]
+        cached.cache_clear = cache_clear  # type: ignore[attr-defined]
+        return cached
+
+    return wrap
 
 
 def scan_rows(intr: Intrinsics, params: ScanParams) -> slice:
@@ -169,7 +245,8 @@ def _bin_map(
 
 @dataclass(frozen=True, slots=True)
 class _Grid:
-    """Normalised coordinates of the used pixels (what a mount change does not change)."""
+    """Normalised coordinates of the used pixels (what a mount change does not change): views
+    that hold no (Hs, Ws) memory of their own where the lens allows (``_grid``)."""
 
     x: F64  # (Hs, Ws) pixel centres
     y: F64
@@ -181,27 +258,39 @@ class _Grid:
 @functools.lru_cache(maxsize=8)
 def _grid(intr: Intrinsics, rows: tuple[int, int, int], col_step: int) -> _Grid:
     """The rays of the used pixels, per (intrinsics, rows, col_step): normalized_coords (a lens
-    model's undistortion) runs once per camera, not once per mount."""
-    v = np.arange(intr.height, dtype=np.float64)[slice(*rows)][:, None]
+    model's undistortion) runs once per camera, not once per mount.
+
+    Memory (the tables' budget, TABLE_BUDGET_B_PER_PX): the centres are views of
+    ``geometry.pixel_rays``, which the coverage and the pose stage hold anyway (made first, so
+    its own building peak comes before the tables'); the edges of a pinhole are a row (x) and a
+    column (y) broadcast, read-only views without memory; only through a lens do they take
+    memory of their own (16 B a pixel). Either way the values are the full grids' bit for bit
+    (normalized_coords works point by point)."""
+    sel = slice(*rows)
+    rays = pixel_rays(intr)[sel, ::col_step]
+    v = np.arange(intr.height, dtype=np.float64)[sel][:, None]
     u = np.arange(intr.width, dtype=np.float64)[::col_step][None, :]
     half = col_step / 2.0
     # edge j + 1 of pixel j is u[j] + half = u[j + 1] - half exactly (integers and halves)
     ue = np.concatenate([u - half, u[:, -1:] + half], axis=1)
-    x, y = (np.ascontiguousarray(a) for a in normalized_coords(intr, u, v))
-    xe, ye = (np.ascontiguousarray(a) for a in normalized_coords(intr, ue, v))
+    xe, ye = edge_coords(intr, ue, v)
     px, py = normalized_coords(
         intr, np.array([intr.cx - half, intr.cx + half]), np.array([intr.cy, intr.cy])
     )
-    return frozen_table(_Grid(x, y, xe, ye, (px, py)))
+    return frozen_table(_Grid(rays[..., 0], rays[..., 1], xe, ye, (px, py)))
 
 
-def _floor_range(g: _Grid, rot: F64, height_m: float) -> F64:
-    """(Hs, Ws) horizontal range of each used pixel's floor point, m; +inf at or above the
-    horizon."""
-    v = [rot[k, 0] * g.x + rot[k, 1] * g.y + rot[k, 2] for k in range(3)]  # level (F, L, U)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        t = np.where(v[2] < 0, height_m / -v[2], np.inf)
-        return np.where(np.isfinite(t), t * np.hypot(v[0], v[1]), np.inf)
+def edge_coords(intr: Intrinsics, ue: F64, v: F64) -> tuple[F64, F64]:
+    """normalized_coords of the grid ue (1, C) x v (R, 1) as (R, C) arrays: a pinhole's as a row
+    and a column broadcast (read-only views: x depends on the column only, y on the row only),
+    a lens's as C arrays."""
+    if intr.has_distortion:
+        x, y = normalized_coords(intr, ue, v)
+        return np.ascontiguousarray(x), np.ascontiguousarray(y)
+    shape = (v.shape[0], ue.shape[1])
+    xe = normalized_coords(intr, ue, v[:1])[0]
+    ye = normalized_coords(intr, ue[:, :1], v)[1]
+    return np.broadcast_to(xe, shape), np.broadcast_to(ye, shape)
 
 
 # how far beyond range_max (a fraction of it) the floor point of a run's asked row lies: covers
@@ -209,17 +298,16 @@ def _floor_range(g: _Grid, rot: F64, height_m: float) -> F64:
 REACH_MARGIN = 0.02
 
 
-def reach_limits(probe: npt.NDArray[np.int16], floor_m: F64, range_max_m: float) -> np.ndarray:
+def reach_limits(
+    probe: npt.NDArray[np.int16], g: _Grid, rot: F64, height_m: float, reach_m: float
+) -> npt.NDArray[np.int16]:
     """(P,) int16 per run (column, first row, last row): its last row, from the first on, whose
-    floor point (``floor_m`` (Hs, Ws), m) lies at or beyond range_max; first - 1 where even the
-    first row's lies nearer. The +inf question looks at these rows only (scan_kernels)."""
-    c, r0, r1 = (probe[k].astype(np.int64) for k in range(3))
-    lim = r0 - 1
-    for k in range(int((r1 - r0).max(initial=-1)) + 1):  # a floor range falls down a column
-        row = np.minimum(r0 + k, floor_m.shape[0] - 1)
-        lim = np.where((r0 + k <= r1) & (lim == r0 + k - 1) & (floor_m[row, c] >= range_max_m),
-                       r0 + k, lim)  # fmt: skip
-    return lim.astype(np.int16)
+    floor point (the used pixel's ray from a sensor ``height_m`` up, rotated by ``rot``) lies at
+    or beyond ``reach_m``; first - 1 where even the first row's lies nearer. The +inf question
+    looks at these rows only (scan_kernels). Compiled (table_kernels.reach_limits_kernel): the
+    numpy form walked a (P,) vector once per row of the longest run (1.3 s at 1024x1024) over
+    an (Hs, Ws) float64 array of floor ranges (40 B a pixel at its peak)."""
+    return reach_limits_kernel(probe, g.x, g.y, rot, float(height_m), float(reach_m))
 
 
 def reach_codes(
@@ -251,7 +339,7 @@ def reach_codes(
     return start, code[by_row].astype(np.int32)
 
 
-@functools.lru_cache(maxsize=16)
+@table_cache(16)
 def exact_table(intr: Intrinsics, mount: Mount, params: ScanParams) -> ExactTable:
     """The exact scan's tables for this camera, mount and parameters (cached).
 
@@ -310,7 +398,7 @@ def exact_table(intr: Intrinsics, mount: Mount, params: ScanParams) -> ExactTabl
     # itself falls short half the time by depth rounding and noise (a 640x480 fixture bin read
     # 4.99 m there and was unknown)
     reach_m = params.range_max_m * (1.0 + REACH_MARGIN)
-    probe_lim = reach_limits(probe, _floor_range(g, rot, mount.height_m), reach_m)
+    probe_lim = reach_limits(probe, g, rot, mount.height_m, reach_m)
     reach_start, reach_code = reach_codes(probe_start, probe, probe_lim, shape[0])
     row_idx = np.arange(intr.height, dtype=np.int32)[rows]
     _, far = floor_extent(intr, mount, angle_min, inc, n, (rows.start, rows.stop, rows.step or 1))

@@ -178,36 +178,53 @@ def pose_envelope_kernel(rx, ry, rz, rows_kz, lo_kz, hi_kz):
                 hi_kz[i, j] = _fmax(hi_kz[i, j], down)
 
 
+CHUNK_PX = 1 << 14  # pixels of scratch (bearings, bin map) of one chunk of rows: ~0.7 MB
+
+
 @kernel
 def exact_codes_kernel(x, y, xe, ye, rot, limits, u16, kr32, inc, max_bins):
-    """exact_table_kernel, then the bin map and the run flush codes, in one call: the per-pixel
-    bearings and bin maps in between (~40 MB of float64 and int64 at 1280x720) are made and
-    freed in here, without the interpreter lock. Freed by numpy on the table worker, they held
-    it 1-2 ms an array (the pages going back to the system): the frame loop waited as long.
+    """exact_table_kernel, then the bin map and the run flush codes, in one call, chunk by chunk
+    of rows: the per-pixel bearings and bin maps in between are made for CHUNK_PX pixels at a
+    time (they were ~40 MB of float64 and int64 at 1280x720, 57 B a pixel: the tables' memory
+    budget, scan_table.TABLE_BUDGET_B_PER_PX), and all scratch is freed in here, without the
+    interpreter lock. Freed by numpy on the table worker, it held it 1-2 ms an array (the pages
+    going back to the system): the frame loop waited as long. A first pass over the edges finds
+    the bins (their extent needs every row); each row's tables are then those of
+    exact_table_kernel and bin_map_kernel on the whole image, bit for bit (rows are independent).
 
     Args:
-        x, y, xe, ye, rot: as exact_table_kernel.
+        x, y, xe, ye, rot: as exact_table_kernel (any layout: broadcast or strided views).
         limits: (5,) float64 height_m, min_h_m, max_h_m, range_min_m, range_max_m.
         u16: (7, Hs, Ws) uint16, overwritten: zlo_mm, zhi_mm, near_lo_mm, near_hi_mm, k_lo,
             k_mid, k_hi (exact_table_kernel's tables).
         kr32: (Hs, Ws) float32, overwritten: horizontal range per mm of depth.
         inc: bin width, radians.
-        max_bins: the most bins accepted.
+        max_bins: the most bins accepted (at most 32767: the bin map is kept as int16).
 
     Returns:
         (used, n, angle_min, fl_start, fl_code): sane pixels (0: no bins, nothing else made),
-        bins (> max_bins: refused, no codes made), the first bin's centre, and the run flush
-        codes (scan_kernels.run_flush_codes) of the bin map.
+        bins (> max_bins: refused, no tables or codes made), the first bin's centre, and the run
+        flush codes (scan_kernels.run_flush_codes) of the bin map.
     """
-    shape = x.shape
-    centre = np.empty(shape)
-    lo_b = np.empty(shape)
-    hi_b = np.empty(shape)
-    sane = np.empty(shape, np.bool_)
-    edge_min, edge_max, used = exact_table_kernel(
-        x, y, xe, ye, rot, limits[0], limits[1], limits[2], limits[3], limits[4],
-        u16[0], u16[1], u16[2], u16[3], u16[4], u16[5], u16[6], kr32, centre, lo_b, hi_b, sane,
-    )  # fmt: skip
+    hs, ws = x.shape
+    r00, r01, r02 = rot[0, 0], rot[0, 1], rot[0, 2]
+    r10, r11, r12 = rot[1, 0], rot[1, 1], rot[1, 2]
+    edge = np.empty(ws + 1, np.float64)
+    edge_min = math.inf
+    edge_max = -math.inf
+    used = 0
+    for i in range(hs):  # exact_table_kernel's edge bearings, sanity and extent
+        for j in range(ws + 1):
+            fx = r00 * xe[i, j] + r01 * ye[i, j] + r02
+            fy = r10 * xe[i, j] + r11 * ye[i, j] + r12
+            edge[j] = math.atan2(fy, fx)
+        for j in range(ws):
+            lo = _fmin(edge[j], edge[j + 1])
+            hi = _fmax(edge[j], edge[j + 1])
+            if (hi - lo) < math.pi:
+                used += 1
+                edge_min = min(edge_min, lo)
+                edge_max = max(edge_max, hi)
     none = np.zeros(0, np.int32)
     if used == 0:
         return used, 0, 0.0, none, none
@@ -215,14 +232,73 @@ def exact_codes_kernel(x, y, xe, ye, rot, limits, u16, kr32, inc, max_bins):
     if n > max_bins:
         return used, n, 0.0, none, none
     angle_min = edge_min + inc / 2.0
-    cb_lo = np.empty(shape, np.int64)
-    cb_hi = np.empty(shape, np.int64)
-    g_lo = np.empty((shape[0], n), np.int64)
-    bin_map_kernel(
-        centre, lo_b, hi_b, sane, angle_min, inc, g_lo, np.empty_like(g_lo), cb_lo, cb_hi
-    )
+    step = max(1, CHUNK_PX // max(ws, n))
+    centre = np.empty((step, ws))
+    lo_b = np.empty((step, ws))
+    hi_b = np.empty((step, ws))
+    sane = np.empty((step, ws), np.bool_)
+    g_lo = np.empty((step, n), np.int64)
+    g_hi = np.empty((step, n), np.int64)
+    cb_lo = np.empty((hs, ws), np.int16)  # bins and n fit: n <= max_bins
+    cb_hi = np.empty((hs, ws), np.int16)
+    for r0 in range(0, hs, step):
+        r1 = min(hs, r0 + step)
+        m = r1 - r0
+        exact_table_kernel(
+            x[r0:r1], y[r0:r1], xe[r0:r1], ye[r0:r1], rot,
+            limits[0], limits[1], limits[2], limits[3], limits[4],
+            u16[0, r0:r1], u16[1, r0:r1], u16[2, r0:r1], u16[3, r0:r1], u16[4, r0:r1],
+            u16[5, r0:r1], u16[6, r0:r1], kr32[r0:r1], centre[:m], lo_b[:m], hi_b[:m], sane[:m],
+        )  # fmt: skip
+        bin_map_kernel(
+            centre[:m], lo_b[:m], hi_b[:m], sane[:m], angle_min, inc, g_lo[:m], g_hi[:m],
+            cb_lo[r0:r1], cb_hi[r0:r1],
+        )  # fmt: skip
     fl_start, fl_code = flush_codes_kernel(cb_lo, cb_hi, n, 0)
     return used, n, angle_min, fl_start, fl_code
+
+
+@kernel
+def reach_limits_kernel(probe, x, y, rot, height_m, reach_m):
+    """scan_table.reach_limits with each floor range made where it is asked (no (Hs, Ws) array
+    of them): per run (column, first row, last row) its last row, from the first on, whose floor
+    point lies at or beyond ``reach_m``; first - 1 where even the first row's lies nearer.
+
+    The floor range is scan_table's numpy definition operation by operation (level ray
+    v = rot (x, y, 1); t = height / -v_z where v_z < 0; range t * hypot(v_x, v_y), +inf at or
+    above the horizon), so the answer is the definition's bit for bit.
+
+    Args:
+        probe: (3, P) int16 column, first and last row (kernel rows) of each run.
+        x, y: (Hs, Ws) float64 normalised coordinates of the used pixels.
+        rot: (3, 3) camera to level frame.
+
+    Returns:
+        (P,) int16.
+    """
+    p = probe.shape[1]
+    out = np.empty(p, np.int16)
+    for k in range(p):
+        c = np.int64(probe[0, k])
+        r0 = np.int64(probe[1, k])
+        r1 = np.int64(probe[2, k])
+        lim = r0 - 1
+        for r in range(r0, r1 + 1):
+            xi = x[r, c]
+            yi = y[r, c]
+            fwd = rot[0, 0] * xi + rot[0, 1] * yi + rot[0, 2]
+            left = rot[1, 0] * xi + rot[1, 1] * yi + rot[1, 2]
+            up = rot[2, 0] * xi + rot[2, 1] * yi + rot[2, 2]
+            rng = math.inf
+            if up < 0:
+                t = height_m / -up
+                if math.isfinite(t):
+                    rng = t * math.hypot(fwd, left)
+            if not rng >= reach_m:
+                break
+            lim = r
+        out[k] = np.int16(lim)
+    return out
 
 
 @kernel

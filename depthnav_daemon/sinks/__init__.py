@@ -22,11 +22,22 @@ rerun and pymavlink load only when asked for.
 from __future__ import annotations
 
 import importlib
+import os
+from collections.abc import Sequence
 
 from depthnav_daemon.errors import ConfigError
 from depthnav_daemon.sinks.base import Sink, SinkContext, SinkSpec, parse_sink_spec
+from drivers.values import short_repr
 
-__all__ = ["SINKS", "Sink", "SinkContext", "SinkSpec", "create_sink", "parse_sink_spec"]
+__all__ = [
+    "SINKS",
+    "Sink",
+    "SinkContext",
+    "SinkSpec",
+    "check_sink_set",
+    "create_sink",
+    "parse_sink_spec",
+]
 
 SINKS: dict[str, tuple[str, str]] = {  # scheme -> (module, class); imported only when used
     "stdout": ("depthnav_daemon.sinks.json.stdout", "StdoutSink"),
@@ -63,3 +74,50 @@ def create_sink(text: str) -> Sink:
     module = importlib.import_module(module_name)
     sink: Sink = getattr(module, class_name).from_spec(spec)
     return sink
+
+
+ONE_PER_PROCESS = {  # scheme -> why a second one is useless
+    "ros2": "publishes the same topics again",
+    "stdout": "writes every line twice into the one JSON stream",
+}
+FILE_SCHEMES = {"rerun": "file", "rosbag": "file", "foxglove": "file", "mavlink": "serial port"}
+
+
+def check_sink_set(specs: Sequence[str]) -> None:
+    """Refuse sink lists that would be quietly useless or fight: a second ``stdout`` or ``ros2``
+    sink, or two sinks writing one file or serial port (a second writer of an ``.rrd`` is only
+    refused once the first holds it; two writers on one serial port garble each other). Specs
+    that do not parse are left to ``create_sink`` (its message names the problem); harmless
+    repeats (``null``, ``text``, two ``udp`` sinks) are accepted.
+
+    Raises:
+        ConfigError: naming both specs (as ``short_repr`` shows them), with a hint.
+    """
+    seen: dict[tuple[str, str], str] = {}
+    for text in specs:
+        try:
+            spec = parse_sink_spec(text)
+        except ConfigError:
+            continue
+        if spec.scheme in ONE_PER_PROCESS:
+            key, why = (
+                (spec.scheme, ""),
+                f"is a second {spec.scheme} sink: it would " + (ONE_PER_PROCESS[spec.scheme]),
+            )
+            hint = _HINTS[spec.scheme]
+        elif spec.scheme in FILE_SCHEMES and spec.target and "://" not in text:
+            what = FILE_SCHEMES[spec.scheme]
+            key = (what, os.path.abspath(os.path.expanduser(spec.target)))
+            why, hint = f"writes the same {what} as another sink", f"give each sink its own {what}"
+        else:
+            continue
+        if key in seen:
+            first = seen[key]
+            raise ConfigError(f"sink {short_repr(text)} {why} ({short_repr(first)})", hint=hint)
+        seen[key] = text
+
+
+_HINTS = {
+    "ros2": "one ros2 sink publishes every topic; its options rename them (e.g. scan_topic=)",
+    "stdout": "give stdout once; udp:// or a file sink for a second copy",
+}

@@ -13,6 +13,7 @@ import ipaddress
 import logging
 import math
 import re
+import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -25,7 +26,7 @@ from drivers.spec import bool_option as spec_bool_option
 from drivers.spec import check_options as spec_check_options
 from drivers.spec import choice_option as spec_choice_option
 from drivers.spec import number_option as spec_number_option
-from drivers.values import short_repr
+from drivers.values import short_repr, short_text
 
 if TYPE_CHECKING:
     from depthnav_daemon.pipeline import Result
@@ -235,3 +236,54 @@ class RateLimitedLog:
             )
             self._last = now
             self._unreported = 0
+
+
+_ADDRESS = re.compile(r"\[?[0-9A-Fa-f:.]*[0-9][0-9A-Fa-f:.]*\]?(?::[0-9]+)?")
+_SUMMARY_KEY_CHARS = 40  # a kind is named by the start of its message, addresses and numbers out
+
+
+class RateLimitFilter(logging.Filter):
+    """Lets through the first record of each kind, then one per ``period_s`` with the count of
+    those held back; installed on a library's loggers (the foxglove server logs every invalid
+    message a client sends: 20,000 lines for one client).
+
+    A record's kind is its logger, level and message text up to its first address or number
+    (``Invalid message from 127.0.0.1:5512: ...`` and ``... :5513: ...`` are one kind). Every
+    message that passes is cut to 200 characters with control characters escaped (a client
+    chooses what the error quotes). Thread-safe: the records come from the library's threads.
+    """
+
+    def __init__(self, period_s: float = 10.0) -> None:
+        super().__init__()
+        self.period_s = period_s
+        self._lock = threading.Lock()
+        self._last: dict[tuple[str, int, str], float] = {}
+        self._held: dict[tuple[str, int, str], int] = {}
+
+    @staticmethod
+    def kind(record: logging.LogRecord, text: str) -> tuple[str, int, str]:
+        found = _ADDRESS.search(text)
+        head = text[: found.start()] if found else text
+        return record.name, record.levelno, head[:_SUMMARY_KEY_CHARS].strip()
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        text = record.getMessage().encode("unicode_escape").decode("ascii")
+        key = self.kind(record, text)
+        now = time.monotonic()
+        with self._lock:
+            if now - self._last.get(key, -math.inf) < self.period_s:
+                self._held[key] = self._held.get(key, 0) + 1
+                return False
+            self._last[key] = now
+            held = self._held.pop(key, 0)
+        text = short_text(text, 200)
+        if held:
+            text += f" ({held} more like it in the last {self.period_s:g} s, not shown)"
+        record.msg, record.args = text, None
+        return True
+
+    def held_back(self) -> dict[tuple[str, int, str], int]:
+        """The records held back since each kind's last line: kind -> count (then cleared)."""
+        with self._lock:
+            held, self._held = self._held, {}
+        return held

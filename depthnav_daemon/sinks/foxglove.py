@@ -48,7 +48,13 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from depthnav_daemon.errors import ConfigError, SinkError
-from depthnav_daemon.sinks.base import SinkContext, SinkSpec, check_options, parse_host_port
+from depthnav_daemon.sinks.base import (
+    RateLimitFilter,
+    SinkContext,
+    SinkSpec,
+    check_options,
+    parse_host_port,
+)
 from depthnav_daemon.sinks.json.message import mount_trust_to_json
 from depthnav_daemon.sinks.ros.memory_out import (
     GridClock,
@@ -87,6 +93,10 @@ BACKLOG = 64  # messages queued per client before the oldest are dropped
 MAX_OBSTACLE_POINTS = 1000  # ~7 us each to build
 STOP_WAIT_S = 2.0  # longest close() waits for the server to say goodbye to its clients
 ANNOTATIONS = "/depthnav/depth/annotations"
+# the SDK's server logs each invalid client message and failed handshake (its Rust log records
+# reach Python's logging under these names): each kind once per 10 s, with a count
+SDK_LOGGERS = ("foxglove", "foxglove.websocket.server", "foxglove.websocket.connected_client")
+_SDK_LOG = RateLimitFilter(period_s=10.0)
 TIMINGS = "/depthnav/timings"
 
 
@@ -141,6 +151,9 @@ class FoxgloveSink:
                 f"the foxglove sink needs the foxglove-sdk package ({exc})",
                 hint="pip install foxglove-sdk",
             ) from None
+        for name in SDK_LOGGERS:
+            if _SDK_LOG not in logging.getLogger(name).filters:
+                logging.getLogger(name).addFilter(_SDK_LOG)
         self._intr = context.device.intrinsics
         self._ctx = foxglove.Context()
         self._channels(foxglove)
@@ -407,3 +420,5 @@ class FoxgloveSink:
         stopper.join(STOP_WAIT_S)
         if stopper.is_alive():
             log.warning("foxglove sink: a client is not reading; not waiting for it to close")
+        for (_name, _level, head), count in _SDK_LOG.held_back().items():
+            log.warning("foxglove sink: %d more '%s...' from clients were not shown", count, head)

@@ -24,7 +24,7 @@ log = logging.getLogger(__name__)
 # encoding -> numpy kind (mm, m); mono16 is millimetres in the drivers that publish depth as it
 DEPTH_ENCODINGS = {"16UC1": "u2", "mono16": "u2", "32FC1": "f4"}
 MAX_MM = 65535  # the largest depth a uint16 millimetre image holds
-HINT_BROKEN = "the bag is truncated or damaged: re-record it, or repair it (rosbag reindex)"
+HINT_BROKEN = "the bag is truncated or damaged: re-record it"  # rosbag.py names repair tools
 
 
 @dataclass(frozen=True, slots=True)

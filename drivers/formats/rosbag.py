@@ -24,7 +24,11 @@ What is read:
 
 Known traps of ``rosbags``: a ROS 2 folder whose ``metadata.yaml`` QoS differs from its storage
 file reads no message through the folder, so the storage files are then read directly.
-Frames are streamed: one storage chunk is decompressed at a time, never the whole bag.
+Frames are streamed: one storage chunk is decompressed at a time, never the whole bag, and no
+chunk beyond the bounds of bag_limits.py (installed into rosbags before a bag is opened; a ROS 2
+folder's metadata.yaml is checked there first). An .mcap that rosbags cannot open (cut short:
+no footer or summary) is read front to back by mcap_stream.py. A ``topic`` or ``info_topic``
+the bag does not have is a DeviceSpecError (bad usage).
 """
 
 from __future__ import annotations
@@ -38,7 +42,9 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from drivers.errors import RecordingError
+from drivers.errors import DeviceSpecError, DriverError, RecordingError
+from drivers.formats import bag_limits, realsense_layout
+from drivers.formats.mcap_stream import StreamedMcap, open_cut_short
 from drivers.formats.ros_decode import (
     HINT_BROKEN,
     CameraModel,
@@ -50,6 +56,7 @@ from drivers.formats.ros_decode import (
     quat_matrix,
     stamp_s,
 )
+from drivers.values import short_repr, short_text
 
 log = logging.getLogger(__name__)
 
@@ -80,6 +87,8 @@ class BagProbe:
         camera: the CameraInfo's camera, or None when the bag has none.
         frames: number of depth images.
         imu_to_camera: (3, 3) rotation from the IMU's frame to the image's optical frame.
+        units_um: micrometres per image count (1000: the images are millimetres; a RealSense
+            recording's Depth_Units otherwise, see realsense_layout.py).
     """
 
     depth_topic: str
@@ -89,6 +98,7 @@ class BagProbe:
     camera: CameraModel | None
     frames: int
     imu_to_camera: npt.NDArray[np.float64] | None
+    units_um: int = realsense_layout.MM_UM
 
 
 class DepthBag:
@@ -106,26 +116,65 @@ class DepthBag:
         self.info_topic = info_topic
         self._paths: list[Path] = [path]
         self._probe: BagProbe | None = None
+        self._warned_streamed = False
 
     # --- opening -----------------------------------------------------------------------
     def _reader(self) -> Any:
-        """An opened rosbags AnyReader over ``self._paths``."""
+        """An opened rosbags AnyReader over ``self._paths``, or a StreamedMcap for an .mcap
+        that rosbags cannot open (cut short: no footer or summary)."""
         from rosbags.highlevel import AnyReader
         from rosbags.typesys import Stores, get_typestore
 
+        bag_limits.install()  # bounded decompression (before rosbags inflates anything)
+        if self._paths == [self.path] and self.path.is_dir():
+            bag_limits.check_metadata(self.path)  # small and shallow before rosbags parses it
         try:
             reader = AnyReader(self._paths, default_typestore=get_typestore(Stores.ROS2_HUMBLE))
             reader.open()
-        except Exception as exc:  # a third-party parser on a damaged file: many exception types
+        except bag_limits.StoppedError:
+            raise
+        except RecordingError as exc:  # bag_limits' refusal, raised inside rosbags
             raise self._broken(exc, "cannot be opened") from None
+        except Exception as exc:  # a third-party parser on a damaged file: many exception types
+            streamed = self._streamed()
+            if streamed is None:
+                raise self._broken(exc, "cannot be opened") from None
+            return streamed
         return reader
 
-    def _broken(self, exc: BaseException, what: str) -> RecordingError:
+    def _streamed(self) -> StreamedMcap | None:
+        """The bag's one .mcap file read front to back when it is cut short, else None."""
+        reader = open_cut_short(self.path)
+        if reader is not None and not self._warned_streamed:
+            self._warned_streamed = True
+            log.warning(
+                "%s: no readable summary or footer (cut short?): read front to back, %d messages%s",
+                reader.path,
+                sum(c.msgcount for c in reader.connections),
+                ", the last record cut" if reader.cut else "",
+            )
+        return reader
+
+    def _broken(self, exc: BaseException, what: str) -> DriverError:
+        if isinstance(exc, bag_limits.StoppedError):
+            return exc  # a stop, not a damaged bag
         text = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        if isinstance(exc, RecordingError):  # bag_limits' bounds, the streamed reader's cut
+            return RecordingError(
+                f"{self.path}: not a readable ROS bag, {what} ({short_text(text, 160)})",
+                hint=exc.hint or HINT_BROKEN,
+            )
+        suffix = self.path.suffix.lower()
         hint = HINT_BROKEN
-        if self.path.suffix.lower() == ".bag" and "index" in text.lower():
-            hint = "the ROS 1 bag has no index (recording cut short?): run `rosbag reindex` on it"
-        return RecordingError(f"{self.path}: not a readable ROS bag, {what} ({text})", hint=hint)
+        if suffix == ".bag":
+            hint = "the bag is truncated or damaged: `rosbag reindex` may repair it"
+            if "index" in text.lower():
+                hint = "the ROS 1 bag has no index (recording cut short?): run `rosbag reindex`"
+        elif suffix == ".mcap":
+            hint = "the bag is truncated or damaged: `mcap recover` (the mcap CLI) may save it"
+        return RecordingError(
+            f"{self.path}: not a readable ROS bag, {what} ({short_text(text, 120)})", hint=hint
+        )
 
     def _first(self, reader: Any, conns: list[Any]) -> tuple[Any, int] | None:
         """The first message (deserialized) and its log time on ``conns``, or None."""
@@ -146,6 +195,10 @@ class DepthBag:
             RecordingError: not a readable bag, no depth topic or several (listed), an encoding
                 that is not depth, compressed depth, no CameraInfo (unless ``intrinsics_given``).
         """
+        with bag_limits.stoppable():  # a stop ends the probing between two pieces of a chunk
+            return self._probe_bag(intrinsics_given)
+
+    def _probe_bag(self, intrinsics_given: bool) -> BagProbe:
         reader = self._reader()
         try:
             topics = self._topics(reader)
@@ -155,17 +208,30 @@ class DepthBag:
             depth = self._depth_topic(reader, topics)
             first = self._first(reader, topics[depth][1])
             if first is None:
-                raise RecordingError(f"{self.path}: topic {depth} holds no message")
+                raise RecordingError(
+                    f"{self.path}: topic {short_repr(depth)} holds no message",
+                    hint="the recording stopped before the first image? pick another ?topic=",
+                )
             image = first[0]
             depth_mm = decode_image(image, f"{self.path} {depth}")  # checks encoding and size
             shape = (int(depth_mm.shape[0]), int(depth_mm.shape[1]))
             if image_kind(image) == "mono16":
                 log.info("%s %s: mono16 images read as depth in millimetres", self.path, depth)
-            info_topic, camera = self._camera(reader, topics, depth, shape, intrinsics_given)
-            imu_topic, imu_rot = self._imu(reader, topics, str(image.header.frame_id))
-            self._probe = BagProbe(
-                depth, info_topic, imu_topic, shape, camera, topics[depth][2], imu_rot
+            rs = realsense_layout.probe_bag(  # librealsense's own layout, else None
+                depth, topics, lambda conns: self._first(reader, conns), shape, str(self.path)
             )
+            if rs is not None and rs.intrinsics is not None and self.info_topic is None:
+                info_topic, camera = None, CameraModel(rs.intrinsics, rs.model, (), "")
+            else:
+                info_topic, camera = self._camera(reader, topics, depth, shape, intrinsics_given)
+            if rs is not None and rs.accel_topic is not None:  # in the depth axes already
+                imu_topic, imu_rot = rs.accel_topic, np.eye(3)
+            else:
+                imu_topic, imu_rot = self._imu(reader, topics, str(image.header.frame_id))
+            self._probe = BagProbe(
+                depth, info_topic, imu_topic, shape, camera, topics[depth][2], imu_rot,
+                rs.units_um if rs is not None else realsense_layout.MM_UM,
+            )  # fmt: skip
             return self._probe
         finally:
             reader.close()
@@ -217,16 +283,20 @@ class DepthBag:
         return out
 
     def _depth_topic(self, reader: Any, topics: dict[str, tuple[str, list[Any], int]]) -> str:
-        if self.topic is not None:
+        if self.topic is not None:  # the user's ?topic=: a wrong one is bad usage (exit 2)
+            images = sorted(t for t, v in topics.items() if v[0] in (IMAGE, COMPRESSED))
+            listed = short_text(", ".join(images) or "none", 200)
             if self.topic not in topics:
-                images = [t for t, v in topics.items() if v[0] in (IMAGE, COMPRESSED)]
-                raise RecordingError(
-                    f"{self.path}: no topic {self.topic!r}",
-                    hint=f"image topics: {', '.join(sorted(images)) or 'none'}",
+                raise DeviceSpecError(
+                    f"{self.path}: no topic {short_repr(self.topic)}",
+                    hint=f"image topics: {listed}",
                 )
             msgtype = topics[self.topic][0]
             if msgtype not in (IMAGE, COMPRESSED):
-                raise RecordingError(f"{self.path}: {self.topic} is a {msgtype}, not an {IMAGE}")
+                raise DeviceSpecError(
+                    f"{self.path}: {short_repr(self.topic)} is a {msgtype}, not an {IMAGE}",
+                    hint=f"image topics: {listed}",
+                )
             return self.topic
         kinds: dict[str, str] = {}  # image topic -> what its first message holds
         empty: list[str] = []  # image topics without a message
@@ -246,18 +316,28 @@ class DepthBag:
         if len(depth) == 1:
             return depth[0]
         if len(depth) > 1:
-            listed = ", ".join(f"{t} ({kinds[t]})" for t in depth)
-            raise RecordingError(
+            listed = short_text(", ".join(f"{t} ({kinds[t]})" for t in depth), 300)
+            raise RecordingError(  # topic names come from the bag: cut to a line
                 f"{self.path}: {len(depth)} depth image topics: {listed}",
-                hint=f"choose one with ?topic={depth[0]}",
+                hint=f"choose one with ?topic={short_text(depth[0], 100)}",
             )
         others = ", ".join([f"{t} ({k or 'empty'})" for t, k in kinds.items()] +
                            [f"{t} (no messages)" for t in empty])  # fmt: skip
-        none = f"; {', '.join(empty)} {'holds' if len(empty) == 1 else 'hold'} no message"
+        if empty and not kinds:  # image topics there are, but not one message on them
+            names = short_text(", ".join(empty), 200)
+            raise RecordingError(
+                f"{self.path}: no depth images: the image "
+                f"{'topic ' + names + ' holds' if len(empty) == 1 else 'topics ' + names + ' hold'}"
+                " no message",
+                hint=short_text(f"image topics: {others}", 300),
+            )
         raise RecordingError(
             f"{self.path}: no depth image topic (Image 16UC1, mono16 or 32FC1; CompressedImage "
-            f"compressedDepth){none if empty else ''}",
-            hint=f"image topics: {others}" if others else f"topics: {', '.join(sorted(topics))}",
+            "compressedDepth)",
+            hint=short_text(
+                f"image topics: {others}" if others else f"topics: {', '.join(sorted(topics))}",
+                300,
+            ),
         )
 
     def _camera(
@@ -274,11 +354,15 @@ class DepthBag:
             sibling if sibling in infos else infos[0] if len(infos) == 1 else None
         )
         if self.info_topic is not None and self.info_topic not in infos:
-            raise RecordingError(
-                f"{self.path}: no CameraInfo messages on {self.info_topic!r}",
-                hint=f"CameraInfo topics: {', '.join(infos) or 'none'}",
+            raise DeviceSpecError(  # the user's ?info_topic=: bad usage (exit 2)
+                f"{self.path}: no CameraInfo messages on {short_repr(self.info_topic)}",
+                hint=f"CameraInfo topics: {short_text(', '.join(infos) or 'none', 200)}",
             )
-        first = None if name is None else self._first(reader, topics[name][1])
+        conns = [] if name is None else topics[name][1]
+        if name is None and not infos:  # a CameraInfo published on the depth topic itself
+            conns = [c for c in reader.connections if c.topic == depth and c.msgtype == CAMERA_INFO]
+            name = depth if conns else None
+        first = self._first(reader, conns) if conns else None
         camera = None if first is None else camera_model(first[0], shape, f"{self.path} {name}")
         if camera is None and not intrinsics_given:
             why = (
@@ -289,7 +373,7 @@ class DepthBag:
                 else "no CameraInfo"
             )
             raise RecordingError(
-                f"{self.path}: no intrinsics for {depth}: {why}",
+                f"{self.path}: no intrinsics for {short_text(depth, 100)}: {short_text(why, 300)}",
                 hint="give them: replay:BAG?fx=..&fy=..&cx=..&cy=.. (pixels)"
                 + (", or pick one with ?info_topic=" if len(infos) > 1 else ""),
             )
@@ -301,7 +385,9 @@ class DepthBag:
         imus = sorted(t for t, v in topics.items() if v[0] == IMU and v[2] > 0)
         if len(imus) != 1:
             if imus:
-                log.warning("%s: %d Imu topics (%s): none used", self.path, len(imus), imus)
+                log.warning(
+                    "%s: %d Imu topics (%s): none used", self.path, len(imus), short_repr(imus, 200)
+                )
             return None, None
         first = self._first(reader, topics[imus[0]][1])
         imu_frame = "" if first is None else str(first[0].header.frame_id)
@@ -322,8 +408,9 @@ class DepthBag:
         rot = frame_rotation(static, imu_frame, camera_frame)
         if rot is None:
             log.warning(
-                "%s: %s is in frame %r, which /tf_static does not join to the depth frame %r: "
-                "accelerometer not used", self.path, imus[0], imu_frame, camera_frame,
+                "%s: %s is in frame %s, which /tf_static does not join to the depth frame %s: "
+                "accelerometer not used", self.path, short_text(imus[0], 100),
+                short_repr(imu_frame), short_repr(camera_frame),
             )  # fmt: skip
             return None, None
         return imus[0], rot
@@ -359,7 +446,7 @@ class DepthBag:
                 if conn.topic != probe.depth_topic:
                     accel = self._accel(msg, probe)
                     continue
-                depth = decode_image(msg, where)
+                depth = realsense_layout.counts_to_mm(decode_image(msg, where), probe.units_um)
                 if depth.shape != probe.shape:
                     raise RecordingError(
                         f"{where}: image {count} is {depth.shape[1]}x{depth.shape[0]}, "

@@ -162,12 +162,21 @@ def test_udev_rules_give_plugdev_every_sensor_depthnav_opens() -> None:
         r'SUBSYSTEM=="usb", ATTR\{idVendor\}=="([0-9a-f]{4})"'
         r'(?:, ATTR\{idProduct\}=="([0-9a-f]{4})")?, MODE:="0660", GROUP:="plugdev"'
     )
+    # a RealSense's video and IMU (iio) nodes too, matched by the USB device above them
+    node = re.compile(
+        r'(?:SUBSYSTEM=="video4linux"|KERNEL=="iio\*"), ATTRS\{idVendor\}=="8086", '
+        r'MODE:="0660", GROUP:="plugdev"'
+    )
     found = set()
+    nodes = 0
     for line in RULES.read_text().splitlines():
         if line.strip() and not line.startswith("#"):
             m = rule.fullmatch(line)
-            assert m, f"not a rule of the expected form: {line}"
-            found.add((m.group(1), m.group(2)))
+            nodes += bool(node.fullmatch(line))
+            assert m or node.fullmatch(line), f"not a rule of the expected form: {line}"
+            if m:
+                found.add((m.group(1), m.group(2)))
+    assert ("8086", None) in found and nodes == 2  # Intel RealSense: USB, video, IMU
     microsoft = f"{VENDOR_MICROSOFT:04x}"
     assert {(microsoft, "02ae"), (microsoft, "02b0")} <= found  # Kinect camera and motor
     assert (microsoft, "02c2") in found  # Kinect for Windows' hub (motor, accelerometer)

@@ -313,3 +313,133 @@ class Watchdog:
         self._timer.cancel()
         resource.setrlimit(resource.RLIMIT_AS, self._old_limit)
         signal.signal(signal.SIGUSR1, self._old_handler)
+
+
+# --- ROS bags (round 3): MCAP built record by record, bombs, lying sizes, hostile metadata ------
+MCAP_MAGIC = b"\x89MCAP0\r\n"
+BAG_DEPTH_TOPIC = "/camera/depth/image_raw"
+_BOMB_FRAME = 64 * MIB  # one compressed frame of zeros; a bomb repeats it (frames concatenate)
+
+
+def _mcap_record(op: int, body: bytes) -> bytes:
+    return bytes([op]) + struct.pack("<Q", len(body)) + body
+
+
+def _mcap_str(text: str) -> bytes:
+    raw = text.encode()
+    return struct.pack("<I", len(raw)) + raw
+
+
+def zeros_compressed(codec: str, size: int) -> bytes:
+    """``size`` zero bytes (a multiple of 64 MiB, or less) as concatenated ``codec`` frames
+    (zstd, lz4 or bz2): 4 GiB of zstd is about 130 KB, built in a few milliseconds."""
+    import bz2
+
+    import lz4.frame
+    from backports import zstd
+
+    one = min(size, _BOMB_FRAME)
+    compress = {"zstd": zstd.compress, "lz4": lz4.frame.compress, "bz2": bz2.compress}[codec]
+    frame = compress(bytes(one))
+    return frame * (size // one)
+
+
+def mcap_chunk(compression: str, data: bytes, declared: int) -> bytes:
+    """An MCAP chunk record holding ``data`` (already compressed) that says it inflates to
+    ``declared`` bytes (true or not), crc 0 (not checked)."""
+    body = struct.pack("<QQQI", 0, 0, declared, 0) + _mcap_str(compression)
+    return _mcap_record(6, body + struct.pack("<Q", len(data)) + data)
+
+
+def mcap_file(path: Path, records: list[bytes]) -> Path:
+    """A ROS 2 MCAP with one Image channel on BAG_DEPTH_TOPIC, ``records`` as its data, no
+    summary (the reader scans the data section), a whole footer."""
+    header = _mcap_record(1, _mcap_str("ros2") + _mcap_str("depthnav hostile"))
+    schema = _mcap_record(
+        3,
+        struct.pack("<H", 1) + _mcap_str("sensor_msgs/msg/Image") + _mcap_str("ros2msg")
+        + struct.pack("<I", 0),
+    )  # fmt: skip
+    channel = _mcap_record(
+        4, struct.pack("<HH", 1, 1) + _mcap_str(BAG_DEPTH_TOPIC) + _mcap_str("cdr")
+        + struct.pack("<I", 0),
+    )  # fmt: skip
+    tail = _mcap_record(0x0F, struct.pack("<I", 0)) + _mcap_record(2, struct.pack("<QQI", 0, 0, 0))
+    path.write_bytes(MCAP_MAGIC + header + schema + channel + b"".join(records) + tail + MCAP_MAGIC)
+    return path
+
+
+BAG_BOMBS = {  # name -> (codec, bytes it inflates to, bytes it declares)
+    "zstd 4 GiB declared": ("zstd", 4 << 30, 4 << 30),
+    "zstd 4 GiB declared as 1000 B": ("zstd", 4 << 30, 1000),
+    "lz4 512 MiB declared as 1000 B": ("lz4", 512 * MIB, 1000),
+    "zstd 256 MiB declared as 64 MiB": ("zstd", 256 * MIB, 64 * MIB),
+}
+
+
+def mcap_bomb(path: Path, name: str) -> Path:
+    """An MCAP whose one chunk is the BAG_BOMBS entry ``name``."""
+    codec, size, declared = BAG_BOMBS[name]
+    return mcap_file(path, [mcap_chunk(codec, zeros_compressed(codec, size), declared)])
+
+
+def ros1_chunk_size_lie(bag: Path, declared: int) -> Path:
+    """Rewrite the ``size`` field of every chunk header of a ROS 1 bag in place (same length):
+    the chunks then inflate to more (or less) than they declare."""
+    data = bytearray(bag.read_bytes())
+    key = b"size="
+    at = 0
+    while (at := data.find(key, at)) >= 0:
+        # a chunk header's fields: <len u32>size=<u32>; the op field sits in the same header
+        head_start = data.rfind(b"op=\x05", max(0, at - 64), at)
+        if head_start >= 0:
+            data[at + len(key) : at + len(key) + 4] = struct.pack("<I", declared)
+        at += len(key)
+    bag.write_bytes(bytes(data))
+    return bag
+
+
+def bag_metadata(folder: Path, data: bytes) -> Path:
+    """A ROS 2 bag folder whose metadata.yaml holds ``data`` (and nothing else)."""
+    folder.mkdir(parents=True, exist_ok=True)
+    (folder / "metadata.yaml").write_bytes(data)
+    return folder
+
+
+HOSTILE_BAG_METADATA = {  # name -> metadata.yaml bytes (each refused in one line, at once)
+    "a 2 MB comment line": b"# " + b"x" * (2 * MIB) + b"\nrosbag2_bagfile_information: {}\n",
+    "nested 5000 deep": f"rosbag2_bagfile_information: {nested(5000)}\n".encode(),
+    "billion laughs": billion_laughs(9, 9, key="rosbag2_bagfile_information").encode(),
+    "a list, not a mapping": b"- 1\n- 2\n",
+    "UTF-16": "rosbag2_bagfile_information: {}\n".encode("utf-16"),
+}
+
+
+# --- round 3, part 2: names that reach log lines, outputs that are not files -----------------
+HOSTILE_NAMES = {  # name -> a [[sensor]] name no log line may carry raw or whole
+    "newline": "front\nERROR: forged line",
+    "NUL": "front\x00rear",
+    "ESC": "front\x1b[31mred\x1b[0m",
+    "10 KB": "s" * 10_000,
+    "bidi override": "front\u202erear",
+    "bell and backspace": "front\x07\x08",
+}
+OUTPUT_KINDS = ("fifo", "folder", "dev_null", "dev_full", "dev_zero", "long name", "long path")
+
+
+def make_output(folder: Path, kind: str, suffix: str = ".png") -> Path:
+    """Where a figure (or any output) is asked to go: a FIFO, a folder, a symlink to a device, a
+    name of 300 bytes or a path of 5000, each named with ``suffix``; returns the path to give."""
+    if kind == "long name":
+        return folder / ("n" * 300 + suffix)
+    if kind == "long path":
+        return folder / "/".join(["d" * 200] * 25) / f"x{suffix}"
+    path = folder / f"{kind}{suffix}"
+    devices = {"dev_null": "/dev/null", "dev_full": "/dev/full", "dev_zero": "/dev/zero"}
+    if kind in devices:
+        path.symlink_to(devices[kind])
+    elif kind in ("fifo", "folder"):
+        make_special(path, kind)
+    else:
+        raise ValueError(kind)
+    return path

@@ -204,9 +204,10 @@ def test_sigterm_during_calibrate_uses_the_frames_so_far(tmp_path: Path) -> None
             stderr_path=err_path,
         )
         wait_until_ours(proc)
-        # wait for a frame read, not for a time: a loaded machine may take seconds to read one
+        # wait for the frames a written calibration needs, not for a time: a loaded machine may
+        # take seconds to read one
         deadline = time.monotonic() + WAIT_S
-        while "calibrating replay:" not in proc.stderr_path.read_text():  # type: ignore[attr-defined]
+        while "enough to write the config" not in proc.stderr_path.read_text():  # type: ignore[attr-defined]
             assert proc.poll() is None and time.monotonic() < deadline
             time.sleep(0.05)
         got, out, err = finish(proc, sig)

@@ -382,9 +382,10 @@ def test_without_cyclonedds_the_sink_says_what_to_install_in_one_line_and_the_ru
     )  # fmt: skip
     assert p.returncode == 0, p.stderr
     assert len(json_lines(p.stdout)) == 12  # the other sink got every frame
-    said = [line for line in p.stderr.splitlines() if "cyclonedds" in line]
+    said = [line for line in p.stderr.splitlines() if "ERROR" in line and "cyclonedds" in line]
     assert len(said) == 1 and "Traceback" not in p.stderr
     assert "sink ros2 could not start" in said[0] and "pip install 'depthnav[ros2]'" in said[0]
+    assert "sink ros2 never ran" in p.stderr  # and the run's end says it went without it
 
 
 def test_when_dds_cannot_start_the_sink_says_so_in_one_line():

@@ -229,10 +229,10 @@ def test_bad_slimming_options_are_one_line_config_errors(option):
 
 def test_frames_too_big_for_max_bytes_are_summed_up_at_close(receiver, pairs, context, caplog):
     port = receiver.getsockname()[1]
-    sink = create_sink(f"udp://:{port}?max_bytes=512")
+    sink = create_sink(f"udp://:{port}?max_bytes=5000")
     with caplog.at_level(logging.INFO, logger="depthnav_daemon.sinks.json.udp"):
         sent = _datagrams(receiver, sink, pairs, context)
     assert sent == [] and sink.sent == 0
     text = caplog.text
     assert "content=scan" in text  # the per-frame line says how to slim it
-    assert f"0 frames sent, {len(pairs)} skipped as larger than max_bytes=512" in text
+    assert f"0 frames sent, {len(pairs)} skipped as larger than max_bytes=5000" in text

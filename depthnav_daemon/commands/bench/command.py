@@ -45,8 +45,15 @@ from depthnav_daemon.commands.bench.stages import (
     synthetic_frames,
     time_work,
 )
+from depthnav_daemon.commands.bench.table_memory import (
+    SIZES,
+    TableMemory,
+    format_table_memory,
+    table_memory,
+)
 from depthnav_daemon.errors import ConfigError, DepthnavError
 from depthnav_daemon.pipeline.geometry import Mount
+from depthnav_daemon.pipeline.scan_table import TABLE_BUDGET_B_PER_PX
 from drivers.base import Intrinsics
 
 MOUNT_FIELDS = ("height_m", "tilt_deg", "roll_deg")  # --mount H,TILT,ROLL
@@ -76,6 +83,8 @@ class BenchReport:
     resolutions: dict[str, list[Timing]] = field(default_factory=dict)
     scan_mounts: list[Timing] = field(default_factory=list)  # the exact scan at SCAN_MOUNTS
     rebuild: list[RebuildTiming] = field(default_factory=list)  # large mount changes (frames on)
+    # the exact scan's and the cliff's tables: bytes per pixel at peak while building
+    table_memory: list[TableMemory] = field(default_factory=list)
 
 
 # --- the command ---------------------------------------------------------------------------------
@@ -171,6 +180,7 @@ def run_bench(
             min_batch_s,
         )
     report.rebuild = rebuild_timings(changes=1 if quick else 5, loaded=not quick)
+    report.table_memory = table_memory(SIZES[:1] if quick else SIZES)
     if cpu_seconds:
         report.cpu_30fps = cpu_at_30fps(cpu_seconds)
     if startup:
@@ -235,6 +245,8 @@ def format_report(r: BenchReport) -> str:
         out.append(format_timings(ts, f"synthetic corridor, {name}:"))
     if r.rebuild:
         out.append(format_rebuild(r.rebuild))
+    if r.table_memory:
+        out.append(format_table_memory(r.table_memory, TABLE_BUDGET_B_PER_PX))
     if r.cpu_30fps:
         c = r.cpu_30fps
         out.append(

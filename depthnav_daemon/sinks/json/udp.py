@@ -7,7 +7,8 @@ unless asked). IPv6 as ``udp://[::1]:PORT``.
 Options (a full message at 640x480 is ~12.5 KB: fragmented on Wi-Fi; these slim it):
     max_bytes: largest datagram, bytes (default 60000, 512..65507). A bigger message keeps only the
         nearest cliff points and says so in its ``message`` field; one that still does not fit is
-        skipped.
+        skipped. A max_bytes that no frame of the camera can fit (its scan ranges alone, each at
+        its shortest, are more) fails the sink on the first frame, with the bytes needed.
     content: ``all`` (default, the stdout object) or ``scan``: seq, times, the scan, the mount
         (pose and trust) and the warning only.
     cliff_scan: 0 leaves out the cliff's polar scan (its floor points stay).
@@ -30,6 +31,8 @@ import time
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
+import orjson
+
 from depthnav_daemon.errors import SinkError
 from depthnav_daemon.sinks.base import (
     RateLimitedLog,
@@ -42,6 +45,7 @@ from depthnav_daemon.sinks.base import (
     parse_host_port,
 )
 from depthnav_daemon.sinks.json import line as json_line
+from depthnav_daemon.sinks.json.message import frame_message
 
 if TYPE_CHECKING:
     from depthnav_daemon.pipeline import Result
@@ -89,6 +93,8 @@ class UdpSink:
         self._version = "unknown"
         self._send_errors = RateLimitedLog(log)
         self._oversize = RateLimitedLog(log)
+        self._fits_some: set[tuple[int, int]] = set()  # scan layouts some frame of can fit
+        self._range_min_m = 0.0
         self.sent = 0
 
     @property
@@ -120,6 +126,7 @@ class UdpSink:
             SinkError: the host does not resolve or the socket cannot be made.
         """
         self._version = context.version
+        self._range_min_m = max(float(context.scan_params.range_min_m), 0.0)
         try:
             infos = socket.getaddrinfo(self.host, self.port, type=socket.SOCK_DGRAM)
         except socket.gaierror as exc:
@@ -162,6 +169,7 @@ class UdpSink:
                 frame, result, self._version, time.time(), self.max_bytes, self.content.shape
             )
         if data is None:
+            self._refuse_if_nothing_fits(frame, result)
             self._oversize.failed(
                 "udp sink: frame %d does not fit one %d-byte datagram; skipped (raise max_bytes, "
                 "or slim it with content=scan or cliff_scan=0)",
@@ -192,6 +200,46 @@ class UdpSink:
             )
         else:
             self.sent += 1
+
+    def _refuse_if_nothing_fits(self, frame: Frame, result: Result) -> None:
+        """Raise when no frame of this scan layout can fit ``max_bytes`` (checked once a layout,
+        on the first frame that does not fit): every frame would be skipped, quietly useless.
+
+        Raises:
+            SinkError: with the bytes this frame needs and the least any frame needs.
+        """
+        msg = frame_message(frame, result, self._version, time.time(), max_cliff_points=0)
+        msg = self.content.shape(msg)
+        layout = (len(result.scan.ranges), None if result.cliff is None else result.cliff.scan)
+        key = (layout[0], 0 if layout[1] is None else len(layout[1].ranges))
+        if key in self._fits_some:
+            return
+        least = len(orjson.dumps(self._least_message(msg)))
+        if least <= self.max_bytes:
+            self._fits_some.add(key)
+            return
+        raise SinkError(
+            f"udp sink: max_bytes={self.max_bytes} is too small for any frame of this camera: "
+            f"this one needs {len(orjson.dumps(msg))} bytes without its cliff points, and even "
+            f"its {key[0]} scan ranges with every value at its shortest (a range_min reading) "
+            f"take {least}",
+            hint="raise max_bytes (up to 65507), or slim the datagram with content=scan, "
+            "cliff_scan=0 or ranges=mm",
+        )
+
+    def _least_message(self, msg: dict[str, Any]) -> dict[str, Any]:
+        """``msg`` as the fewest bytes a frame of its scan layout can take: every text empty,
+        every number 0, every scan range the shortest it can be written (null, or range_min:
+        ``0.5`` takes 3 bytes in metres, 450 mm 3), the lists as long."""
+        least = _least(msg)
+        if self.content.ranges_mm:
+            shortest = 10 ** (min(len(str(int(self._range_min_m * 1000))), 4) - 1)
+        else:
+            shortest = 0.5  # any finite range in metres takes 3 bytes or more ("1.0")
+        scan = least.get("scan")
+        if isinstance(scan, dict) and isinstance(scan.get("ranges"), list):
+            scan["ranges"] = [shortest] * len(scan["ranges"])
+        return least
 
     def _due(self, t_s: float) -> bool:
         """Whether this frame goes out under ``every`` and ``rate`` (sensor time, seconds)."""
@@ -271,6 +319,20 @@ SCAN_ONLY_KEYS = (
     "warning",
     "message",
 )
+
+
+def _least(value: Any) -> Any:
+    """A message with every value at its shortest JSON form, its lists as long (a frame of the
+    same scan layout can take no fewer bytes): numbers and null 0, texts empty."""
+    if isinstance(value, dict):
+        return {k: _least(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_least(v) for v in value]
+    if isinstance(value, str):
+        return ""
+    if isinstance(value, bool):
+        return value
+    return 0
 
 
 def _mm(r: float | str | None) -> int | str | None:
