@@ -14,14 +14,15 @@ from PIL import Image  # after the skip: the figures need the plot extra
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "scripts"))
-from make_figures import SIZES, VIEWER_SIZE  # noqa: E402  (scripts/ is not a package)
+# scripts/ is not a package
+from make_figures import DOC_SIZES, SIZES, VIEWER_SHOTS, VIEWER_SIZE  # noqa: E402
 
 MAX_TOTAL_BYTES = 400 * 1024  # the committed figures stay small
 
 
-def check_pngs(folder: Path) -> int:
+def check_pngs(folder: Path, sizes: dict[str, tuple[int, int]] = SIZES) -> int:
     total = 0
-    for name, size in SIZES.items():
+    for name, size in sizes.items():
         path = folder / name
         with Image.open(path) as img:
             assert img.format == "PNG", name
@@ -43,8 +44,9 @@ def test_script_writes_every_figure(tmp_path: Path) -> None:
         timeout=600,
     )
     assert p.returncode == 0, p.stderr
-    assert sorted(f.name for f in out.iterdir()) == sorted(SIZES)
+    assert sorted(f.name for f in out.iterdir()) == sorted({**SIZES, **DOC_SIZES})
     assert check_pngs(out) < MAX_TOTAL_BYTES
+    assert check_pngs(out, DOC_SIZES) < MAX_TOTAL_BYTES / 4
 
 
 def test_committed_figures_are_the_scripts_and_the_readme_shows_them() -> None:
@@ -55,3 +57,9 @@ def test_committed_figures_are_the_scripts_and_the_readme_shows_them() -> None:
     readme = (ROOT / "README.md").read_text()
     for name in [*SIZES, "viewer.png"]:
         assert f"](docs/img/{name})" in readme, name
+    # the drive (memory, odometry frame) and a wrong pinned mount, shown in the viewer's page
+    others = {name: VIEWER_SIZE for name in VIEWER_SHOTS if name != "viewer.png"}
+    assert check_pngs(img, DOC_SIZES) + check_pngs(img, others) < MAX_TOTAL_BYTES
+    page = (ROOT / "docs" / "rerun-viewer.md").read_text()
+    for name in [*DOC_SIZES, *others]:
+        assert f"](img/{name})" in page, name

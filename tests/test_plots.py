@@ -128,11 +128,11 @@ def bad_outputs(tmp_path: Path) -> list[tuple[str, int, str]]:
     return [
         (str(tmp_path / "side.jpg"), 2, "accepted: .png, .svg"),
         (str(tmp_path / "side"), 2, "accepted: .png, .svg"),
-        ("/dev/full", 2, "accepted: .png, .svg"),
+        ("/dev/full", 2, "not a regular file"),
         (str(tmp_path / "missing" / "side.png"), 2, "does not exist"),
         (str(tmp_path / "dir.png"), 2, "is a directory"),
         ("/proc/depthnav-side.png", 1, "cannot write"),  # no new files there, even for root
-        (str(tmp_path / "full.png"), 1, "No space left on device"),
+        (str(tmp_path / "full.png"), 2, "not a regular file"),  # a link to /dev/full
     ]
 
 
@@ -204,7 +204,110 @@ def test_snapshot_of_the_fixture(tmp_path: Path) -> None:
     assert p.returncode == 0, p.stderr
     assert "frame 2 of" in p.stdout
     w, h = png_size(out)
-    assert w == 800 and h == 430
+    assert w == 800 and h == 460
+
+
+def grab_fixture(name: str, index: int, sets: tuple[str, ...] = ()):
+    import threading
+
+    from depthnav_daemon.commands.snapshot import grab
+    from depthnav_daemon.config.loader import build_config
+
+    cfg = build_config([], list(sets), {"device": f"replay:{ROOT / 'fixtures' / name}?rate=max"})
+    return cfg, *grab(cfg, index, threading.Event())
+
+
+def texts_of(fig) -> list[str]:
+    legend = [t.get_text() for lg in fig.legends for t in lg.get_texts()]
+    return [fig.get_suptitle(), *legend]
+
+
+def test_snapshot_runs_the_daemons_loop_and_draws_the_memory() -> None:
+    """Frame 7 of the drive: the frames before it went through the loop with their odometry, so
+    the memory holds the box the robot has passed; the snapshot draws its cells and its 360 deg
+    scan with a legend, the cliff scan as a line and the step's lower floor as an area."""
+    from matplotlib.colors import to_hex
+
+    from depthnav_daemon.plots import COLORS
+    from depthnav_daemon.plots.snapshot import draw_snapshot
+
+    cfg, frame, result = grab_fixture("drive_step", 7)
+    mem = result.memory
+    assert result.seq == 7 and mem is not None and mem.status == "on"
+    assert mem.obstacle_cells > 0 and mem.cliff_cells > 0  # the box beside, the step ahead
+    fig = draw_snapshot(frame, result, cfg.scan.range_max_m, "drive", scan_params=cfg.scan)
+    texts = texts_of(fig)
+    for label in ("remembered obstacle", "remembered drop-off", "memory scan (360°)"):
+        assert label in texts
+    assert "cliff scan (drop-off edge)" in texts and "trusted" in texts[0]
+    top = fig.axes[1]
+    colors = {to_hex(ln.get_color()) for ln in top.get_lines()}
+    assert {COLORS["memory_scan"], COLORS["cliff"]} <= colors
+    faces = [to_hex(p.get_facecolor()) for p in top.patches]
+    assert COLORS["memory_obstacle"] in faces and COLORS["cliff"] in faces
+
+
+def test_dropoff_area_starts_at_the_edge() -> None:
+    """The corridor's step (truth 2.0 m ahead): one area whose near side is the edge (within
+    5 cm, never beyond it) and whose far side is the lower floor seen beyond."""
+    from depthnav_daemon.plots.overlays import dropoff_areas
+
+    cfg, frame, result = grab_fixture("corridor_step", 3)
+    areas = dropoff_areas(frame.depth_mm, result, cfg.scan.range_max_m)
+    step = [(n, f) for n, f in areas.areas if np.median(n[:, 0]) > 1.5]
+    assert len(step) == 1
+    near, far = step[0]
+    # the floor point under the first lower-floor pixel: a pixel's footprint (1.2 cm) before
+    # the edge; two where the floor pixel under it has no reading
+    assert np.median(near[:, 0]) == pytest.approx(2.0, abs=0.02)
+    # (a floor pixel whose reading lies within the margin of the lower floor: millimetres past)
+    assert np.percentile(near[:, 0], 95) <= 2.005 and near[:, 0].max() <= 2.0 + 0.02
+    beyond = np.hypot(*far.T) - np.hypot(*near.T)
+    assert np.all(beyond > 0.1) and np.median(beyond) > 1.0  # less beside the walls
+    assert np.all(np.hypot(*far.T) <= cfg.scan.range_max_m + 1e-6)
+
+
+def test_snapshot_untrusted_too_close_and_no_reading() -> None:
+    """A wrong pinned mount: the title says the results are not trusted, in amber, and the
+    scan is amber; "too close" bearings are marked; no reading is blue-grey, never a depth
+    colour (the palette runs light near to dark far)."""
+    import dataclasses
+
+    import matplotlib as mpl
+    from matplotlib.colors import to_hex
+
+    from depthnav_daemon.plots import COLORS, DEPTH_CMAP
+    from depthnav_daemon.plots.snapshot import draw_snapshot
+
+    sets = ("mount.height_m=0.75", "mount.tilt_deg=12", "daemon.tilt_source=config")
+    cfg, frame, result = grab_fixture("corridor_step", 3, sets)
+    assert not result.mount_trust.dropoffs_trusted
+    ranges = result.scan.ranges.copy()
+    ranges[:5] = -np.inf
+    close = dataclasses.replace(result, scan=dataclasses.replace(result.scan, ranges=ranges))
+    fig = draw_snapshot(frame, close, cfg.scan.range_max_m, scan_params=cfg.scan)
+    title = fig.get_suptitle()
+    assert "NOT trusted" in title and "contradicted by the floor (0.55 m" in title
+    assert to_hex(fig._suptitle.get_color()) == COLORS["untrusted"]
+    top = fig.axes[1]
+    lines = top.get_lines()
+    assert any(
+        to_hex(ln.get_color()) == COLORS["untrusted"] and len(ln.get_xdata()) > 5 for ln in lines
+    )
+    marks = [ln for ln in lines if ln.get_marker() == "x"]
+    assert len(marks) == 1 and len(marks[0].get_xdata()) == 5
+    assert "too close (-inf)" in texts_of(fig)
+    image = fig.axes[0].get_images()[0]
+    cmap = image.get_cmap()
+    assert to_hex(cmap.get_bad()) == COLORS["no_reading"]
+    near, far = to_hex(cmap(0.0)), to_hex(cmap(1.0))
+    assert near == to_hex(mpl.colormaps[DEPTH_CMAP](1.0)) and far == to_hex(
+        mpl.colormaps[DEPTH_CMAP](0.0)
+    )
+    assert COLORS["no_reading"] not in {near, far}
+    assert np.ma.is_masked(
+        image.get_array()[frame.depth_mm == 0].max() if False else image.get_array()
+    )
 
 
 @pytest.mark.parametrize(
@@ -249,3 +352,20 @@ def test_without_matplotlib_the_text_still_prints_and_figures_say_what_to_instal
     assert p.stdout.count("lower dead zone") == 1 and "rc 0" in p.stdout and "rc 1" in p.stdout
     assert "needs matplotlib" in p.stderr and "depthnav[plot]" in p.stderr
     assert "Traceback" not in p.stderr and not (tmp_path / "side.png").exists()
+
+
+def test_side_view_and_sweep_fit_every_mount() -> None:
+    """A level sensor's table points are on the plot; a mount tilted up is called so and on the
+    sweep's axis; a steep mount shades what lies beyond where its view meets the floor."""
+    level = mount_plan(0.3, 0.0, "realsense-d435", None, "0.5,1,1.5,2,3,4,5")
+    ax = draw_side_view(level).axes[0]
+    assert ax.get_ylim()[1] >= max(level.highest_m)
+    up = mount_plan(0.5, -5.0, "kinect", None, "1,2,3")
+    fig = draw_side_view(up)
+    assert "tilted 5° up" in fig.axes[0].get_title()
+    sweep = draw_sweep(up, "kinect")
+    assert all(a.get_xlim()[0] <= -5.0 for a in sweep.axes[:2])
+    steep = mount_plan(1.2, 60.0, "kinect", None, "0.5,1,2,3")
+    assert steep.view_ends_m == pytest.approx(1.51, abs=0.01)
+    labels = [h.get_label() for h in draw_side_view(steep).axes[0].patches]
+    assert any("view ends on the floor at 1.51 m" in t for t in labels)

@@ -25,16 +25,30 @@ FORMATS = {".png": "png", ".svg": "svg"}
 DPI = 100  # a figure of 8 x 4.5 inches is 800 x 450 px: the README's width
 INSTALL_HINT = "pip install 'depthnav[plot]' (or pip install matplotlib)"
 
-# one palette for every figure and the viewer: strong colours over muted (grey) data
+# one palette for every figure and the viewer (sinks/rerun reads it through rgb()): strong
+# colours over the depth palette (near = light, far = dark) and muted memory
 COLORS = {
     "scan": "#00a651",  # green: the laser scan
-    "obstacle": "#e8192c",  # red: obstacle pixels
-    "cliff": "#d400d4",  # magenta: drop-offs (cliff blocks and points)
+    "obstacle": "#e8192c",  # red: obstacle pixels, "too close" (-inf) bearings
+    "cliff": "#d400d4",  # magenta: drop-offs (their floor area, the cliff scan)
+    "untrusted": "#ffaa00",  # amber: scan and drop-offs while the mount is not trusted
     "fov": "#4a90d9",  # blue: the field of view
     "dead": "#f5a623",  # orange: dead zones
     "robot": "#555555",  # dark grey: the robot
     "band": "#ffd400",  # yellow: the rows the scan reads
+    "memory_obstacle": "#8c8c28",  # olive: remembered obstacles
+    "memory_cliff": "#8c3c8c",  # plum: remembered drop-offs
+    "memory_scan": "#1fa8a8",  # teal: the memory's 360 deg scan
+    "floor": "#00c8ff",  # cyan: floor estimates (against the mount in use)
+    "no_reading": "#64738c",  # blue-grey: pixels without a depth reading
 }
+DEPTH_CMAP = "inferno"  # drawn reversed: near = light yellow, far (range_max and beyond) = black
+
+
+def rgb(name: str) -> tuple[int, int, int]:
+    """A palette colour as 0-255 (R, G, B), for the viewer."""
+    h = COLORS[name].lstrip("#")
+    return int(h[0:2], 16), int(h[2:4], 16), int(h[4:6], 16)
 
 
 def check_output(path: Path | str, option: str) -> tuple[Path, str]:

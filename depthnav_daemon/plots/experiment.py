@@ -130,7 +130,14 @@ def _legend(fig: Figure) -> None:
         handles=[
             Patch(color=COLORS["scan"], label="reported within 5 cm"),
             Patch(color="#eeeeee", label="missed"),
-            Line2D([], [], ls="", marker=".", color="black", label="taller than e_g: should be"),
+            Line2D(
+                [],
+                [],
+                ls="",
+                marker=".",
+                color="black",
+                label="taller than e_g: should be reported",
+            ),
             Line2D([], [], ls="", marker="$3$", color=COLORS["obstacle"], label="false bins"),
         ],
         loc="outside lower center",

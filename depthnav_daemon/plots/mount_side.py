@@ -124,6 +124,9 @@ def draw_side_view(plan: MountPlan) -> Figure:
         max_d = max(max_d, 1.1 * seen[0])
     h, r = plan.height_m, plan.robot_height_m or 0.0
     top = max(1.6 * h, 1.25 * r, 1.0)
+    # the table's highest points in view: a level sensor's rise above its height
+    shown = [t for d, t in zip(plan.distances_m, plan.highest_m, strict=True) if d <= max_d]
+    top = max(top, 1.1 * max((t for t in shown if math.isfinite(t)), default=0.0))
     # equal scales: the axes are as tall as the scene is for its width, plus room for the text
     axes_h_in = 7.1 * top / (max_d + ROBOT_DRAWN_LENGTH_M + 0.15)
     fig = new_figure(8.0, min(max(axes_h_in + 1.45, 3.0), 7.0))
@@ -148,7 +151,8 @@ def draw_side_view(plan: MountPlan) -> Figure:
     ax.set_xlabel("distance ahead of the sensor [m]")
     ax.set_ylabel("height above the floor [m]")
     ax.set_title(
-        f"sensor {h:.2f} m high, tilted {plan.tilt_deg:g}° down, vertical field of view "
+        f"sensor {h:.2f} m high, tilted {abs(plan.tilt_deg):g}° "
+        f"{'up' if plan.tilt_deg < 0 else 'down'}, vertical field of view "
         f"{plan.vfov_deg:g}°",
         fontsize=10,
     )
@@ -185,6 +189,17 @@ def _draw_view(ax: Axes, plan: MountPlan, max_d: float, top: float) -> None:
     ax.plot(
         far, up_y, color=COLORS["fov"], lw=2, gid="eq16", label="highest obstacle seen (eq. 16)"
     )
+    ends = plan.view_ends_m
+    if ends < max_d:  # the view's upper edge reaches the floor: nothing beyond is seen
+        ax.axvspan(
+            ends,
+            max_d,
+            facecolor="none",
+            edgecolor="#999999",
+            hatch="//",
+            lw=0,
+            label=f"not seen: the view ends on the floor at {ends:.2f} m",
+        )
     if low_x.size:
         ax.plot(
             low_x, low_y, color=COLORS["dead"], lw=2, gid="eq15", label="view's lower edge (eq. 15)"

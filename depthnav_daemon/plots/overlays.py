@@ -8,15 +8,18 @@ from __future__ import annotations
 
 import functools
 import math
+from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import numpy as np
 import numpy.typing as npt
 
 from depthnav_daemon.pipeline.geometry import level_rays
+from depthnav_daemon.pipeline.placement import points_to_base
 
 if TYPE_CHECKING:
     from depthnav_daemon.pipeline import Result
+    from depthnav_daemon.pipeline.params import ScanParams
     from depthnav_daemon.pipeline.scan import LaserScan
     from drivers.base import Intrinsics
 
@@ -114,17 +117,6 @@ def fov_xy(scan: LaserScan, reach_m: float) -> F64:
     return np.vstack([[0.0, 0.0], arc, [0.0, 0.0]])
 
 
-def cliff_cell_sizes_m(result: Result) -> F64:
-    """(K,) side of the square drawn for each cliff point, metres: the width of its block on the
-    floor (block_size pixels at that range), so neighbouring blocks tile."""
-    cliff = result.cliff
-    if cliff is None or len(cliff.points_m) == 0:
-        return np.empty(0)
-    pts = np.asarray(cliff.points_m, dtype=np.float64)
-    r = np.hypot(pts[:, 0], pts[:, 1])
-    return np.clip(cliff.block_size * r / result.intrinsics.fx, 0.02, 0.5)
-
-
 def range_rings(reach_m: float, step_m: float = 1.0) -> list[tuple[float, F64]]:
     """(radius, (64, 2) arc) every ``step_m`` out to ``reach_m``, over the forward half-plane."""
     a = np.linspace(-0.6 * math.pi, 0.6 * math.pi, 64)
@@ -151,3 +143,200 @@ def memory_cells_xy(result: Result) -> tuple[F64, F64, float]:
         oy = snap.origin_m[1] + (j + 0.5) * snap.cell_m - y
         out.append(np.stack([c * ox + s * oy, -s * ox + c * oy], axis=1))  # into the base frame
     return out[0], out[1], snap.cell_m
+
+
+DROP_MARGIN_M = 0.05  # a reading this far below the floor plane is lower floor (cliff's default)
+BELOW_HORIZON = 1e-6  # rays pointing down by less than this never meet the floor
+AREA_GAP_ROWS = 3  # lower-floor rows this far apart in a column (missing readings) stay one area
+AREA_JOIN_COLS = 2  # edge points of columns this close (and within BREAK_JUMP_M) form one area
+
+
+@dataclass(frozen=True, slots=True)
+class DropoffAreas:
+    """The drop-offs of one frame as areas of floor, as a costmap would mark them.
+
+    Attributes:
+        pixels: (H, W) bool, the lower-floor pixels seen in and under the detected blocks.
+        areas: per drop-off, (near (k, 2), far (k, 2)) in the base frame (x forward, y left,
+            metres), one pair per image column left to right: ``near`` the edge, the floor point
+            of the pixel under the column's nearest lower-floor pixel (at most a pixel's
+            footprint before the true edge, never beyond), ``far`` the farthest lower-floor point
+            seen; the area is the polygon near + far reversed.
+    """
+
+    pixels: npt.NDArray[np.bool_]
+    areas: list[tuple[F64, F64]]
+
+
+def dropoff_areas(
+    depth_mm: np.ndarray,
+    result: Result,
+    reach_m: float = math.inf,
+    margin_m: float = DROP_MARGIN_M,
+) -> DropoffAreas:
+    """Where each detected drop-off's lower floor was seen, from its edge to its far end.
+
+    Reads only the detected blocks, the block under each and the block columns either side (where
+    the cliff stage looks for edges), so it costs little per frame. A pixel is lower floor when its
+    reading lies more than ``margin_m`` below the floor plane of the frame's mount. The far ends
+    are brought in to ``reach_m`` from the sensor (a view's range).
+    """
+    cliff = result.cliff
+    depth = np.asarray(depth_mm)
+    h, w = depth.shape
+    none = DropoffAreas(np.zeros((h, w), dtype=bool), [])
+    if cliff is None or depth.dtype != np.uint16 or len(cliff.blocks) == 0:
+        return none
+    bs = int(cliff.block_size)
+    region = np.zeros((h, w), dtype=bool)
+    for r, c in np.asarray(cliff.blocks).reshape(-1, 2):
+        region[r : r + 2 * bs, max(0, c - bs) : c + 2 * bs] = True
+    m = result.mount
+    k = level_rays(result.intrinsics, m.tilt_rad, m.roll_rad)
+    cols, rows = np.nonzero(region.T)  # by column, then row: no sort needed below
+    kz = k[rows, cols, 2]
+    d = depth[rows, cols] * 1e-3
+    lower = (d > 0.0) & (kz < -BELOW_HORIZON) & (d * -kz > m.height_m + margin_m)
+    # reversed: by column, bottom row first (going up each column from the robot)
+    rows, cols, d = rows[lower][::-1], cols[lower][::-1], d[lower][::-1]
+    if rows.size == 0:
+        return none
+    pixels = np.zeros((h, w), dtype=bool)
+    new_col = np.r_[True, cols[1:] != cols[:-1]]
+    starts = np.flatnonzero(new_col)  # each column's bottom-most (nearest) lower-floor pixel
+    # the edge: the floor point of the pixel under it (nearer), as the cliff stage's edges: the
+    # edge hiding the lower floor lies between the two rays, so this is at most a pixel's
+    # footprint before it and never beyond
+    under = np.minimum(rows[starts] + 1, h - 1)
+    k_under = k[under, cols[starts]]
+    near = (m.height_m / -np.minimum(k_under[:, 2], -BELOW_HORIZON))[:, None] * k_under[:, :2]
+    # the nearest drop-off's lower floor: the run of lower-floor rows going up from there (a
+    # floor reading ends it: a hole's far side, then the next drop-off's lower floor); its top
+    # row sees farthest
+    run_start = new_col | np.r_[True, rows[:-1] - rows[1:] > AREA_GAP_ROWS]
+    run_starts = np.flatnonzero(run_start)
+    ends = np.r_[run_starts, rows.size][np.searchsorted(run_starts, starts) + 1] - 1
+    run = np.cumsum(run_start) - 1
+    in_first = run == run[starts][np.cumsum(new_col) - 1]
+    pixels[rows[in_first], cols[in_first]] = True
+    far = (d[ends])[:, None] * k[rows[ends], cols[ends], :2]
+    with np.errstate(divide="ignore"):
+        far = far * np.minimum(1.0, reach_m / np.hypot(far[:, 0], far[:, 1]))[:, None]
+    if m.placed:
+        near = points_to_base(near, m).astype(np.float64)
+        far = points_to_base(far, m).astype(np.float64)
+    ucols = cols[starts][::-1]  # left to right in the image: columns ascending
+    near, far = near[::-1], far[::-1]
+    r_near = np.hypot(near[:, 0], near[:, 1])
+    breaks = (np.diff(ucols) > AREA_JOIN_COLS) | (np.abs(np.diff(r_near)) > BREAK_JUMP_M)
+    cuts = np.flatnonzero(breaks) + 1
+    areas = [(n, f) for n, f in zip(np.split(near, cuts), np.split(far, cuts), strict=True)]
+    return DropoffAreas(pixels, areas)
+
+
+def area_polygon(near: F64, far: F64) -> F64:
+    """(2k + 1, 2) closed outline of one drop-off area (near edge, then far edge back)."""
+    return np.vstack([near, far[::-1], near[:1]])
+
+
+def too_close_xy(scan: LaserScan, radius_m: float) -> F64:
+    """(K, 2) points at ``radius_m`` on the bearings whose reading is -inf (too close to see)."""
+    r = np.asarray(scan.ranges, dtype=np.float64)
+    a = scan.angles[np.isneginf(r)]
+    return np.stack([radius_m * np.cos(a), radius_m * np.sin(a)], axis=1)
+
+
+def to_odom(xy: np.ndarray, pose: tuple[float, float, float]) -> F64:
+    """Base-frame points (K, 2) into the odometry frame of ``pose`` (x_m, y_m, yaw_rad)."""
+    p = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+    c, s = math.cos(pose[2]), math.sin(pose[2])
+    return np.stack([pose[0] + c * p[:, 0] - s * p[:, 1], pose[1] + s * p[:, 0] + c * p[:, 1]], 1)
+
+
+def memory_cells_odom(result: Result) -> tuple[F64, F64, float]:
+    """The memory's remembered cells in the odometry frame: (obstacle centres (K, 2), drop-off
+    centres (M, 2), cell side m); empty without a memory grid."""
+    empty = np.empty((0, 2))
+    mem = result.memory
+    if mem is None or mem.grid is None:
+        return empty, empty, 0.0
+    snap = mem.grid
+    out = []
+    for kind in (1, 2):  # pipeline.memory's OBSTACLE, CLIFF
+        i, j = np.nonzero(snap.grid == kind)
+        out.append(
+            np.stack(
+                [
+                    snap.origin_m[0] + (i + 0.5) * snap.cell_m,
+                    snap.origin_m[1] + (j + 0.5) * snap.cell_m,
+                ],
+                axis=1,
+            )
+        )
+    return out[0], out[1], snap.cell_m
+
+
+SOURCE_NAMES = {
+    "default": "default (not configured)",
+    "config": "configured",
+    "floor": "from the floor",
+    "accel": "from the accelerometer",
+    "serial": "from the serial IMU",
+}
+
+
+def untrusted(result: Result) -> bool:
+    """Whether the frame's ranges and drop-offs rest on a mount that is not trusted (drawn
+    amber): the floor contradicts it, or nothing configured or confirmed it yet."""
+    trust = result.mount_trust
+    return trust is not None and not trust.dropoffs_trusted
+
+
+def trust_line(result: Result) -> str:
+    """One short line on the mount's trust, for titles: where the mount came from and whether
+    its drop-offs and scan are trusted."""
+    trust = result.mount_trust
+    source = SOURCE_NAMES.get(result.mount_source, result.mount_source)
+    if trust is None:
+        return f"mount {source}"
+    source = SOURCE_NAMES.get(trust.source, trust.source) + (", pinned" if trust.pinned else "")
+    if not trust.trusted:
+        return f"mount {source}, not confirmed by the floor: ranges unknown, drop-offs NOT trusted"
+    if not trust.dropoffs_trusted:
+        if trust.floor_height_m is not None and trust.floor_tilt_deg is not None:
+            return (
+                f"mount {source} contradicted by the floor ({trust.floor_height_m:.2f} m, "
+                f"{trust.floor_tilt_deg:.1f}°): drop-offs and scan NOT trusted"
+            )
+        return f"mount {source}: drop-offs and scan NOT trusted"
+    return f"mount {source}, floor {trust.floor}: drop-offs and scan trusted"
+
+
+def obstacle_pixels_of(
+    depth_mm: np.ndarray, result: Result, scan_params: ScanParams | None = None
+) -> tuple[npt.NDArray[np.bool_] | None, npt.NDArray[np.int64]]:
+    """The pixels the scan counts as obstacles, (H, W) bool or None, and (K, 2) (row, col) of
+    the pixel each reading came from.
+
+    exact: the Result's mask and :func:`scan_source_pixels`. paper (no mask in the Result; needs
+    ``scan_params``): every reading of the band's rows that eq. 5 keeps (in range, above the
+    ground threshold), and per column the one that gives its range (the band's minimum).
+    """
+    depth = np.asarray(depth_mm)
+    paper = scan_params is not None and scan_params.method == "paper"
+    if result.obstacle_mask is not None or not paper or depth.dtype != np.uint16:
+        return result.obstacle_mask, scan_source_pixels(depth, result)
+    # the paper scan's own thresholds (per band row), so the pixels are exactly the ones it read
+    from depthnav_daemon.pipeline.scan_paper import _paper_table
+
+    assert scan_params is not None
+    t = _paper_table(result.intrinsics, result.mount.level_part(), scan_params)
+    rows = t.row0 + np.arange(t.lo_mm.size) * t.row_step
+    band = depth[rows]  # (B, W)
+    ok = (t.lo_mm[:, None] <= band) & (band <= t.hi_mm[:, None])
+    mask = np.zeros(depth.shape, dtype=bool)
+    mask[rows] = ok
+    z = np.where(ok, band * t.factor[:, None], np.inf)
+    best = np.argmin(z, axis=0)
+    cols = np.flatnonzero(np.isfinite(z[best, np.arange(depth.shape[1])]))
+    return mask, np.stack([rows[best[cols]], cols], axis=1).astype(np.int64)

@@ -26,15 +26,21 @@ HEIGHT_COLORS = ("#9ecae1", "#6baed6", "#3182bd", "#08519c")
 DISTANCE_COLORS = ("#a1d99b", "#41ab5d", "#006d2c")
 
 
-def tilts_deg(vfov_deg: float) -> np.ndarray:
-    """Tilts swept: level to where the lower edge of the view points straight down."""
-    return np.linspace(0.0, min(MAX_TILT_DEG, 90.0 - vfov_deg / 2 + 5.0), 200)
+def tilts_deg(vfov_deg: float, tilt_deg: float = 0.0) -> np.ndarray:
+    """Tilts swept: level (or ``tilt_deg`` - 5 deg for a mount tilted up) to where the lower edge
+    of the view points straight down."""
+    lo = float(np.floor(tilt_deg / 5.0) * 5.0 - 5.0) if tilt_deg < 0 else 0.0
+    return np.linspace(lo, min(MAX_TILT_DEG, 90.0 - vfov_deg / 2 + 5.0), 200)
 
 
-def dead_zone_curves(vfov_deg: float, heights_m: tuple[float, ...]) -> dict[float, np.ndarray]:
+def dead_zone_curves(
+    vfov_deg: float, heights_m: tuple[float, ...], tilt_deg: float = 0.0
+) -> dict[float, np.ndarray]:
     """Eq. 15 (h_1 = 0) over :func:`tilts_deg` for each height, metres."""
     return {
-        h: np.array([float(lower_dead_zone_m(h, t, vfov_deg)) for t in tilts_deg(vfov_deg)])
+        h: np.array(
+            [float(lower_dead_zone_m(h, t, vfov_deg)) for t in tilts_deg(vfov_deg, tilt_deg)]
+        )
         for h in heights_m
     }
 
@@ -64,9 +70,9 @@ def _mark_tilt(ax: Axes, plan: MountPlan) -> None:
 
 def _draw_dead_zone(ax: Axes, plan: MountPlan) -> None:
     heights = tuple(sorted(set(HEIGHTS_M) | {round(plan.height_m, 3)}))
-    tilts = tilts_deg(plan.vfov_deg)
+    tilts = tilts_deg(plan.vfov_deg, plan.tilt_deg)
     others = iter(HEIGHT_COLORS * 2)
-    for h, dead in dead_zone_curves(plan.vfov_deg, heights).items():
+    for h, dead in dead_zone_curves(plan.vfov_deg, heights, plan.tilt_deg).items():
         mine = abs(h - plan.height_m) < SAME_HEIGHT_M
         ax.plot(
             tilts,
@@ -81,7 +87,7 @@ def _draw_dead_zone(ax: Axes, plan: MountPlan) -> None:
     _mark_tilt(ax, plan)
     ax.set_ylim(0.0, DEAD_ZONE_TOP_M)
     ax.set_xlim(tilts[0], tilts[-1])
-    ax.set_xlabel("tilt, down [deg]")
+    ax.set_xlabel("tilt, down [deg] (negative: up)")
     ax.set_ylabel("lower dead zone on the floor [m]")
     ax.set_title("floor not seen in front (eq. 15)", fontsize=10)
     ax.grid(True, color="#dddddd", lw=0.6)
@@ -89,7 +95,7 @@ def _draw_dead_zone(ax: Axes, plan: MountPlan) -> None:
 
 
 def _draw_highest(ax: Axes, plan: MountPlan) -> None:
-    tilts = tilts_deg(plan.vfov_deg)
+    tilts = tilts_deg(plan.vfov_deg, plan.tilt_deg)
     tops = []
     for d, color in zip(SWEEP_DISTANCES_M, DISTANCE_COLORS, strict=True):
         top = np.array(
@@ -121,7 +127,7 @@ def _draw_highest(ax: Axes, plan: MountPlan) -> None:
     hi = max(2.0 * plan.height_m, 1.3 * (plan.robot_height_m or 0.0), 1.0)
     ax.set_ylim(0.0, hi)
     ax.set_xlim(tilts[0], tilts[-1])
-    ax.set_xlabel("tilt, down [deg]")
+    ax.set_xlabel("tilt, down [deg] (negative: up)")
     ax.set_ylabel("highest obstacle seen [m]")
     ax.set_title(f"top of the view at h = {plan.height_m:.2f} m (eq. 16)", fontsize=10)
     ax.grid(True, color="#dddddd", lw=0.6)

@@ -274,3 +274,36 @@ def test_after_the_warm_up_a_footprint_compiles_nothing(recordings) -> None:
     over = {"device": f"replay:{ROOT / 'fixtures' / 'corridor_step'}?rate=max"}
     _last({**over, "mount": _mount_table(placed), "robot": ROBOT})
     assert {k.py_func.__name__: len(k.signatures) for k in ours} == before
+
+
+def test_the_snapshot_draws_the_body_and_the_scan_without_it(recordings, tmp_path) -> None:
+    """``depthnav snapshot`` with a [robot] draws the configured outline (hatched, "ignored") in
+    the top-down view, and what it draws is the frame the stages saw (no -inf from the body)."""
+    pytest.importorskip("matplotlib")
+    from depthnav_daemon.plots.snapshot import draw_snapshot
+
+    body = tmp_path / "body.toml"
+    lines = ["[mount]"] + [f"{k} = {v}" for k, v in _mount_table(MOUNT).items()]
+    lines += ["[robot]", f"footprint_m = {json.dumps([list(p) for p in POLYGON])}"]
+    body.write_text("\n".join([*lines, "height_m = 0.3", ""]))
+    out = tmp_path / "snap.png"
+    device = f"replay:{recordings['robot']}?rate=max"
+    argv = ["snapshot", "--config", str(body), "--device", device, "--frame", "2", str(out)]
+    done = subprocess.run(
+        [sys.executable, "-m", "depthnav_daemon", *argv],
+        capture_output=True, text=True, cwd=ROOT, timeout=300,
+    )  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    assert out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    result = _one(recordings, "robot", robot=True)
+    fig = draw_snapshot(
+        Frame(0, 0.0, np.zeros((INTR.height, INTR.width), np.uint16), INTR), result, 5.0,
+        body_m=tuple(POLYGON),
+    )  # fmt: skip
+    labels = [t.get_text() for legend in fig.legends for t in legend.get_texts()]
+    assert "robot body (ignored), sensor ▲" in labels
+    top = fig.axes[1]
+    drawn = [p.get_xy() for p in top.patches if p.get_hatch() == "//"]
+    want = np.c_[[-y for _, y in POLYGON], [x for x, _ in POLYGON]]
+    assert len(drawn) == 1 and np.allclose(drawn[0][: len(POLYGON)], want)
+    assert not np.isneginf(result.scan.ranges).any()

@@ -333,6 +333,9 @@ def test_connect_to_a_real_grpc_server(tmp_path, pairs, context):
 
 
 def test_default_blueprint_views(tmp_path, pairs, context):
+    from depthnav_daemon.sinks.rerun.layout import DEPTH_VIEW
+    from depthnav_daemon.sinks.rerun.topdown import BASE_VIEW
+
     path = tmp_path / "run.rrd"
     record(path, pairs[:1], context)
     reader = rrchunk.RrdReader(str(path))
@@ -345,8 +348,8 @@ def test_default_blueprint_views(tmp_path, pairs, context):
             origin = rb.column("ViewBlueprint:space_origin").to_pylist()[0][0]
             views[name] = (kind, origin)
     assert views == {
-        "Top down [m]: scan, drop-offs, robot": ("2D", "/topdown"),
-        "Depth: red obstacle, magenta drop-off, green scan pixel": ("2D", "/world/sensor/depth"),
+        BASE_VIEW: ("2D", "/topdown"),
+        DEPTH_VIEW: ("2D", "/world/sensor/depth"),
         "3D": ("3D", "/world"),
         "Height [m]": ("TimeSeries", "/stats/pose"),
         "Tilt [deg]": ("TimeSeries", "/stats/pose"),
@@ -383,8 +386,20 @@ def rgba(rgb) -> int:
 
 
 def test_untrusted_dropoffs_are_amber_and_the_trust_is_logged(tmp_path, pairs, context):
+    """While the mount is not trusted, the scan and the drop-offs are amber in every view (the
+    depth overlay's class too), the top-down view's title says so and the Log tab comes first;
+    the trust is logged when it changes."""
     from depthnav_daemon.pipeline import MountTrust
-    from depthnav_daemon.sinks.rerun.topdown import CLIFF_RGB, UNTRUSTED_CLIFF_RGB
+    from depthnav_daemon.sinks.rerun.depth import CLASS_CLIFF, CLASS_CLIFF_UNTRUSTED
+    from depthnav_daemon.sinks.rerun.layout import UNTRUSTED_VIEW
+    from depthnav_daemon.sinks.rerun.topdown import (
+        BASE_VIEW,
+        CLIFF_RGB,
+        SCAN_RGB,
+        UNTRUSTED_CLIFF_RGB,
+        UNTRUSTED_RGB,
+    )
+    from tests.sinks.test_rerun_layout import blueprint_stores, views_of
 
     good = MountTrust(source="config", floor="confirmed")
     bad = MountTrust(
@@ -408,10 +423,35 @@ def test_untrusted_dropoffs_are_amber_and_the_trust_is_logged(tmp_path, pairs, c
     want = [rgba(UNTRUSTED_CLIFF_RGB if not t.dropoffs_trusted else CLIFF_RGB) for t in trusts]
     for entity, col in (
         ("/world/cliff/points", "Points3D:colors"),
-        ("/world/cliff/cells", "Boxes3D:colors"),
-        ("/topdown/cliff", "Boxes2D:colors"),
+        ("/world/cliff/scan", "LineStrips3D:colors"),
+        ("/topdown/cliff", "Points2D:colors"),
+        ("/topdown/cliff/scan", "LineStrips2D:colors"),
     ):
         assert [c[0] for c in column(ent[entity], col)] == want, entity
+    scan = [rgba(UNTRUSTED_RGB if not t.dropoffs_trusted else SCAN_RGB) for t in trusts]
+    for entity, col in (
+        ("/topdown/scan", "LineStrips2D:colors"),
+        ("/world/scan", "Points3D:colors"),
+    ):
+        assert [c[0] for c in column(ent[entity], col)] == scan, entity
+    # the depth overlay: the drop-offs' lower floor in the untrusted class on untrusted frames
+    shape = pairs[0][0].depth_mm.shape
+    for buf, t in zip(
+        column(ent["/world/sensor/depth/obstacles"], "SegmentationImage:buffer"),
+        trusts,
+        strict=True,
+    ):
+        seg = np.frombuffer(bytes(buf[0]), np.uint8).reshape(shape)
+        shown, hidden = (CLASS_CLIFF, CLASS_CLIFF_UNTRUSTED)[:: 1 if t.dropoffs_trusted else -1]
+        assert (seg == shown).any() and not (seg == hidden).any()
+    # the layout was sent again at each change: the untrusted one names it, the Log tab first
+    stores = blueprint_stores(path)
+    assert len(stores) == 3
+    names = [views_of(rows) for rows in stores]
+    assert BASE_VIEW in names[0] and BASE_VIEW in names[2] and UNTRUSTED_VIEW in names[1]
+    log_view = names[1]["Log"][2].lstrip("/")
+    tabs = [c for c in stores[1].values() if log_view in c.get("ContainerBlueprint:contents", [])]
+    assert tabs[0]["ContainerBlueprint:active_tab"] == [log_view]
     # the trust is logged when it changes (frames 0, 1, 3), besides frame 3's own warning
     texts = [t[0] for t in column(ent["/log"], "TextLog:text")]
     levels = [t[0] for t in column(ent["/log"], "TextLog:level")]
@@ -419,6 +459,10 @@ def test_untrusted_dropoffs_are_amber_and_the_trust_is_logged(tmp_path, pairs, c
     assert [lv for _, lv in trust_lines] == ["INFO", "WARN", "INFO"]
     assert "floor confirmed: drop-offs trusted" in trust_lines[0][0]
     assert "(pinned)" in trust_lines[1][0] and "drawn amber" in trust_lines[1][0]
+    # the contradicting floor estimate is plotted on every untrusted frame
+    floor = ent["/stats/pose/height_floor_m"]
+    assert set(column(floor, "frame")) == {1, 2}
+    assert [v[0] for v in column(floor, "Scalars:scalars")] == pytest.approx([0.7, 0.52], abs=1e-6)
 
 
 def test_a_viewer_that_goes_away_is_not_claimed_delivered(tmp_path, pairs, context, caplog):

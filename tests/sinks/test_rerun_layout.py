@@ -13,8 +13,12 @@ import pytest
 from depthnav_daemon.pipeline import StageParams, process
 from depthnav_daemon.pipeline.geometry import Mount
 from depthnav_daemon.pipeline.scan import ScanParams
-from depthnav_daemon.plots.overlays import scan_source_pixels
+from depthnav_daemon.plots.overlays import dropoff_areas, obstacle_pixels_of, scan_source_pixels
 from depthnav_daemon.sim.synthetic import render
+from depthnav_daemon.sinks.rerun.depth import CLASS_CLIFF, CLASS_NO_READING, CLASS_OBSTACLE
+from depthnav_daemon.sinks.rerun.layout import FLOOR_RGB
+from depthnav_daemon.sinks.rerun.topdown import BASE_VIEW
+from depthnav_daemon.sinks.rerun.world import AREA_Z_M
 from drivers.base import Frame
 from tests.sinks.conftest import CLIFF, SCENE, make_pair
 from tests.sinks.test_rerun import column, offline_rerun, record, temporal
@@ -25,21 +29,33 @@ __all__ = ["offline_rerun"]  # the autouse fixture: rerun's files stay out of th
 CONFIGURED = Mount(0.45, 10.0, 0.0)
 
 
-def blueprint_rows(path) -> dict[str, dict[str, list]]:
-    """Blueprint entity path -> {component column: first row's value}."""
+def blueprint_stores(path) -> list[dict[str, dict[str, list]]]:
+    """Every layout the file carries, in the order they were sent (the viewer shows the last):
+    each blueprint entity path -> {component column: first row's value}."""
     reader = rrchunk.RrdReader(str(path))
-    out: dict[str, dict[str, list]] = {}
-    for chunk in reader.stream(store=reader.blueprints()[0]):
-        rb = chunk.to_record_batch()
-        cols = {n: rb.column(n).to_pylist()[0] for n in rb.schema.names if ":" in n}
-        out.setdefault(chunk.entity_path, {}).update(cols)
-    return out
+    stores = []
+    for store in reader.blueprints():
+        rows: dict[str, dict[str, list]] = {}
+        first_row = None
+        for chunk in reader.stream(store=store):
+            rb = chunk.to_record_batch()
+            ids = rb.column("rerun.controls.RowId").to_pylist()
+            first_row = min([first_row, *ids] if first_row is not None else ids)
+            cols = {n: rb.column(n).to_pylist()[0] for n in rb.schema.names if ":" in n}
+            rows.setdefault(chunk.entity_path, {}).update(cols)
+        stores.append((first_row, rows))
+    return [rows for _, rows in sorted(stores, key=lambda s: s[0])]
 
 
-def views(path) -> dict[str, tuple[str, str, str]]:
-    """View name -> (kind, origin, blueprint path)."""
+def blueprint_rows(path) -> dict[str, dict[str, list]]:
+    """The layout the viewer shows (the last sent): entity path -> {column: first value}."""
+    return blueprint_stores(path)[-1]
+
+
+def views_of(rows: dict[str, dict[str, list]]) -> dict[str, tuple[str, str, str]]:
+    """View name -> (kind, origin, blueprint path) of one layout."""
     out = {}
-    for entity, cols in blueprint_rows(path).items():
+    for entity, cols in rows.items():
         if "ViewBlueprint:display_name" in cols:
             out[cols["ViewBlueprint:display_name"][0]] = (
                 cols["ViewBlueprint:class_identifier"][0],
@@ -47,6 +63,11 @@ def views(path) -> dict[str, tuple[str, str, str]]:
                 entity,
             )
     return out
+
+
+def views(path) -> dict[str, tuple[str, str, str]]:
+    """View name -> (kind, origin, blueprint path) of the layout the viewer shows."""
+    return views_of(blueprint_rows(path))
 
 
 def static_rows(path) -> dict[str, object]:
@@ -78,55 +99,89 @@ def test_3d_view_shows_results_without_the_raw_depth_cloud(rrd) -> None:
     eye = bp[f"{view}/EyeControls3D"]
     (x, _, z), (tx, _, tz) = eye["EyeControls3D:position"][0], eye["EyeControls3D:look_target"][0]
     assert x < -1.0 and z > 1.5 and tx > 1.0 and tz == 0.0  # behind and above, looking ahead
-    # what the 3-D view shows instead: the scan as a line, drop-offs as filled cells, the robot
+    # what the 3-D view shows instead: the scan and the cliff scan as lines, each drop-off's
+    # lower floor as a filled mesh from its edge, the robot
     ent = temporal(rrd)
-    assert {"/world/scan/line", "/world/cliff/cells"} <= set(ent)
-    assert column(ent["/world/cliff/cells"], "Boxes3D:fill_mode")[0] == [3]  # Solid
+    assert {"/world/scan/line", "/world/cliff/scan", "/world/cliff/area"} <= set(ent)
+    verts = np.asarray(column(ent["/world/cliff/area"], "Mesh3D:vertex_positions")[1])
+    tris = np.asarray(column(ent["/world/cliff/area"], "Mesh3D:triangle_indices")[1])
+    assert len(tris) > 0 and tris.max() < len(verts) and np.allclose(verts[:, 2], AREA_Z_M)
     assert {"/world/robot", "/world/sensor/fov"} <= set(static_rows(rrd))
 
 
 def test_top_down_view_draws_the_scan_and_drop_offs(rrd, pairs) -> None:
-    kind, origin, _ = views(rrd)["Top down [m]: scan, drop-offs, robot"]
+    """The scan and the cliff scan (what a costmap receives) as lines, the drop-off's lower
+    floor filled from its edge, the edge points, the robot and the rings."""
+    kind, origin, _ = views(rrd)[BASE_VIEW]
     assert (kind, origin) == ("2D", "/topdown")
     ent = temporal(rrd)
     _, result = pairs[1]
-    r = result.scan.ranges.astype(np.float64)
-    ok = np.isfinite(r)
-    a = result.scan.angles[ok]
-    want = np.stack([-r[ok] * np.sin(a), -r[ok] * np.cos(a)], axis=1)  # (u, v) = (-y, -x)
-    strips = column(ent["/topdown/scan"], "LineStrips2D:strips")[1]
-    got = np.concatenate([np.asarray(s, dtype=np.float64) for s in strips])
-    np.testing.assert_allclose(got, want, atol=1e-4)
-    cliff = np.asarray(column(ent["/topdown/cliff"], "Boxes2D:centers")[1])
+
+    def uv_of(scan):
+        r = scan.ranges.astype(np.float64)
+        ok = np.isfinite(r)
+        a = scan.angles[ok]
+        return np.stack([-r[ok] * np.sin(a), -r[ok] * np.cos(a)], axis=1)  # (u, v) = (-y, -x)
+
+    for entity, scan in (
+        ("/topdown/scan", result.scan),
+        ("/topdown/cliff/scan", result.cliff.scan),
+    ):
+        strips = column(ent[entity], "LineStrips2D:strips")[1]
+        got = np.concatenate([np.asarray(s, dtype=np.float64) for s in strips])
+        want = uv_of(scan)
+        assert len(want) > 0, entity
+        np.testing.assert_allclose(got, want, atol=1e-4, err_msg=entity)
+    edge = np.asarray(column(ent["/topdown/cliff"], "Points2D:positions")[1])
     pts = result.cliff.points_m
-    np.testing.assert_allclose(cliff, np.stack([-pts[:, 1], -pts[:, 0]], axis=1), atol=1e-5)
+    np.testing.assert_allclose(edge, np.stack([-pts[:, 1], -pts[:, 0]], axis=1), atol=1e-5)
+    # the step 2.2 m ahead reads as one area from its edge: one segment per image column, each
+    # from the edge (nearer than the lower floor it hides) outward
+    frame, _ = pairs[1]
+    areas = dropoff_areas(frame.depth_mm, result, 5.0)
+    step = max(areas.areas, key=lambda a: len(a[0]))
+    assert len(step[0]) > 100
+    near_r, far_r = np.hypot(*step[0].T), np.hypot(*step[1].T)
+    assert np.all(far_r > near_r) and np.median(near_r * np.cos(np.arctan2(*step[0].T[::-1]))) == (
+        pytest.approx(2.2, abs=0.05)
+    )
+    segs = column(ent["/topdown/cliff/area"], "LineStrips2D:strips")[1]
+    assert len(segs) == sum(len(n) for n, _ in areas.areas)
     static = static_rows(rrd)
     robot = np.asarray(static["/topdown/robot"].column("LineStrips2D:strips").to_pylist()[0][0])
     assert robot[:, 1].max() == pytest.approx(0.45)  # the default 0.45 m robot, behind the sensor
     labels = static["/topdown/rings/labels"].column("Points2D:labels").to_pylist()[0]
     assert labels == ["1 m", "2 m", "3 m", "4 m", "5 m"]  # range_max_m = 5
+    legend = static["/topdown/legend"].column("Points2D:labels").to_pylist()[0]
+    assert {"cliff scan: drop-off edge", "memory scan (360°)", "remembered obstacle"} <= set(legend)
 
 
-def test_depth_overlays_fill_drop_off_blocks_and_mark_scan_pixels(rrd, pairs) -> None:
+def test_depth_overlays_fill_drop_offs_and_mark_scan_pixels(rrd, pairs) -> None:
+    """The segmentation image: obstacle pixels, the drop-offs' lower floor, and no reading in a
+    colour of its own (never the depth palette's nearest)."""
     ent = temporal(rrd)
     frame, result = pairs[1]
     seg = np.frombuffer(
         bytes(column(ent["/world/sensor/depth/obstacles"], "SegmentationImage:buffer")[1][0]),
         np.uint8,
     ).reshape(frame.depth_mm.shape)
-    blocks = np.zeros(frame.depth_mm.shape, dtype=bool)
-    bs = result.cliff.block_size
-    for r, c in result.cliff.blocks:
-        blocks[r : r + bs, c : c + bs] = True
-    assert blocks.any() and np.array_equal(seg == 2, blocks & ~result.obstacle_mask)
+    lower = dropoff_areas(frame.depth_mm, result, 5.0).pixels
+    mask = result.obstacle_mask
+    assert lower.any() and np.array_equal(seg == CLASS_CLIFF, lower & ~mask)
+    assert np.array_equal(seg == CLASS_OBSTACLE, mask)
+    none = frame.depth_mm == 0
+    assert none.any() and np.array_equal(seg == CLASS_NO_READING, none & ~mask & ~lower)
+    ctx = str(static_rows(rrd)["/world/sensor/depth/obstacles"].to_pylist())
+    assert "no reading" in ctx and "drop-off: lower floor" in ctx
+    # the depth palette: reversed (near light), so no reading needs its own opaque class
+    depth = column(ent["/world/sensor/depth"], "DepthImage:depth_range")[1][0]
+    assert depth[0] > depth[1] == 0.0
     pix = np.asarray(column(ent["/world/sensor/depth/scan_pixels"], "Points2D:positions")[1])
     want = scan_source_pixels(frame.depth_mm, result)
     np.testing.assert_array_equal(pix[:, ::-1], want)  # (x, y) = (col, row)
     assert result.obstacle_mask[want[:, 0], want[:, 1]].all()
     # the exact scan reads every row: no box around the whole image
     assert column(ent["/world/sensor/depth/band"], "Boxes2D:half_sizes")[1] in ([], None)
-    ctx = static_rows(rrd)["/world/sensor/depth/obstacles"]
-    assert "drop-off block" in str(ctx.to_pylist())
 
 
 def test_the_paper_methods_row_band_is_drawn(tmp_path, context) -> None:
@@ -142,6 +197,31 @@ def test_the_paper_methods_row_band_is_drawn(tmp_path, context) -> None:
     assert stop - first == 100
     sizes = column(ent["/world/sensor/depth/band"], "Boxes2D:half_sizes")[0]
     assert np.allclose(sizes, [[intr.width / 2, 50.0]])
+    # its obstacle and source pixels too (fig. 9), though the Result carries no mask
+    assert result.obstacle_mask is None
+    seg = np.frombuffer(
+        bytes(column(ent["/world/sensor/depth/obstacles"], "SegmentationImage:buffer")[0][0]),
+        np.uint8,
+    ).reshape(frame.depth_mm.shape)
+    mask, src = obstacle_pixels_of(frame.depth_mm, result, context.scan_params)
+    assert mask is None  # the context's scan is exact: the paper pixels need the paper params
+    mask, src = obstacle_pixels_of(frame.depth_mm, result, params.scan)
+    assert mask[first:stop].any() and not mask[:first].any() and not mask[stop:].any()
+    # every source pixel is an obstacle pixel, and gives its column's range (eq. 1-4)
+    assert len(src) > 0 and mask[src[:, 0], src[:, 1]].all()
+    assert (seg == CLASS_OBSTACLE).sum() == 0  # this recording was opened with the exact scan
+    paper_ctx = replace(context, scan_params=params.scan)
+    path2 = tmp_path / "paper2.rrd"
+    record(path2, [(frame, result)], paper_ctx)
+    seg2 = np.frombuffer(
+        bytes(
+            column(temporal(path2)["/world/sensor/depth/obstacles"], "SegmentationImage:buffer")[0][
+                0
+            ]
+        ),
+        np.uint8,
+    ).reshape(frame.depth_mm.shape)
+    assert np.array_equal(seg2 == CLASS_OBSTACLE, mask)
 
 
 def test_timing_plot_leaves_out_the_warm_up_frame(rrd, pairs) -> None:
@@ -166,10 +246,32 @@ def test_mount_is_plotted_beside_the_configured_value(rrd, pairs) -> None:
     found = views(rrd)
     names = ("Height [m]", "Tilt [deg]", "Roll [deg]")
     assert all(found[n][:2] == ("TimeSeries", "/stats/pose") for n in names)
-    height_axis = bp[f"{found['Height [m]'][2]}/ScalarAxis"]["ScalarAxis:range"][0]
-    assert height_axis[0] == 0.0 and height_axis[1] >= 2 * CONFIGURED.height_m
-    tilt_axis = bp[f"{found['Tilt [deg]'][2]}/ScalarAxis"]["ScalarAxis:range"][0]
-    assert tilt_axis[0] < CONFIGURED.tilt_deg < tilt_axis[1]
+    # each on a range around its values (configured 0.45 m / 10 deg, in use 0.50-0.54 m / 12 deg)
+    lo, hi = bp[f"{found['Height [m]'][2]}/ScalarAxis"]["ScalarAxis:range"][0]
+    assert lo <= CONFIGURED.height_m and hi >= 0.54 and hi - lo <= 1.0
+    lo, hi = bp[f"{found['Tilt [deg]'][2]}/ScalarAxis"]["ScalarAxis:range"][0]
+    assert lo < CONFIGURED.tilt_deg < 12.0 < hi and hi - lo <= 30.0
+    # floor estimates: one contrasting colour and a cross, not the mount's colour
+    style = static_rows(rrd)["/stats/pose/height_floor_m"]
+    assert style.column("SeriesPoints:markers").to_pylist()[0] == [4]  # cross
+    assert style.column("SeriesPoints:colors").to_pylist()[0] == [_rgba(FLOOR_RGB)]
+
+
+def _rgba(rgb) -> int:
+    r, g, b = rgb
+    return (r << 24) | (g << 16) | (b << 8) | 0xFF
+
+
+def test_the_built_in_default_is_labelled_not_configured(tmp_path, pairs, context) -> None:
+    from depthnav_daemon.pipeline import MountTrust
+
+    trust = MountTrust(source="default", dropoffs_trusted=False, trusted=False, note="no mount")
+    _, result = pairs[0]
+    flagged = replace(result, mount_state=replace(result.mount_state, trust=trust))
+    path = tmp_path / "default.rrd"
+    record(path, [(pairs[0][0], flagged)], replace(context, mount=Mount()))
+    style = static_rows(path)["/stats/pose/height_config_m"]
+    assert style.column("SeriesLines:names").to_pylist()[0] == ["default (not configured)"]
 
 
 def test_log_is_a_tab_not_an_empty_pane(rrd) -> None:
@@ -186,6 +288,74 @@ def test_robot_footprint_option(tmp_path, context) -> None:
     record(path, [(frame, result)], context, "?robot_length_m=0.8&robot_width_m=0.6")
     robot = static_rows(path)["/world/robot"]
     assert np.allclose(robot.column("Boxes3D:half_sizes").to_pylist()[0][0][:2], [0.4, 0.3])
+
+
+def drive_rrd(tmp_path):
+    """The drive fixture (odometry per frame) through the daemon's own loop into a .rrd, with
+    the last frame's Result kept (the snapshot command's sink)."""
+    import threading
+    from pathlib import Path
+
+    from depthnav_daemon.commands.snapshot import FrameCapture
+    from depthnav_daemon.config.loader import build_config
+    from depthnav_daemon.daemon.loop import run
+    from depthnav_daemon.daemon.notify import ServiceNotifier
+    from depthnav_daemon.sinks import create_sink
+
+    root = Path(__file__).resolve().parents[2]
+    path = tmp_path / "drive.rrd"
+    device = f"replay:{root / 'fixtures' / 'drive_step'}?rate=max"
+    cfg = build_config([], [], {"device": device, "sinks": [f"rerun:{path}", "snapshot"]})
+    capture = FrameCapture(11)
+    report = run(
+        cfg,
+        threading.Event(),
+        sink_factory=lambda spec: capture if spec == "snapshot" else create_sink(spec),
+        notifier=ServiceNotifier(environ={}),
+    )
+    assert report.frames == 12 and capture.got is not None
+    return path, capture.got[1]
+
+
+def test_the_memory_and_the_odometry_frame_are_drawn(tmp_path) -> None:
+    """With odometry: the memory's 360 deg scan and cells in the robot-frame view and in 3-D; an
+    odometry-frame view (the robot on its path through the memory) comes first; the memory's
+    first run stays out of the steady timing plot."""
+    from depthnav_daemon.plots.overlays import memory_cells_odom, scan_strips
+    from depthnav_daemon.sinks.rerun.topdown import ODOM_VIEW
+
+    path, last = drive_rrd(tmp_path)
+    mem = last.memory
+    assert mem is not None and mem.scan is not None and mem.pose is not None
+    ent = temporal(path)
+    strips = column(ent["/topdown/memory/scan"], "LineStrips2D:strips")[-1]
+    got = np.concatenate([np.asarray(s, dtype=np.float64) for s in strips])
+    want = np.concatenate(scan_strips(mem.scan))
+    assert len(want) > 0
+    np.testing.assert_allclose(got, np.stack([-want[:, 1], -want[:, 0]], axis=1), atol=1e-4)
+    assert column(ent["/world/memory/scan"], "LineStrips3D:strips")[-1]
+    # the odometry frame: cells where the memory holds them, the robot at its pose, its path
+    _, cliffs, _ = memory_cells_odom(last)
+    cells = np.asarray(column(ent["/odom/memory/cliffs"], "Boxes2D:centers")[-1])
+    assert len(cells) == len(cliffs) == mem.cliff_cells > 0
+    np.testing.assert_allclose(cells, np.stack([-cliffs[:, 1], -cliffs[:, 0]], axis=1), atol=1e-5)
+    robot = np.asarray(column(ent["/odom/robot"], "LineStrips2D:strips")[-1][0])
+    assert -robot[:, 1].min() == pytest.approx(mem.pose[0])  # its front at the pose (v = -x)
+    trail = np.asarray(column(ent["/odom/path"], "LineStrips2D:strips")[-1][0])
+    assert len(trail) >= 10 and -trail[-1, 1] == pytest.approx(mem.pose[0], abs=1e-4)
+    found = views(path)
+    assert found[ODOM_VIEW][:2] == ("2D", "/odom")
+    odom_view = found[ODOM_VIEW][2].lstrip("/")
+    tabs = [
+        c
+        for c in blueprint_rows(path).values()
+        if odom_view in c.get("ContainerBlueprint:contents", [])
+    ]
+    assert tabs[0]["ContainerBlueprint:active_tab"] == [odom_view]  # shown first
+    assert BASE_VIEW in found  # one tab away
+    every = column(ent["/stats/timing/memory_ms"], "frame")
+    steady = column(ent["/stats/timing_after_warmup/memory_ms"], "frame")
+    assert steady == every[1:] and len(steady) == 11
 
 
 @pytest.mark.xfail(

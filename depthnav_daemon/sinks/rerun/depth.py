@@ -1,6 +1,8 @@
-"""The rerun sink's depth image and what is drawn on it: a grey depth palette under strong colours
-(red obstacle pixels and filled magenta drop-off blocks in one segmentation image, the pixel each
-scan reading came from in green) and the scan's row band when it is not the whole image."""
+"""The rerun sink's depth image and what is drawn on it: the depth palette of every figure (near
+= light, far = dark, ``plots.DEPTH_CMAP`` reversed; no reading blue-grey) under strong colours
+(red obstacle pixels, the drop-offs' lower floor in magenta, amber while the mount is not
+trusted, in one segmentation image; the pixel each scan reading came from in green or amber),
+the detector's blocks outlined, and the scan's row band when it is not the whole image."""
 
 from __future__ import annotations
 
@@ -8,32 +10,47 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from depthnav_daemon.plots.overlays import scan_source_pixels
-from depthnav_daemon.sinks.rerun.topdown import CLIFF_RGB, SCAN_RGB
+from depthnav_daemon.plots import DEPTH_CMAP, rgb
+from depthnav_daemon.plots.overlays import obstacle_pixels_of, untrusted
+from depthnav_daemon.sinks.rerun.topdown import scan_rgb
 
 if TYPE_CHECKING:
     from depthnav_daemon.pipeline import Result
+    from depthnav_daemon.plots.overlays import DropoffAreas
     from depthnav_daemon.sinks.rerun.layout import LayoutState
     from drivers.base import Frame
 
 DEPTH = "/world/sensor/depth"
 CLASS_OBSTACLE = 1
-BAND_RGB = (255, 212, 0)
 CLASS_CLIFF = 2
-CLIFF_RGBA = (*CLIFF_RGB, 230)
-BLOCK_EDGE_RGB = (110, 0, 110)  # darker than the fill: the blocks stay countable
+CLASS_CLIFF_UNTRUSTED = 3
+CLASS_NO_READING = 4
+OBSTACLE_RGBA = (*rgb("obstacle"), 200)
+CLIFF_RGBA = (*rgb("cliff"), 200)
+UNTRUSTED_RGBA = (*rgb("untrusted"), 220)
+NO_READING_RGBA = (*rgb("no_reading"), 255)  # opaque: never a depth colour
+CLASSES = (
+    (0, "", (0, 0, 0, 0)),  # class 0 must be transparent explicitly, or rerun tints the image
+    (CLASS_OBSTACLE, "obstacle (scan)", OBSTACLE_RGBA),
+    (CLASS_CLIFF, "drop-off: lower floor", CLIFF_RGBA),
+    (CLASS_CLIFF_UNTRUSTED, "drop-off, mount not trusted", UNTRUSTED_RGBA),
+    (CLASS_NO_READING, "no reading", NO_READING_RGBA),
+)
+BAND_RGB = (255, 212, 0)
+BLOCK_EDGE_RGB = (110, 0, 110)  # the detector's blocks, thin outlines
 BLOCK_EDGE_PX = 0.5
 
 
-def log_depth(rr: Any, rec: Any, frame: Frame, result: Result, state: LayoutState) -> None:
-    """The depth image (grey, near = dark) and its overlays."""
+def log_depth(
+    rr: Any, rec: Any, frame: Frame, result: Result, state: LayoutState, areas: DropoffAreas
+) -> None:
+    """The depth image (near = light, far = dark) and its overlays."""
     intr = frame.intrinsics
     far_mm = max(1000.0, state.reach_m * 1000.0)
     rec.log(
         DEPTH,
-        rr.DepthImage(
-            frame.depth_mm, meter=1000.0, colormap="grayscale", depth_range=[0.0, far_mm]
-        ),
+        # a reversed range reverses the colour map: near light, range_max and beyond dark
+        rr.DepthImage(frame.depth_mm, meter=1000.0, colormap=DEPTH_CMAP, depth_range=[far_mm, 0.0]),
     )
     first, stop = result.scan_band
     whole = (first, stop) == (0, intr.height)  # every row: a box around the image says nothing
@@ -46,28 +63,24 @@ def log_depth(rr: Any, rec: Any, frame: Frame, result: Result, state: LayoutStat
             labels=[] if whole else ["scan rows"],
         ),
     )
-    classes = _classes(result, intr.height, intr.width)
-    if classes is not None:
-        rec.log(f"{DEPTH}/obstacles", rr.SegmentationImage(classes, opacity=0.75))
-    src = scan_source_pixels(np.asarray(frame.depth_mm), result)
+    params = state.context.scan_params if state.context is not None else None
+    mask, src = obstacle_pixels_of(frame.depth_mm, result, params)
+    classes = _classes(frame, result, areas, mask)
+    rec.log(f"{DEPTH}/obstacles", rr.SegmentationImage(classes, opacity=1.0))
     rec.log(
         f"{DEPTH}/scan_pixels",
-        rr.Points2D(src[:, ::-1].astype(np.float32), radii=1.5, colors=[SCAN_RGB]),
+        rr.Points2D(src[:, ::-1].astype(np.float32), radii=1.5, colors=[scan_rgb(result)]),
     )
     _log_cliff_blocks(rr, rec, result, state)
 
 
-def _classes(result: Result, height: int, width: int) -> np.ndarray | None:
-    """(H, W) uint8: CLASS_CLIFF inside drop-off blocks, CLASS_OBSTACLE on obstacle pixels (they
-    win where both are), 0 elsewhere; None when there is neither a mask nor a cliff stage."""
-    cliff, mask = result.cliff, result.obstacle_mask
-    if cliff is None and mask is None:
-        return None
-    out = np.zeros((height, width), dtype=np.uint8)
-    if cliff is not None:
-        bs = cliff.block_size
-        for r, c in np.asarray(cliff.blocks).reshape(-1, 2):
-            out[r : r + bs, c : c + bs] = CLASS_CLIFF
+def _classes(
+    frame: Frame, result: Result, areas: DropoffAreas, mask: np.ndarray | None
+) -> np.ndarray:
+    """(H, W) uint8: CLASS_NO_READING where the depth is 0, CLASS_CLIFF (or _UNTRUSTED) on the
+    drop-offs' lower floor, CLASS_OBSTACLE on obstacle pixels (they win), 0 elsewhere."""
+    out = np.where(np.asarray(frame.depth_mm) == 0, CLASS_NO_READING, 0).astype(np.uint8)
+    out[areas.pixels] = CLASS_CLIFF_UNTRUSTED if untrusted(result) else CLASS_CLIFF
     if mask is not None:
         out[mask] = CLASS_OBSTACLE
     return out

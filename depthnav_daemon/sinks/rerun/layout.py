@@ -1,98 +1,154 @@
 """What the rerun sink shows: the entities it logs per frame and the default layout (blueprint).
 
-The layout puts depthnav's results first: a top-down view (the paper's costmap figures), the depth
-image with strong colours over a grey palette, a 3-D view from behind and above the robot without
-rerun's point cloud of the whole depth image (hidden, one toggle away in the blueprint panel), and
-plots of the mount against its configured value and of the stage timings after the warm-up frame.
-The entity paths are listed in ``sinks/rerun/rerun.py``; every rerun call of depthnav lives in
-these two modules (the API moves between releases).
+The layout puts depthnav's results first: a top-down view (the paper's costmap figures: what a
+costmap receives, with the obstacle memory; with odometry a second one in the odometry frame, the
+robot moving through its memory, shown first), the depth image in the figures' palette under
+strong colours, a 3-D view from behind and above the robot without rerun's point cloud of the
+whole depth image (hidden, one toggle away in the blueprint panel), and plots of the mount against
+its configured value and of the stage timings after each stage's first run.
+
+The layout follows what the frames show: it is sent again (a new blueprint, made active) when
+odometry first comes, when the mount's trust changes (the top-down view's title says it; the Log
+tab comes to the front while it is not trusted) and when a mount or floor estimate leaves the pose
+plots' range. The drawings are in ``depth``, ``topdown`` and ``world``; the entity paths are
+listed in ``sinks/rerun/rerun.py``; every rerun call of depthnav lives in these modules (the API
+moves between releases).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import math
+from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from depthnav_daemon.pipeline.geometry import rot_x, rot_y, rot_z
-from depthnav_daemon.sinks.rerun import topdown
-from depthnav_daemon.sinks.rerun.depth import CLASS_CLIFF, CLASS_OBSTACLE, CLIFF_RGBA, log_depth
+from depthnav_daemon.pipeline.geometry import Mount, rot_x, rot_y, rot_z
+from depthnav_daemon.plots import rgb
+from depthnav_daemon.plots.overlays import (
+    SOURCE_NAMES,
+    dropoff_areas,
+    to_odom,
+    untrusted,
+)
+from depthnav_daemon.sinks.rerun import topdown, world
+from depthnav_daemon.sinks.rerun.depth import CLASSES, log_depth
 
 if TYPE_CHECKING:
     from depthnav_daemon.pipeline import MountTrust, Result
-    from depthnav_daemon.pipeline.geometry import Mount
-    from depthnav_daemon.pipeline.scan import LaserScan
     from depthnav_daemon.sinks.base import SinkContext
     from drivers.base import Frame, Intrinsics
 
 DEPTH = "/world/sensor/depth"
 STATS = "/stats"
 STEADY_TIMING = f"{STATS}/timing_after_warmup"
-SCAN_Z_M = 0.01  # scan hits are drawn just above the floor, like a footprint map
 SCAN_RGB = topdown.SCAN_RGB
 CLIFF_RGB = topdown.CLIFF_RGB
-OBSTACLE_RGBA = (255, 30, 30, 230)
 CONFIG_RGB = (150, 150, 150)
-FRUSTUM_DEPTH_M = 0.5
+FLOOR_RGB = rgb("floor")  # floor estimates: one contrasting colour and marker on every plot
 # pose series: (key, unit, colour of the mount in use); the floor estimate and the configured
-# value share the view, as points and a grey line
+# value share the view, as crosses and a grey line
 POSE_SERIES = (
     ("height", "m", (255, 128, 0)),
     ("tilt", "deg", (0, 160, 255)),
     ("roll", "deg", (160, 80, 255)),
 )
-POSE_DEFAULT = {"height": 0.5, "tilt": 0.0, "roll": 0.0}  # scales when no mount is configured
-STAGE_COLORS = {"scan": (0, 200, 80), "cliff": (230, 0, 230), "pose": (255, 170, 0)}
+POSE_UNKNOWN = {"height": (0.0, 1.0), "tilt": (-10.0, 45.0), "roll": (-10.0, 10.0)}  # no mount
+POSE_SPAN = {"height": 0.25, "tilt": 8.0, "roll": 8.0}  # a pose plot's half range at least
+POSE_STEP = {"height": 0.25, "tilt": 5.0, "roll": 5.0}  # ranges are rounded out to these
+STAGE_COLORS = {
+    "scan": (0, 200, 80),
+    "cliff": (230, 0, 230),
+    "pose": (255, 170, 0),
+    "memory": (31, 168, 168),
+}
+DEPTH_VIEW = "Depth: red obstacle, magenta drop-off, blue-grey no reading"
+UNTRUSTED_VIEW = "Top down [m]: mount NOT trusted, drop-offs and scan amber"
+UNTRUSTED_ODOM_VIEW = "Odometry frame [m]: mount NOT trusted, drop-offs and scan amber"
+PATH_MIN_STEP_M = 0.02  # the odometry path keeps a point every 2 cm
 
 
 @dataclass
 class LayoutState:
-    """The sink's drawing settings, and what was last logged as static (logged again only when
-    it changes).
+    """The sink's drawing settings, what was last logged as static (logged again only when it
+    changes) and what the layout depends on (sent again when it changes).
 
     Attributes:
         footprint_m: the robot's length and width drawn behind the sensor, metres.
         reach_m: the scan's range_max (the top-down view's extent, the depth palette's far end).
         block_size: the configured cliff block side, pixels (when a result carries none).
         configured: the configured mount, plotted beside the mount in use; None if unknown.
-        frames: frames logged so far (the first one is the warm-up).
+        context: what the sink was opened with (for the layout sent again).
+        frames: frames logged so far.
         intrinsics, scan_layout: what the pinhole and the field of view were last logged for.
         trust: the mount trust last logged to /log (logged again when it changes).
+        stages: stages whose first run (tables, compilation) was logged: later runs go to the
+            steady timing plot.
+        config_source: the configured mount's series name last logged.
+        half_fov_rad: half the scan's field of view (the top-down view's width).
+        odom_start: the first odometry pose (x, y, yaw) of the memory, or None before.
+        path: the odometry path, (x, y) points in the odometry frame.
+        untrusted: whether the layout was last sent for an untrusted mount.
+        pose_ranges: each pose plot's (lo, hi) in the layout last sent.
+        layouts: blueprints sent so far (the first at open).
     """
 
     footprint_m: tuple[float, float] = topdown.DEFAULT_FOOTPRINT_M
     reach_m: float = 5.0
     block_size: int = 16
     configured: Mount | None = None
+    context: SinkContext | None = None
     frames: int = 0
     intrinsics: Intrinsics | None = None
     scan_layout: tuple[float, float, int] | None = None
     trust: MountTrust | None = None
+    stages: set[str] = field(default_factory=set)
+    config_source: str | None = None
+    half_fov_rad: float = 0.6
+    odom_start: tuple[float, float, float] | None = None
+    path: list[tuple[float, float]] = field(default_factory=list)
+    untrusted: bool = False
+    pose_ranges: dict[str, tuple[float, float]] = field(default_factory=dict)
+    layouts: int = 0
 
 
-def _xy_to_points3d(x: np.ndarray, y: np.ndarray, z: float) -> np.ndarray:
-    return np.stack([x, y, np.full_like(x, z)], axis=1).astype(np.float32)
+def pose_ranges(state: LayoutState, values: dict[str, list[float]]) -> dict[str, tuple]:
+    """Each pose plot's range: around the configured value and every value given (the mount in
+    use, floor estimates), at least POSE_SPAN either side, rounded out to POSE_STEP so it changes
+    seldom. With no configured mount, wide enough for any usual mount (POSE_UNKNOWN)."""
+    out = {}
+    for key, unit, _ in POSE_SERIES:
+        m = state.configured
+        seen = list(values.get(key, []))
+        if m is not None:
+            seen.append(getattr(m, f"{key}_{unit}"))
+        span, step = POSE_SPAN[key], POSE_STEP[key]
+        lo, hi = POSE_UNKNOWN[key] if not seen else (min(seen) - span, max(seen) + span)
+        lo, hi = math.floor(lo / step) * step, math.ceil(hi / step) * step
+        if key == "height":
+            lo = max(0.0, lo)
+        out[key] = (lo, hi)
+    return out
 
 
-def scan_points(scan: LaserScan, z: float = SCAN_Z_M) -> np.ndarray:
-    """(K, 3) float32 points of a scan's finite ranges, level frame at the sensor's foot."""
-    r = np.asarray(scan.ranges, dtype=np.float64)
-    ok = np.isfinite(r)
-    a = scan.angles[ok]
-    return _xy_to_points3d(r[ok] * np.cos(a), r[ok] * np.sin(a), z)
-
-
-def blueprint(context: SinkContext | None = None) -> Any:
-    """The default layout: top down, depth and 3-D above; mount and timing plots below."""
+def blueprint(context: SinkContext | None = None, state: LayoutState | None = None) -> Any:
+    """The layout: top down (a third of the width), depth and 3-D above; mount and timing plots
+    below. ``state`` (what the frames showed so far) adds the odometry-frame view, the trust in
+    the top-down title and wider pose ranges."""
     import rerun.blueprint as rrb
 
-    reach = context.scan_params.range_max_m if context is not None else 5.0
+    state = state or LayoutState(configured=context.mount if context is not None else None)
+    reach = context.scan_params.range_max_m if context is not None else state.reach_m
+    base = topdown.view(reach, state.half_fov_rad, UNTRUSTED_VIEW if state.untrusted else "")
+    top: Any = base
+    if state.odom_start is not None:
+        odom = topdown.odom_view(
+            state.odom_start, reach, UNTRUSTED_ODOM_VIEW if state.untrusted else ""
+        )
+        top = rrb.Tabs(odom, base, active_tab=0)
     views = rrb.Horizontal(
-        topdown.view(reach),
-        rrb.Spatial2DView(
-            name="Depth: red obstacle, magenta drop-off, green scan pixel", origin=DEPTH
-        ),
+        top,
+        rrb.Spatial2DView(name=DEPTH_VIEW, origin=DEPTH),
         rrb.Spatial3DView(
             name="3D",
             origin="/world",
@@ -103,12 +159,16 @@ def blueprint(context: SinkContext | None = None) -> Any:
             # the depth image as a point cloud: one click on its eye in the blueprint panel
             overrides={DEPTH: rrb.EntityBehavior(visible=False)},
         ),
-        column_shares=[2, 3, 3],
+        column_shares=[4, 3, 3],
     )
-    mount = context.mount if context is not None else None
+    ranges = state.pose_ranges or pose_ranges(state, {})
     plots = rrb.Horizontal(
-        *(_pose_view(rrb, key, unit, mount) for key, unit, _ in POSE_SERIES),
-        rrb.Tabs(_timing_view(rrb), rrb.TextLogView(name="Log", origin="/log"), active_tab=0),
+        *(_pose_view(rrb, key, unit, ranges[key]) for key, unit, _ in POSE_SERIES),
+        rrb.Tabs(
+            _timing_view(rrb),
+            rrb.TextLogView(name="Log", origin="/log"),
+            active_tab=1 if state.untrusted else 0,
+        ),
     )
     return rrb.Blueprint(
         rrb.Vertical(views, plots, row_shares=[3, 1]),
@@ -118,17 +178,9 @@ def blueprint(context: SinkContext | None = None) -> Any:
     )
 
 
-def _pose_view(rrb: Any, key: str, unit: str, mount: Mount | None) -> Any:
-    """One pose value: in use, floor estimates and configured, on a scale around the configured
-    value (metres and degrees never share an axis)."""
-    c = getattr(mount, f"{key}_{unit}", None) if mount is not None else None
-    c = c if c is not None else POSE_DEFAULT[key]
-    # wide enough for a mount far from its configured value, narrow enough to see a drift
-    lo, hi = {
-        "height": (0.0, max(1.0, 2.0 * c)),
-        "tilt": (min(-5.0, c - 10.0), max(45.0, c + 10.0)),
-        "roll": (min(-10.0, c - 10.0), max(10.0, c + 10.0)),
-    }[key]
+def _pose_view(rrb: Any, key: str, unit: str, lo_hi: tuple[float, float]) -> Any:
+    """One pose value: in use, floor estimates and configured, on a range around their values
+    (metres and degrees never share an axis)."""
     return rrb.TimeSeriesView(
         name=f"{key.capitalize()} [{unit}]",
         origin=f"{STATS}/pose",
@@ -137,15 +189,16 @@ def _pose_view(rrb: Any, key: str, unit: str, mount: Mount | None) -> Any:
             f"+ $origin/{key}_floor_{unit}",
             f"+ $origin/{key}_config_{unit}",
         ],
-        axis_y=rrb.ScalarAxis(range=(lo, hi), zoom_lock=False),
+        axis_y=rrb.ScalarAxis(range=lo_hi, zoom_lock=False),
         plot_legend=rrb.PlotLegend("RightTop"),
     )
 
 
 def _timing_view(rrb: Any) -> Any:
-    """Stage timings after the first frame, which builds the tables and compiles (100s of ms).
+    """Stage timings after each stage's first run, which builds the tables and compiles (100s of
+    ms; the memory's comes with the first odometry).
 
-    A separate copy: a visible time range hides the first frame's points, but rerun 0.41 still
+    A separate copy: a visible time range hides the first run's points, but rerun 0.41 still
     scales the y axis to them, which flattens every later value to zero.
     """
     return rrb.TimeSeriesView(
@@ -153,6 +206,52 @@ def _timing_view(rrb: Any) -> Any:
         origin=STEADY_TIMING,
         plot_legend=rrb.PlotLegend("RightTop"),
     )
+
+
+def update_layout(rr: Any, rec: Any, result: Result, state: LayoutState) -> bool:
+    """Send the layout again when what it depends on changed with this frame: odometry came, the
+    trust changed, or a mount value left its plot's range. Whether it was sent."""
+    changed = False
+    mem = result.memory
+    if state.odom_start is None and mem is not None and mem.pose is not None:
+        state.odom_start = mem.pose
+        reach = min(state.reach_m, topdown.MAX_REACH_M)
+        # its legend: left of where the robot looks at first, beside its start
+        corner = topdown.uv(to_odom(np.array([[-0.3, 0.3 * reach + 0.3]]), mem.pose))[0]
+        height = min(3.0, 0.6 * reach)
+        topdown.log_legend(
+            rr, rec, f"{topdown.ODOM}/legend", (corner[0], corner[1] - height), height
+        )
+        changed = True
+    bad = untrusted(result)
+    if bad != state.untrusted:
+        state.untrusted = bad
+        changed = True
+    values: dict[str, list[float]] = {}
+    m, pose = result.mount, result.pose
+    for key, unit, _ in POSE_SERIES:
+        values[key] = [getattr(m, f"{key}_{unit}")]
+        if pose is not None and pose.ok:
+            values[key].append(getattr(pose, f"{key}_{unit}"))
+    ranges = pose_ranges(state, values)
+    if not state.pose_ranges:
+        state.pose_ranges = pose_ranges(state, {})
+    if any(
+        ranges[k][0] < state.pose_ranges[k][0] or ranges[k][1] > state.pose_ranges[k][1]
+        for k in ranges
+    ):
+        state.pose_ranges = {
+            k: (
+                min(ranges[k][0], state.pose_ranges[k][0]),
+                max(ranges[k][1], state.pose_ranges[k][1]),
+            )
+            for k in ranges
+        }
+        changed = True
+    if changed:
+        rec.send_blueprint(blueprint(state.context, state), make_active=True, make_default=True)
+        state.layouts += 1
+    return changed
 
 
 def log_static(rr: Any, rec: Any, context: SinkContext, state: LayoutState) -> None:
@@ -171,22 +270,10 @@ def log_static(rr: Any, rec: Any, context: SinkContext, state: LayoutState) -> N
             mins=[[-length, -width / 2, 0.0]],
             sizes=[[length, width, height]],
             colors=[[180, 180, 180]],
-            labels=["robot"],
         ),
         static=True,
     )
-    rec.log(
-        f"{DEPTH}/obstacles",
-        # class 0 must be transparent explicitly, or rerun tints the whole depth image
-        rr.AnnotationContext(
-            [
-                (0, "", (0, 0, 0, 0)),
-                (CLASS_OBSTACLE, "obstacle (scan)", OBSTACLE_RGBA),
-                (CLASS_CLIFF, "drop-off block", CLIFF_RGBA),
-            ]
-        ),
-        static=True,
-    )
+    rec.log(f"{DEPTH}/obstacles", rr.AnnotationContext(list(CLASSES)), static=True)
     _log_series_styles(rr, rec)
     topdown.log_static(rr, rec, context.scan_params.range_max_m, state.footprint_m)
     rec.log(
@@ -205,13 +292,8 @@ def _log_series_styles(rr: Any, rec: Any) -> None:
         rec.log(
             f"{path}_floor_{unit}",
             rr.SeriesPoints(
-                colors=[color], names="floor estimate", markers="circle", marker_sizes=3
+                colors=[FLOOR_RGB], names="floor estimate", markers="cross", marker_sizes=5
             ),
-            static=True,
-        )
-        rec.log(
-            f"{path}_config_{unit}",
-            rr.SeriesLines(colors=[CONFIG_RGB], names="configured", widths=1),
             static=True,
         )
     for stage, color in STAGE_COLORS.items():
@@ -223,30 +305,10 @@ def _log_series_styles(rr: Any, rec: Any) -> None:
             rec.log(f"{folder}/{stage}_ms", style, static=True)
 
 
-def log_intrinsics(rr: Any, rec: Any, intr: Intrinsics) -> None:
-    """The pinhole of the depth image and the sensor's frustum in 3-D (static; again on change)."""
+def _log_config_style(rr: Any, rec: Any, key: str, unit: str, name: str) -> None:
     rec.log(
-        DEPTH,
-        rr.Pinhole(
-            focal_length=[intr.fx, intr.fy],
-            principal_point=[intr.cx, intr.cy],
-            width=intr.width,
-            height=intr.height,
-            camera_xyz=rr.ViewCoordinates.FLU,
-            image_plane_distance=FRUSTUM_DEPTH_M,
-        ),
-        static=True,
-    )
-    # corners of the image at FRUSTUM_DEPTH_M, sensor body frame (x forward, y left, z up)
-    u = (np.array([0.0, intr.width, intr.width, 0.0]) - 0.5 - intr.cx) / intr.fx
-    v = (np.array([0.0, 0.0, intr.height, intr.height]) - 0.5 - intr.cy) / intr.fy
-    d = FRUSTUM_DEPTH_M
-    corners = np.stack([np.full(4, d), -u * d, -v * d], axis=1)
-    strips = [[[0.0, 0.0, 0.0], c] for c in corners.tolist()]
-    strips.append([*corners.tolist(), corners[0].tolist()])
-    rec.log(
-        "/world/sensor/fov",
-        rr.LineStrips3D(strips, radii=0.004, colors=[[74, 144, 217]]),
+        f"{STATS}/pose/{key}_config_{unit}",
+        rr.SeriesLines(colors=[CONFIG_RGB], names=name, widths=1),
         static=True,
     )
 
@@ -260,18 +322,28 @@ def log_frame(
     # on the robot, as the base-frame scan and cliff points drawn beside it assume
     rot = rot_z(m.yaw_rad) @ rot_y(m.tilt_rad) @ rot_x(m.roll_rad)
     rec.log("/world/sensor", rr.Transform3D(translation=[m.x_m, m.y_m, m.height_m], mat3x3=rot))
-    if image:
-        if frame.intrinsics != state.intrinsics:
-            log_intrinsics(rr, rec, frame.intrinsics)
-            state.intrinsics = frame.intrinsics
-        log_depth(rr, rec, frame, result, state)
-    _log_world(rr, rec, result)
     layout = (result.scan.angle_min, result.scan.angle_max, result.scan.ranges.size)
     if layout != state.scan_layout:
+        state.half_fov_rad = max(abs(result.scan.angle_min), abs(result.scan.angle_max))
         topdown.log_fov(rr, rec, result.scan, state.reach_m)
         state.scan_layout = layout
-    topdown.log_frame(rr, rec, result)
-    _log_stats(rr, rec, result, state.configured, warmup=state.frames == 0)
+    update_layout(rr, rec, result, state)
+    areas = dropoff_areas(frame.depth_mm, result, min(state.reach_m, topdown.MAX_REACH_M))
+    if image:
+        if frame.intrinsics != state.intrinsics:
+            world.log_intrinsics(rr, rec, frame.intrinsics)
+            state.intrinsics = frame.intrinsics
+        log_depth(rr, rec, frame, result, state, areas)
+    world.log_world(rr, rec, result, areas)
+    topdown.log_frame(rr, rec, result, areas)
+    mem = result.memory
+    if mem is not None and mem.pose is not None:
+        x, y, _ = mem.pose
+        if not state.path or math.dist(state.path[-1], (x, y)) >= PATH_MIN_STEP_M:
+            state.path.append((x, y))
+            del state.path[: max(0, len(state.path) - topdown.PATH_POINTS)]
+        topdown.log_odom_frame(rr, rec, result, areas, state.path, state.footprint_m)
+    _log_stats(rr, rec, result, state)
     if result.mount_trust != state.trust and result.mount_trust is not None:
         rec.log("/log", trust_text(rr, result))
         state.trust = result.mount_trust
@@ -280,59 +352,48 @@ def log_frame(
 
 def trust_text(rr: Any, result: Result) -> Any:
     """A TextLog saying where the mount came from and whether drop-offs are trusted (WARN while
-    they are not; amber drop-offs then)."""
+    they are not; amber drop-offs and scan then)."""
     t = result.mount_trust
     assert t is not None
-    head = f"frame {result.seq}: mount from {t.source}{' (pinned)' if t.pinned else ''}, "
+    source = SOURCE_NAMES.get(t.source, t.source) if t.source == "default" else t.source
+    head = f"frame {result.seq}: mount from {source}{' (pinned)' if t.pinned else ''}, "
     if t.dropoffs_trusted:
         return rr.TextLog(head + f"floor {t.floor}: drop-offs trusted", level="INFO")
     return rr.TextLog(head + f"{t.note} (drawn amber)", level="WARN")
 
 
-def _log_world(rr: Any, rec: Any, result: Result) -> None:
-    from depthnav_daemon.plots.overlays import cliff_cell_sizes_m, scan_strips
-
-    rec.log("/world/scan", rr.Points3D(scan_points(result.scan), radii=0.02, colors=[SCAN_RGB]))
-    strips = [_xy_to_points3d(s[:, 0], s[:, 1], SCAN_Z_M) for s in scan_strips(result.scan)]
-    rec.log("/world/scan/line", rr.LineStrips3D(strips, radii=0.008, colors=[SCAN_RGB]))
-    cliff = result.cliff
-    if cliff is None:
-        return
-    pts = np.asarray(cliff.points_m, dtype=np.float32).reshape(-1, 2)
-    rgb = topdown.cliff_rgb(result)
-    rec.log(
-        "/world/cliff/points",
-        rr.Points3D(_xy_to_points3d(pts[:, 0], pts[:, 1], 0.0), radii=0.01, colors=[rgb]),
-    )
-    sides = cliff_cell_sizes_m(result)
-    rec.log(
-        "/world/cliff/cells",
-        rr.Boxes3D(
-            centers=_xy_to_points3d(pts[:, 0], pts[:, 1], 0.003),
-            half_sizes=np.stack([sides / 2, sides / 2, np.full_like(sides, 0.003)], axis=1),
-            colors=[rgb],
-            fill_mode=rr.components.FillMode.Solid,
-        ),
-    )
-    rec.log(
-        "/world/cliff/scan",
-        rr.Points3D(scan_points(cliff.scan, 0.02), radii=0.025, colors=[[255, 60, 60]]),
-    )
+def _level(m: Mount) -> tuple[float, float, float]:
+    return m.height_m, m.tilt_deg, m.roll_deg
 
 
-def _log_stats(rr: Any, rec: Any, result: Result, configured: Mount | None, warmup: bool) -> None:
-    m, pose = result.mount, result.pose
+def _log_stats(rr: Any, rec: Any, result: Result, state: LayoutState) -> None:
+    m, pose, configured = result.mount, result.pose, state.configured
+    trust = result.mount_trust
+    if state.config_source is None:
+        # the built-in default is no configuration: the plots' legends say so (the tracker's
+        # rule: an unpinned mount at the built-in height, tilt and roll; from the first frame)
+        name = "configured"
+        default = configured is None or _level(configured) == _level(Mount())
+        if trust is not None and default and not trust.pinned:
+            name = SOURCE_NAMES["default"]
+        for key, unit, _ in POSE_SERIES:
+            _log_config_style(rr, rec, key, unit, name)
+        state.config_source = name
     for key, unit, _ in POSE_SERIES:
         path = f"{STATS}/pose/{key}"
         rec.log(f"{path}_{unit}", rr.Scalars(getattr(m, f"{key}_{unit}")))
-        if pose is not None and pose.ok:
-            rec.log(f"{path}_floor_{unit}", rr.Scalars(getattr(pose, f"{key}_{unit}")))
+        floor = getattr(pose, f"{key}_{unit}") if pose is not None and pose.ok else None
+        if floor is None and trust is not None:  # a contradicting estimate, on every frame
+            floor = getattr(trust, f"floor_{key}_{unit}", None)
+        if floor is not None:
+            rec.log(f"{path}_floor_{unit}", rr.Scalars(floor))
         if configured is not None:
             rec.log(f"{path}_config_{unit}", rr.Scalars(getattr(configured, f"{key}_{unit}")))
     for stage, seconds in result.timings_s.items():
         rec.log(f"{STATS}/timing/{stage}_ms", rr.Scalars(seconds * 1000.0))
-        if not warmup:
+        if stage in state.stages:  # each stage's first run builds tables and compiles
             rec.log(f"{STEADY_TIMING}/{stage}_ms", rr.Scalars(seconds * 1000.0))
+        state.stages.add(stage)
     if result.warning:
         rec.log("/log", rr.TextLog(f"frame {result.seq}: {result.warning}", level="WARN"))
     if pose is not None and not pose.ok:

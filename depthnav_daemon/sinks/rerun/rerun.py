@@ -15,22 +15,30 @@ Entities (the world is the robot's base frame, x forward, y left, z up, floor z=
     /world/robot                  Boxes3D: the robot up to the configured sensor height (static)
     /world/sensor                 Transform3D: the mount (x, y, height; yaw, tilt nose down, roll)
     /world/sensor/fov             LineStrips3D: the sensor's frustum, 0.5 m deep (static)
-    /world/sensor/depth           Pinhole (camera_xyz=FLU) + DepthImage (mm, meter=1000, grey)
+    /world/sensor/depth           Pinhole (camera_xyz=FLU) + DepthImage (mm, meter=1000; the
+                                  figures' palette: near light, far dark)
     /world/sensor/depth/band      Boxes2D: the rows the scan uses (none when it reads every row)
-    /world/sensor/depth/obstacles SegmentationImage: pixels the scan counts as obstacles (class 1)
+    /world/sensor/depth/obstacles SegmentationImage: obstacle pixels (1), the drop-offs' lower
+                                  floor (2; 3 while the mount is not trusted), no reading (4)
     /world/sensor/depth/scan_pixels  Points2D: the pixel each scan reading came from
-    /world/sensor/depth/cliffs    Boxes2D: detected cliff blocks, filled
+    /world/sensor/depth/cliffs    Boxes2D: the detector's cliff blocks, outlined
     /world/scan, /world/scan/line Points3D, LineStrips3D: scan hits, drawn on the floor
-    /world/cliff/points           Points3D: cliff floor points
-    /world/cliff/cells            Boxes3D: a filled cell per cliff point, a block wide
-    /world/cliff/scan             Points3D: nearest drop-off per bearing
-    /topdown/...                  2-D top-down view (u = -y, v = -x metres): scan (+ /points),
-                                  cliff, robot, sensor, fov, rings (+ /labels); see rerun_topdown
+    /world/cliff/points           Points3D: the drop-offs' edge points
+    /world/cliff/area             Mesh3D: each drop-off's lower floor seen, from its edge
+    /world/cliff/scan             LineStrips3D: the cliff scan (nearest drop-off edge per bearing)
+    /world/memory/{obstacles,cliffs,scan}   Boxes3D, LineStrips3D: the memory's cells, its scan
+    /topdown/...                  2-D top-down view, robot frame (u = -y, v = -x metres): scan
+                                  (+ /points, /too_close), cliff (edge points; /area, /scan),
+                                  memory (/obstacles, /cliffs, /scan), robot, sensor, fov, rings
+                                  (+ /labels), legend; see rerun_topdown
+    /odom/...                     2-D top-down view, odometry frame (with odometry): memory
+                                  (/obstacles, /cliffs, /scan), path, robot, scan, cliff/scan
     /stats/pose/{height_m,tilt_deg,roll_deg}   Scalars: the mount in use
     /stats/pose/{height,tilt,roll}_floor_{m,deg}, ..._config_{m,deg}   Scalars: floor estimates
                                   (frames that ran the pose stage), the configured mount
-    /stats/timing/<stage>_ms      Scalars
-    /log                          TextLog: per-frame warnings
+    /stats/timing/<stage>_ms      Scalars; /stats/timing_after_warmup/<stage>_ms: without each
+                                  stage's first run
+    /log                          TextLog: per-frame warnings, each change of the mount's trust
 Timelines: ``frame`` (= seq) and ``sensor_time`` (the frame timestamp, seconds, as a duration).
 The default layout and what is logged per frame live in ``rerun_layout`` (with ``rerun_depth``
 and ``rerun_topdown``); every rerun call of depthnav lives in these modules (the API moves between
@@ -69,10 +77,10 @@ from depthnav_daemon.sinks.rerun.layout import (
     blueprint,
     log_frame,
     log_static,
-    scan_points,
 )
 from depthnav_daemon.sinks.rerun.topdown import DEFAULT_FOOTPRINT_M
 from depthnav_daemon.sinks.rerun.viewer import DEFAULT_GRPC, check_viewer
+from depthnav_daemon.sinks.rerun.world import scan_points
 
 if TYPE_CHECKING:
     from depthnav_daemon.pipeline import Result
@@ -234,7 +242,7 @@ class RerunSink:
         self._rr, self._context = rr, context
         st = self._state
         st.reach_m, st.block_size = context.scan_params.range_max_m, context.cliff_block_size
-        st.configured = context.mount
+        st.configured, st.context = context.mount, context
         rec = rr.RecordingStream(APP_ID, recording_id=uuid.uuid4())
         try:
             self._attach(rec, blueprint(context))
