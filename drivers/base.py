@@ -340,6 +340,22 @@ class Frame:
 
 
 @dataclass(frozen=True, slots=True)
+class SensorPlacement:
+    """Where a recording says its sensor sits on the robot (a bag's ``/tf_static``): the
+    optical centre at (x_m, y_m, height_m) in the base frame (REP 103: x forward, y left, z up,
+    origin on the floor), looking yaw_deg counter-clockwise, tilt_deg down, roll_deg left side
+    up; ``source`` says where it came from, for the log."""
+
+    height_m: float
+    tilt_deg: float
+    roll_deg: float
+    x_m: float
+    y_m: float
+    yaw_deg: float
+    source: str
+
+
+@dataclass(frozen=True, slots=True)
 class DeviceInfo:
     """What an opened driver says about its device."""
 
@@ -348,6 +364,7 @@ class DeviceInfo:
     spec: str  # the canonical spec it was opened with
     intrinsics: Intrinsics | None = None
     has_accel: bool = False
+    placement: SensorPlacement | None = None  # where the recording says the sensor sits
 
 
 class Driver(Protocol):

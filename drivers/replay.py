@@ -43,7 +43,16 @@ from pathlib import Path
 import numpy as np
 import numpy.typing as npt
 
-from drivers.base import KINECT_V1, LENS_KEYS, DeviceInfo, Driver, Frame, Intrinsics, TiltState
+from drivers.base import (
+    KINECT_V1,
+    LENS_KEYS,
+    DeviceInfo,
+    Driver,
+    Frame,
+    Intrinsics,
+    SensorPlacement,
+    TiltState,
+)
 from drivers.errors import DeviceSpecError, DriverError, RecordingError
 from drivers.files import check_path_length, check_regular
 from drivers.formats import fakenect, png_folder, rosbag
@@ -103,6 +112,7 @@ class ReplayDriver:
         topic: str | None = None,
         info_topic: str | None = None,
         glob: str | None = None,
+        base_frame: str | None = None,
     ) -> None:
         self.path = Path(path)
         self.realtime = realtime
@@ -114,6 +124,8 @@ class ReplayDriver:
         self.start = start
         self.spec_text = spec_text or f"replay:{path}"
         self.topics = (topic, info_topic)  # ROS bags: depth image and CameraInfo topics
+        self.base_frame = base_frame  # ROS bags: the robot frame /tf_static places the camera in
+        self._placement: SensorPlacement | None = None
         self.glob = glob  # image folders: which files are depth
         self._image_list: list[tuple[float, Path]] | None = None  # listed once, kept to loop
         self._items: Iterator[Item] | None = None
@@ -148,6 +160,7 @@ class ReplayDriver:
             topic=spec.options.get("topic"),
             info_topic=spec.options.get("info_topic"),
             glob=spec.options.get("glob"),
+            base_frame=spec.options.get("base_frame"),
         )
 
     # --- sources -------------------------------------------------------------------------
@@ -278,11 +291,12 @@ class ReplayDriver:
                     check_regular(part)
         else:
             check_regular(self.path)
-        bag = rosbag.DepthBag(self.path, *self.topics)
+        bag = rosbag.DepthBag(self.path, *self.topics, base_frame=self.base_frame)
         probe = bag.probe(
             intrinsics_given=all(k in self.overrides for k in ("fx", "fy", "cx", "cy"))
         )
         self._has_accel = probe.imu_topic is not None
+        self._placement = probe.placement
         base = None if probe.camera is None else probe.camera.intrinsics
         intr = self._intrinsics_with(base, probe.shape)
         items = ((stamp, depth, accel, None, None) for stamp, depth, accel in bag.frames())
@@ -360,6 +374,7 @@ class ReplayDriver:
                 spec=self.spec_text,
                 intrinsics=self._intrinsics,
                 has_accel=self._has_accel,
+                placement=self._placement,
             )
         self._is_open = True
         with ReplayDriver._count_lock:

@@ -47,6 +47,7 @@ DEVICE_OPTIONS: dict[str, tuple[str, tuple[tuple[str, str], ...]]] = {
             ("const_shift", "fakenect: disparity zero-plane constant (default 200)"),
             ("topic", "ROS bags: the depth image topic"),
             ("info_topic", "ROS bags: its CameraInfo topic"),
+            ("base_frame", "ROS bags: the robot frame /tf_static places the camera in"),
         ),
     ),
     "kinect": (

@@ -29,8 +29,9 @@ from depthnav_daemon.daemon.notify import FIRST_FRAME_S, OPEN_MARGIN_S, ServiceN
 from depthnav_daemon.daemon.outputs import close_outputs, fan_out, open_sinks, with_memory
 from depthnav_daemon.daemon.report import RunReport
 from depthnav_daemon.daemon.source import DeviceSource
-from depthnav_daemon.errors import FrameError
+from depthnav_daemon.errors import ConfigError, FrameError
 from depthnav_daemon.pipeline import Result, StageParams
+from depthnav_daemon.pipeline.geometry import Mount
 from depthnav_daemon.sinks import create_sink
 from depthnav_daemon.sinks.base import Sink, SinkContext
 from drivers import create_driver
@@ -77,7 +78,7 @@ def run(
     if opened is None:  # stopped while waiting for the device
         report.stopped = True
         return report
-    info, odometry = opened
+    cfg, step, info, odometry = _with_device_mount(cfg, opened, step, params, serial_tilt)
     sinks: list[Sink] = []
     keeper = MemoryKeeper(cfg.memory, cfg.odometry, odometry)
     notifier.starting(f"opening the sinks, first frame of {info.name}", FIRST_FRAME_S)
@@ -119,6 +120,54 @@ def run(
         report.reconnects = source.reconnects
         report.rejected_pose_jumps = step.rejected_pose_jumps
     return report
+
+
+def _with_device_mount(
+    cfg: Config,
+    opened: tuple[DeviceInfo, OdometrySource | None],
+    step: FrameStep,
+    params: StageParams,
+    tilt: TiltSource | None,
+) -> tuple[Config, FrameStep, DeviceInfo, OdometrySource | None]:
+    """``cfg`` and ``step`` with the recording's mount (:func:`mount_from_device`) when it
+    gives one nobody configured, else as they are; and what was opened."""
+    info, odometry = opened
+    placed = mount_from_device(cfg, info)
+    if placed is None:
+        return cfg, step, info, odometry
+    cfg = dataclasses.replace(cfg, mount=placed)
+    step.close()
+    return cfg, FrameStep(cfg, params, tilt), info, odometry
+
+
+def mount_from_device(cfg: Config, info: DeviceInfo) -> Mount | None:
+    """The mount a recording gives (a bag's ``/tf_static``: base frame -> the depth camera),
+    when the configuration gives none (the built-in mount, not pinned): said in the log; a
+    configured mount wins, and one the recording's disagrees with is said too. None otherwise
+    (then the configured mount, or the floor search, as without it)."""
+    p = info.placement
+    if p is None:
+        return None
+    try:
+        placed = Mount(p.height_m, p.tilt_deg, p.roll_deg, p.x_m, p.y_m, p.yaw_deg)
+    except ConfigError as exc:
+        log.warning("%s: the sensor's placement is not usable (%s): not used", p.source, exc)
+        return None
+    said = (
+        f"{placed.height_m:.3f} m high, tilt {placed.tilt_deg:.1f} deg, roll "
+        f"{placed.roll_deg:.1f} deg, at x {placed.x_m:.3f} m, y {placed.y_m:.3f} m, yaw "
+        f"{placed.yaw_deg:.1f} deg"
+    )
+    if cfg.mount != Mount() or cfg.daemon.tilt_source == "config":
+        if cfg.mount != placed:
+            log.info(
+                "the recording's %s places the sensor %s; the configured mount is used",
+                p.source,
+                said,
+            )
+        return None
+    log.info("mount from the recording's %s: %s (a [mount] in the config wins)", p.source, said)
+    return placed
 
 
 def _open_inputs(

@@ -42,18 +42,17 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from drivers.base import SensorPlacement
 from drivers.errors import DeviceSpecError, DriverError, RecordingError
-from drivers.formats import bag_limits, realsense_layout
+from drivers.formats import bag_limits, realsense_layout, ros_tf
 from drivers.formats.mcap_stream import StreamedMcap, open_cut_short
 from drivers.formats.ros_decode import (
     HINT_BROKEN,
     CameraModel,
     camera_model,
     decode_image,
-    frame_rotation,
     image_kind,
     is_depth_kind,
-    quat_matrix,
     stamp_s,
 )
 from drivers.values import short_repr, short_text
@@ -64,7 +63,7 @@ IMAGE = "sensor_msgs/msg/Image"
 COMPRESSED = "sensor_msgs/msg/CompressedImage"
 CAMERA_INFO = "sensor_msgs/msg/CameraInfo"
 IMU = "sensor_msgs/msg/Imu"
-TF_STATIC = "/tf_static"
+TF_STATIC = ros_tf.TF_STATIC
 SUFFIXES = (".bag", ".mcap", ".db3")
 
 Item = tuple[float, npt.NDArray[np.uint16], tuple[float, float, float] | None]
@@ -89,6 +88,8 @@ class BagProbe:
         imu_to_camera: (3, 3) rotation from the IMU's frame to the image's optical frame.
         units_um: micrometres per image count (1000: the images are millimetres; a RealSense
             recording's Depth_Units otherwise, see realsense_layout.py).
+        placement: the depth camera on the robot from ``/tf_static`` (ros_tf.camera_placement),
+            or None where the static transforms do not join a base frame to it.
     """
 
     depth_topic: str
@@ -99,6 +100,7 @@ class BagProbe:
     frames: int
     imu_to_camera: npt.NDArray[np.float64] | None
     units_um: int = realsense_layout.MM_UM
+    placement: SensorPlacement | None = None  # the camera on the robot, from /tf_static
 
 
 class DepthBag:
@@ -110,12 +112,20 @@ class DepthBag:
         info_topic: the CameraInfo topic, or None to find it.
     """
 
-    def __init__(self, path: Path, topic: str | None = None, info_topic: str | None = None) -> None:
+    def __init__(
+        self,
+        path: Path,
+        topic: str | None = None,
+        info_topic: str | None = None,
+        base_frame: str | None = None,
+    ) -> None:
         self.path = path
         self.topic = topic
         self.info_topic = info_topic
+        self.base_frame = base_frame  # the robot's frame the camera's placement is taken in
         self._paths: list[Path] = [path]
         self._probe: BagProbe | None = None
+        self._tf: dict[tuple[str, str], npt.NDArray[np.float64]] | None = None
         self._warned_streamed = False
 
     # --- opening -----------------------------------------------------------------------
@@ -228,9 +238,12 @@ class DepthBag:
                 imu_topic, imu_rot = rs.accel_topic, np.eye(3)
             else:
                 imu_topic, imu_rot = self._imu(reader, topics, str(image.header.frame_id))
+            placement = ros_tf.camera_placement(
+                self._static(reader, topics), str(image.header.frame_id), self.base_frame
+            )
             self._probe = BagProbe(
                 depth, info_topic, imu_topic, shape, camera, topics[depth][2], imu_rot,
-                rs.units_um if rs is not None else realsense_layout.MM_UM,
+                rs.units_um if rs is not None else realsense_layout.MM_UM, placement,
             )  # fmt: skip
             return self._probe
         finally:
@@ -379,6 +392,23 @@ class DepthBag:
             )
         return (name if camera is not None else None), camera
 
+    def _static(
+        self, reader: Any, topics: dict[str, tuple[str, list[Any], int]]
+    ) -> dict[tuple[str, str], npt.NDArray[np.float64]]:
+        """The bag's static transforms (ros_tf.read_static), read once per probe."""
+        if self._tf is None:
+            self._tf = {}
+            if TF_STATIC in topics:
+                conns = topics[TF_STATIC][1]
+                try:
+                    self._tf = ros_tf.read_static(
+                        (raw for _, _, raw in reader.messages(connections=conns)),
+                        lambda raw: reader.deserialize(raw, conns[0].msgtype),
+                    )
+                except Exception as exc:  # see _reader
+                    raise self._broken(exc, "reading /tf_static failed") from None
+        return self._tf
+
     def _imu(
         self, reader: Any, topics: dict[str, tuple[str, list[Any], int]], camera_frame: str
     ) -> tuple[str | None, npt.NDArray[np.float64] | None]:
@@ -393,19 +423,8 @@ class DepthBag:
         imu_frame = "" if first is None else str(first[0].header.frame_id)
         if imu_frame.lstrip("/") == camera_frame.lstrip("/"):
             return imus[0], np.eye(3)
-        static: dict[tuple[str, str], npt.NDArray[np.float64]] = {}
-        if TF_STATIC in topics:
-            try:
-                for conn, _, raw in reader.messages(connections=topics[TF_STATIC][1]):
-                    for tf in reader.deserialize(raw, conn.msgtype).transforms:
-                        key = (
-                            str(tf.header.frame_id).lstrip("/"),
-                            str(tf.child_frame_id).lstrip("/"),
-                        )
-                        static[key] = quat_matrix(tf.transform.rotation)
-            except Exception as exc:  # see _reader
-                raise self._broken(exc, "reading /tf_static failed") from None
-        rot = frame_rotation(static, imu_frame, camera_frame)
+        t = ros_tf.frame_transform(self._static(reader, topics), imu_frame, camera_frame)
+        rot = None if t is None else t[:3, :3]
         if rot is None:
             log.warning(
                 "%s: %s is in frame %s, which /tf_static does not join to the depth frame %s: "

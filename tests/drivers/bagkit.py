@@ -31,7 +31,7 @@ class BagSpec:
         pad: bytes of padding after each image row (``step`` larger than the row).
         info: write a CameraInfo per image.
         imu_frame: write an Imu per image in this frame (None: no Imu).
-        tf_static: (parent, child, quaternion xyzw) static transforms to write.
+        tf_static: (parent, child, quaternion xyzw[, translation xyz]) static transforms.
         extra_images: more Image topics: name -> encoding (written with the same frames).
         distortion: D coefficients of the CameraInfo.
         distortion_model: its distortion_model.
@@ -46,7 +46,7 @@ class BagSpec:
     pad: int = 0
     info: bool = True
     imu_frame: str | None = None
-    tf_static: Sequence[tuple[str, str, tuple[float, float, float, float]]] = ()
+    tf_static: Sequence[tuple] = ()
     extra_images: dict[str, str] = field(default_factory=dict)
     distortion: tuple[float, ...] = (0.0, 0.0, 0.0, 0.0, 0.0)
     distortion_model: str = "plumb_bob"
@@ -143,16 +143,18 @@ def imu_msg(ts: Any, accel: tuple[float, float, float], stamp: Any, frame_id: st
     )
 
 
-def tf_msg(ts: Any, stamp: Any, transforms: Sequence[tuple[str, str, tuple]]) -> Any:
+def tf_msg(ts: Any, stamp: Any, transforms: Sequence[tuple]) -> Any:
+    """A TFMessage of (parent, child, quaternion xyzw[, translation xyz m]) transforms."""
     t = ts.types
     out = []
-    for parent, child, (qx, qy, qz, qw) in transforms:
+    for parent, child, (qx, qy, qz, qw), *rest in transforms:
+        x, y, z = rest[0] if rest else (0.0, 0.0, 0.0)
         out.append(
             t["geometry_msgs/msg/TransformStamped"](
                 header=header(ts, stamp, parent),
                 child_frame_id=child,
                 transform=t["geometry_msgs/msg/Transform"](
-                    translation=t["geometry_msgs/msg/Vector3"](x=0.0, y=0.0, z=0.0),
+                    translation=t["geometry_msgs/msg/Vector3"](x=x, y=y, z=z),
                     rotation=t["geometry_msgs/msg/Quaternion"](x=qx, y=qy, z=qz, w=qw),
                 ),
             )
