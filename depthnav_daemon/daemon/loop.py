@@ -83,7 +83,9 @@ def run(
     keeper = MemoryKeeper(cfg.memory, cfg.odometry, odometry)
     notifier.starting(f"opening the sinks, first frame of {info.name}", FIRST_FRAME_S)
     try:
-        context = SinkContext(info, cfg.scan, cfg.cliff.block_size, __version__, cfg.mount)
+        context = SinkContext(
+            info, cfg.scan, cfg.cliff.block_size, __version__, cfg.mount, cfg.robot.footprint_m
+        )
         sinks = open_sinks(cfg.sinks, context, sink_factory)
         # the obstacle mask costs a pass over the image: only when a sink draws it
         wanted = any(getattr(sink, "needs_obstacle_mask", False) for sink in sinks)

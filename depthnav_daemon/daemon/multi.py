@@ -232,7 +232,9 @@ def run_sensors(
     keeper = MemoryKeeper(cfg.memory, cfg.odometry, odometry)
     notifier.starting("opening the sinks, first merged frame", FIRST_FRAME_S)
     try:
-        context = SinkContext(opened[0], cfg.scan, cfg.cliff.block_size, __version__)
+        context = SinkContext(
+            opened[0], cfg.scan, cfg.cliff.block_size, __version__, body_m=cfg.robot.footprint_m
+        )
         sinks = open_sinks(cfg.sinks, context, sink_factory)
         for w in workers:
             w.thread.start()

@@ -54,6 +54,8 @@ class SinkContext:
         cliff_block_size: side of a cliff-detection block, pixels (to draw the blocks).
         version: the depthnav version string.
         mount: the configured mount (what the floor estimates are compared with), or None.
+        body_m: the robot's outline on the floor ([robot] footprint_m, base frame, metres)
+            whose readings the stages ignore, drawn by the viewers; () when none is configured.
     """
 
     device: DeviceInfo
@@ -61,6 +63,7 @@ class SinkContext:
     cliff_block_size: int
     version: str
     mount: Mount | None = None
+    body_m: tuple[tuple[float, float], ...] = ()
 
 
 @runtime_checkable

@@ -290,6 +290,25 @@ def test_robot_footprint_option(tmp_path, context) -> None:
     assert np.allclose(robot.column("Boxes3D:half_sizes").to_pylist()[0][0][:2], [0.4, 0.3])
 
 
+def test_the_configured_robot_outline_is_drawn(tmp_path, context) -> None:
+    """A [robot] outline (its readings ignored by the stages) is what the viewer draws: the
+    top-down outline, closed, and its prism's edges in 3-D; not the drawing's box."""
+    body = ((0.35, 0.3), (-0.35, 0.3), (-0.35, -0.3), (0.2, -0.3), (0.35, -0.15))
+    frame, result = make_pair(0)
+    path = tmp_path / "body.rrd"
+    record(path, [(frame, result)], replace(context, body_m=body))
+    static = static_rows(path)
+    drawn = np.asarray(static["/topdown/robot"].column("LineStrips2D:strips").to_pylist()[0][0])
+    want = np.vstack([body, body[:1]])
+    # the view's 2-D coordinates: u = -y (left is left), v = -x (forward is up, v down)
+    assert np.allclose(drawn, np.c_[-want[:, 1], -want[:, 0]])
+    edges = static["/world/robot"].column("LineStrips3D:strips").to_pylist()[0]
+    assert len(edges) == 2 + len(body)  # floor and roof loops, one post per vertex
+    assert np.allclose(np.asarray(edges[0])[:, :2], want) and "Boxes3D:half_sizes" not in (
+        static["/world/robot"].schema.names
+    )
+
+
 def drive_rrd(tmp_path):
     """The drive fixture (odometry per frame) through the daemon's own loop into a .rrd, with
     the last frame's Result kept (the snapshot command's sink)."""

@@ -28,6 +28,7 @@ from depthnav_daemon.plots import rgb
 from depthnav_daemon.plots.overlays import (
     SOURCE_NAMES,
     dropoff_areas,
+    footprint_xy,
     to_odom,
     untrusted,
 )
@@ -75,6 +76,8 @@ class LayoutState:
 
     Attributes:
         footprint_m: the robot's length and width drawn behind the sensor, metres.
+        outline: (K, 2) the robot drawn in the top-down views: the [robot] outline when
+            configured, else the footprint_m box.
         reach_m: the scan's range_max (the top-down view's extent, the depth palette's far end).
         block_size: the configured cliff block side, pixels (when a result carries none).
         configured: the configured mount, plotted beside the mount in use; None if unknown.
@@ -94,6 +97,7 @@ class LayoutState:
     """
 
     footprint_m: tuple[float, float] = topdown.DEFAULT_FOOTPRINT_M
+    outline: np.ndarray = field(default_factory=lambda: footprint_xy(*topdown.DEFAULT_FOOTPRINT_M))
     reach_m: float = 5.0
     block_size: int = 16
     configured: Mount | None = None
@@ -254,6 +258,22 @@ def update_layout(rr: Any, rec: Any, result: Result, state: LayoutState) -> bool
     return changed
 
 
+def closed_outline(body_m: tuple[tuple[float, float], ...]) -> np.ndarray:
+    """(K + 1, 2) the [robot] outline, closed (its first vertex again at the end)."""
+    xy = np.asarray(body_m, dtype=float)
+    return np.vstack([xy, xy[:1]])
+
+
+def _prism(rr: Any, outline: np.ndarray, mount: Mount | None, height_m: float) -> Any:
+    """The robot's body as the edges of its outline's prism, from the floor to its top
+    (the [robot] height is not on the context: the sensor's height stands in for it)."""
+    top = height_m if mount is None else min(height_m, mount.height_m)
+    floor = [[x, y, 0.0] for x, y in outline]
+    roof = [[x, y, top] for x, y in outline]
+    posts = [[[x, y, 0.0], [x, y, top]] for x, y in outline[:-1]]
+    return rr.LineStrips3D([floor, roof, *posts], radii=0.006, colors=[[180, 180, 180]])
+
+
 def log_static(rr: Any, rec: Any, context: SinkContext, state: LayoutState) -> None:
     """The scene that never changes: frame conventions, floor grid, robot, colours and styles."""
     rec.log("/world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
@@ -264,18 +284,23 @@ def log_static(rr: Any, rec: Any, context: SinkContext, state: LayoutState) -> N
     )
     length, width = state.footprint_m
     height = context.mount.height_m if context.mount is not None else 0.5
-    rec.log(
-        "/world/robot",
-        rr.Boxes3D(
-            mins=[[-length, -width / 2, 0.0]],
-            sizes=[[length, width, height]],
-            colors=[[180, 180, 180]],
-        ),
-        static=True,
-    )
+    if context.body_m:  # the configured [robot] outline (its readings ignored), as a prism
+        state.outline = closed_outline(context.body_m)
+        rec.log("/world/robot", _prism(rr, state.outline, context.mount, height), static=True)
+    else:  # a box of the drawing's size behind the sensor
+        state.outline = footprint_xy(length, width)
+        rec.log(
+            "/world/robot",
+            rr.Boxes3D(
+                mins=[[-length, -width / 2, 0.0]],
+                sizes=[[length, width, height]],
+                colors=[[180, 180, 180]],
+            ),
+            static=True,
+        )
     rec.log(f"{DEPTH}/obstacles", rr.AnnotationContext(list(CLASSES)), static=True)
     _log_series_styles(rr, rec)
-    topdown.log_static(rr, rec, context.scan_params.range_max_m, state.footprint_m)
+    topdown.log_static(rr, rec, context.scan_params.range_max_m, state.outline)
     rec.log(
         "/meta",
         rr.AnyValues(version=context.version, device=context.device.name, spec=context.device.spec),
@@ -342,7 +367,7 @@ def log_frame(
         if not state.path or math.dist(state.path[-1], (x, y)) >= PATH_MIN_STEP_M:
             state.path.append((x, y))
             del state.path[: max(0, len(state.path) - topdown.PATH_POINTS)]
-        topdown.log_odom_frame(rr, rec, result, areas, state.path, state.footprint_m)
+        topdown.log_odom_frame(rr, rec, result, areas, state.path, state.outline)
     _log_stats(rr, rec, result, state)
     if result.mount_trust != state.trust and result.mount_trust is not None:
         rec.log("/log", trust_text(rr, result))

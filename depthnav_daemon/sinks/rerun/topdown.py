@@ -21,7 +21,6 @@ import numpy as np
 from depthnav_daemon.plots import rgb
 from depthnav_daemon.plots.overlays import (
     DEFAULT_FOOTPRINT_M,
-    footprint_xy,
     fov_xy,
     memory_cells_odom,
     memory_cells_xy,
@@ -118,9 +117,10 @@ def odom_view(start: tuple[float, float, float], reach_m: float, name: str = "")
 
 
 def log_static(
-    rr: Any, rec: Any, reach_m: float, footprint_m: tuple[float, float], half_fov_rad: float = 0.6
+    rr: Any, rec: Any, reach_m: float, outline: np.ndarray, half_fov_rad: float = 0.6
 ) -> None:
-    """Range rings with their labels, the robot's footprint, the sensor and the legend."""
+    """Range rings with their labels, the robot's outline ((K, 2) base frame, closed), the
+    sensor and the legend."""
     rings = range_rings(min(reach_m, MAX_REACH_M))
     rec.log(
         f"{TOPDOWN}/rings",
@@ -142,7 +142,7 @@ def log_static(
     )
     rec.log(
         f"{TOPDOWN}/robot",
-        rr.LineStrips2D([uv(footprint_xy(*footprint_m))], radii=0.012, colors=[ROBOT_RGB]),
+        rr.LineStrips2D([uv(outline)], radii=0.012, colors=[ROBOT_RGB]),
         static=True,
     )
     rec.log(
@@ -307,7 +307,7 @@ def log_odom_frame(
     result: Result,
     areas: DropoffAreas,
     path: list[tuple[float, float]],
-    footprint_m: tuple,
+    outline: np.ndarray,
 ) -> None:
     """The odometry-frame view of one frame with a memory pose: the memory's cells where they
     are, the robot at its pose with its path, the live scan and cliff scan."""
@@ -334,7 +334,7 @@ def log_odom_frame(
     rec.log(
         f"{ODOM}/robot",
         rr.LineStrips2D(
-            [uv(to_odom(footprint_xy(*footprint_m), pose))],
+            [uv(to_odom(outline, pose))],
             radii=0.012,
             colors=[ROBOT_RGB],
             draw_order=25,
