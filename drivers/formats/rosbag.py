@@ -276,8 +276,7 @@ class DepthBag:
         self._paths = files
         return self._reader()
 
-    @staticmethod
-    def _topics(reader: Any) -> dict[str, tuple[str, list[Any], int]]:
+    def _topics(self, reader: Any) -> dict[str, tuple[str, list[Any], int]]:
         """topic -> (message type, its connections, message count).
 
         A topic with connections of several types (a CameraInfo published on the depth topic)
@@ -287,7 +286,14 @@ class DepthBag:
         for conn in reader.connections:
             types = by_type.setdefault(conn.topic, {})
             conns, count = types.get(conn.msgtype, ([], 0))
-            types[conn.msgtype] = ([*conns, conn], count + max(conn.msgcount, 0))
+            n = conn.msgcount  # from metadata.yaml in a ROS 2 bag: anything YAML can hold
+            if isinstance(n, bool) or not isinstance(n, int):
+                raise RecordingError(
+                    f"{self.path}: not a readable ROS bag, topic {short_repr(conn.topic)} has "
+                    f"a message count of {short_repr(n)} (not a whole number)",
+                    hint=HINT_BROKEN,
+                )
+            types[conn.msgtype] = ([*conns, conn], count + max(n, 0))
         out: dict[str, tuple[str, list[Any], int]] = {}
         for topic, types in by_type.items():
             images = [t for t in (IMAGE, COMPRESSED) if t in types]

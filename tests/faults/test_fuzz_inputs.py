@@ -763,6 +763,13 @@ def _read_config(root: Path) -> None:
     clean(lambda: build_config([root]), (ConfigError,))
 
 
+def _make_ros2_bag(folder: Path) -> Path:
+    from tests.drivers.bagkit import BagSpec, write_bag
+    from tests.drivers.driverkit import ramp_frames
+
+    return write_bag(folder / "bag", ramp_frames(2), BagSpec("mcap"))
+
+
 READERS = [
     Reader(
         "recording",
@@ -813,7 +820,16 @@ READERS = [
     Reader("config", _make_config, ("",), ("",), _read_config),
     Reader("ros params", _make_ros_params, ("",), ("",), _read_config),
     Reader("ros bag", lambda folder: _touch(folder / "x.bag"), ("",), (), _replay_recording),
+    # a ROS 2 bag folder: its metadata.yaml (text) and its storage file, each in every role
+    Reader(
+        "ros 2 bag",
+        _make_ros2_bag,
+        ("", "metadata.yaml", "*.mcap"),
+        ("metadata.yaml",),
+        _replay_recording,
+    ),
 ]
+
 READER = st.sampled_from(READERS)
 
 
