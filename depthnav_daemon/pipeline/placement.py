@@ -220,12 +220,15 @@ def scan_to_base(
         intr,
         mount.level_part(),
         rows,
+        float(scan.range_min),
     )
     d = math.hypot(mount.x_m, mount.y_m)
     rays_to_base_kernel(
         np.ascontiguousarray(scan.ranges, dtype=np.float32),
         rt.start,
         rt.k,
+        rt.k_hi,
+        rt.run,
         rt.s,
         rt.rho,
         rt.a,
