@@ -315,7 +315,7 @@ class Watchdog:
         signal.signal(signal.SIGUSR1, self._old_handler)
 
 
-# --- ROS bags (round 3): MCAP built record by record, bombs, lying sizes, hostile metadata ------
+# --- ROS bags: MCAP built record by record, bombs, lying sizes, hostile metadata ------
 MCAP_MAGIC = b"\x89MCAP0\r\n"
 BAG_DEPTH_TOPIC = "/camera/depth/image_raw"
 _BOMB_FRAME = 64 * MIB  # one compressed frame of zeros; a bomb repeats it (frames concatenate)
@@ -415,7 +415,7 @@ HOSTILE_BAG_METADATA = {  # name -> metadata.yaml bytes (each refused in one lin
 }
 
 
-# --- round 3, part 2: names that reach log lines, outputs that are not files -----------------
+# --- names that reach log lines, outputs that are not files -----------------
 HOSTILE_NAMES = {  # name -> a [[sensor]] name no log line may carry raw or whole
     "newline": "front\nERROR: forged line",
     "NUL": "front\x00rear",
