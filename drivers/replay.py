@@ -36,7 +36,6 @@ import dataclasses
 import logging
 import os
 import threading
-import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
@@ -65,7 +64,7 @@ from drivers.formats.recording import (
     recording_depth_nbytes,
 )
 from drivers.kinect.axes import accel_counts_to_camera, tilt_status_name
-from drivers.replay_clock import ReplayClock
+from drivers.replay_clock import Pacer, ReplayClock
 from drivers.spec import (
     INTRINSICS_OPTIONS,
     Spec,
@@ -134,7 +133,7 @@ class ReplayDriver:
         self._intrinsics: Intrinsics | None = None
         self._seq = 0
         self._clock = ReplayClock(str(self.path), fps)  # loop offsets, increasing times
-        self._wall0: float | None = None
+        self._pacer = Pacer()
         self._is_open = False
         self._has_accel = False
         self._make_items: Callable[[], tuple[Iterator[Item], Intrinsics, str]] | None = None
@@ -422,16 +421,7 @@ class ReplayDriver:
         stamp, depth, accel, tilt, odom = item
         t_s = self._clock.time(stamp, self._seq)
         if self.realtime:
-            now = time.monotonic()
-            if self._wall0 is None:
-                self._wall0 = now - t_s
-            delay = self._wall0 + t_s - now
-            # Never sleep past the caller's timeout: a long gap in a recording is not a hang.
-            if delay > timeout_s:
-                time.sleep(max(timeout_s, 0.0))
-                self._wall0 -= delay - timeout_s
-            elif delay > 0:
-                time.sleep(delay)
+            self._pacer.wait(t_s, timeout_s)
         frame = Frame(
             seq=self._seq,
             timestamp_s=t_s,

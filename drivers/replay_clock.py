@@ -12,6 +12,7 @@ Foxglove, the memory) then never see time stand still or go back.
 from __future__ import annotations
 
 import logging
+import time
 
 log = logging.getLogger(__name__)
 
@@ -82,3 +83,25 @@ class ReplayClock:
                 self.nudged,
             )
         self.nudged = 0
+
+
+class Pacer:
+    """Sleeps a replay at the recorded rate: anchored at the first frame, each frame waits until
+    its recorded time is due on the monotonic clock; never past the read's timeout (a long gap
+    in a recording is not a hang: the anchor then shifts). A reader that is late gets the frame
+    at once, so no frame is skipped."""
+
+    def __init__(self) -> None:
+        self._wall0: float | None = None  # monotonic time of recorded time 0
+
+    def wait(self, t_s: float, timeout_s: float) -> None:
+        """Sleep until recorded time ``t_s`` (s) is due, at most ``timeout_s`` (s)."""
+        now = time.monotonic()
+        if self._wall0 is None:
+            self._wall0 = now - t_s
+        delay = self._wall0 + t_s - now
+        if delay > timeout_s:
+            time.sleep(max(timeout_s, 0.0))
+            self._wall0 -= delay - timeout_s
+        elif delay > 0:
+            time.sleep(delay)

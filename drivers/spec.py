@@ -14,6 +14,7 @@ from urllib.parse import quote, unquote, urlencode
 from drivers.base import (
     DISTORTION_KEYS,
     MAX_FOCAL_PX,
+    MAX_IMAGE_SIDE,
     MAX_RADIAL_COEFF,
     MAX_TANGENTIAL_COEFF,
     Intrinsics,
@@ -219,3 +220,27 @@ def with_overrides(base: Intrinsics, overrides: Mapping[str, float], what: str) 
         return replace(base, **dict(overrides))
     except ValueError as exc:
         raise DeviceSpecError(f"{what}: intrinsics options do not fit the image: {exc}") from None
+
+
+def mode_option(spec: Spec) -> tuple[int, int, int] | None:
+    """``mode=WxH@FPS`` (a device's stream mode) as (width, height, fps); None when absent.
+
+    Raises:
+        DeviceSpecError: not WxH@FPS with sizes depthnav takes.
+    """
+    text = spec.options.get("mode")
+    if text is None:
+        return None
+    size, _, fps = text.partition("@")
+    width, _, height = size.lower().partition("x")
+    try:  # ASCII digits, sizes within what depthnav takes (drivers.values.to_number)
+        return (
+            int(to_number(width, integer=True, low=1, high=MAX_IMAGE_SIDE)),
+            int(to_number(height, integer=True, low=1, high=MAX_IMAGE_SIDE)),
+            int(to_number(fps or "30", integer=True, low=1, high=1000)),
+        )
+    except NumberError:
+        raise DeviceSpecError(
+            f"mode={short_repr(text)} in {short_repr(spec.text)} is not WxH@FPS, e.g. 640x480@30 "
+            f"(1..{MAX_IMAGE_SIDE} pixels each way)"
+        ) from None

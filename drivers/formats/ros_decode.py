@@ -205,31 +205,3 @@ def quat_matrix(q: Any) -> npt.NDArray[np.float64]:
             [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
         ]
     )
-
-
-def frame_rotation(
-    static: dict[tuple[str, str], npt.NDArray[np.float64]], source: str, target: str
-) -> npt.NDArray[np.float64] | None:
-    """Rotation taking ``source``-frame vectors to ``target``, through static transforms.
-
-    Args:
-        static: (parent, child) -> R with v_parent = R v_child.
-        source, target: frame ids (a leading '/' ignored).
-
-    Returns:
-        (3, 3), or None when the transforms do not join the two frames.
-    """
-    source, target = source.lstrip("/"), target.lstrip("/")
-    edges: dict[str, list[tuple[str, npt.NDArray[np.float64]]]] = {}
-    for (parent, child), rot in static.items():
-        edges.setdefault(child, []).append((parent, rot))  # child -> parent: R
-        edges.setdefault(parent, []).append((child, rot.T))
-    seen = {source: np.eye(3)}
-    todo = [source]
-    while todo:
-        frame = todo.pop()
-        for other, rot in edges.get(frame, []):
-            if other not in seen:
-                seen[other] = rot @ seen[frame]
-                todo.append(other)
-    return seen.get(target)

@@ -37,7 +37,7 @@ from typing import Any
 
 import numpy as np
 
-from drivers.base import MAX_IMAGE_SIDE, DeviceInfo, Frame, Intrinsics
+from drivers.base import DeviceInfo, Frame, Intrinsics
 from drivers.errors import (
     DeviceLost,
     DeviceOpenError,
@@ -49,6 +49,7 @@ from drivers.errors import (
 )
 from drivers.formats.oni import check_oni, read_sidecar_intrinsics, sidecar_path
 from drivers.openni.native import LIB_NAME, find_library, initialize
+from drivers.replay_clock import Pacer
 from drivers.spec import (
     INTRINSICS_OPTIONS,
     Spec,
@@ -56,8 +57,8 @@ from drivers.spec import (
     check_options,
     choice_option,
     intrinsics_options,
+    mode_option,
 )
-from drivers.values import NumberError, short_repr, to_number
 
 log = logging.getLogger(__name__)
 
@@ -92,25 +93,6 @@ def _format_value(fmt: Any) -> int:
         return -1
 
 
-def _parse_mode(spec: Spec) -> tuple[int, int, int] | None:
-    text = spec.options.get("mode")
-    if text is None:
-        return None
-    size, _, fps = text.partition("@")
-    width, _, height = size.lower().partition("x")
-    try:  # ASCII digits, sizes within what depthnav takes (drivers.values.to_number)
-        return (
-            int(to_number(width, integer=True, low=1, high=MAX_IMAGE_SIDE)),
-            int(to_number(height, integer=True, low=1, high=MAX_IMAGE_SIDE)),
-            int(to_number(fps or "30", integer=True, low=1, high=1000)),
-        )
-    except NumberError:
-        raise DeviceSpecError(
-            f"mode={short_repr(text)} in {short_repr(spec.text)} is not WxH@FPS, e.g. 640x480@30 "
-            f"(1..{MAX_IMAGE_SIDE} pixels each way)"
-        ) from None
-
-
 class OpenNIDriver:
     """OpenNI2 depth stream from a live device or an ``.oni`` file."""
 
@@ -141,7 +123,7 @@ class OpenNIDriver:
         self._seq = 0
         self._t_offset_s = 0.0
         self._last_raw_t_s = -1.0
-        self._wall0: float | None = None  # monotonic time of recorded time 0 (rate=realtime)
+        self._pacer = Pacer()  # rate=realtime
 
     @classmethod
     def from_spec(cls, spec: Spec) -> OpenNIDriver:
@@ -158,7 +140,7 @@ class OpenNIDriver:
         check_options(spec, LIVE_OPTIONS, GRAMMAR)
         return cls(
             spec.target or None,
-            mode=_parse_mode(spec),
+            mode=mode_option(spec),
             spec_text=spec.text,
             intrinsics_override=intrinsics_options(spec),
         )
@@ -363,7 +345,7 @@ class OpenNIDriver:
             self._t_offset_s += self._last_raw_t_s - t_s + 1.0 / 30.0
         self._last_raw_t_s = t_s
         if self.realtime and self.file is not None:
-            self._pace(t_s + self._t_offset_s, timeout_s)
+            self._pacer.wait(t_s + self._t_offset_s, timeout_s)
         frame = Frame(
             seq=self._seq,
             timestamp_s=t_s + self._t_offset_s,
@@ -372,20 +354,6 @@ class OpenNIDriver:
         )
         self._seq += 1
         return frame
-
-    def _pace(self, t_s: float, timeout_s: float) -> None:
-        """Sleep until recorded time ``t_s`` (s) is due on the wall clock, anchored at the first
-        frame; never past ``timeout_s`` (a long gap in a recording is not a hang: the clock then
-        shifts). A reader that is late gets the frame at once, so no frame is skipped."""
-        now = time.monotonic()
-        if self._wall0 is None:
-            self._wall0 = now - t_s
-        delay = self._wall0 + t_s - now
-        if delay > timeout_s:
-            time.sleep(max(timeout_s, 0.0))
-            self._wall0 -= delay - timeout_s
-        elif delay > 0:
-            time.sleep(delay)
 
     def _copy(self, raw: Any) -> tuple[np.ndarray, float]:
         intr = self._intrinsics

@@ -2,11 +2,10 @@
 
 from __future__ import annotations
 
-from drivers.base import MAX_IMAGE_SIDE
 from drivers.errors import DeviceSpecError
 from drivers.realsense import sdk
-from drivers.spec import INTRINSICS_OPTIONS, Spec
-from drivers.values import NumberError, short_repr, to_number
+from drivers.spec import INTRINSICS_OPTIONS, Spec, mode_option
+from drivers.values import short_repr
 
 GRAMMAR = (
     "realsense[://SERIAL][?mode=WxH@FPS&preset=NAME&emitter=0|1&laser_power=MW&filters=..&accel=0|1]"
@@ -20,21 +19,7 @@ DEFAULT_PRESET = "high_accuracy"
 
 def parse_mode(spec: Spec) -> tuple[int, int, int]:
     """``mode=WxH@FPS`` as (width, height, fps), DEFAULT_MODE when absent."""
-    text = spec.options.get("mode")
-    if text is None:
-        return DEFAULT_MODE
-    size, _, fps = text.partition("@")
-    width, _, height = size.lower().partition("x")
-    try:
-        return (
-            int(to_number(width, integer=True, low=1, high=MAX_IMAGE_SIDE)),
-            int(to_number(height, integer=True, low=1, high=MAX_IMAGE_SIDE)),
-            int(to_number(fps or "30", integer=True, low=1, high=1000)),
-        )
-    except NumberError:
-        raise DeviceSpecError(
-            f"mode={short_repr(text)} in {short_repr(spec.text)} is not WxH@FPS, e.g. 640x480@30"
-        ) from None
+    return mode_option(spec) or DEFAULT_MODE
 
 
 def parse_filters(spec: Spec) -> tuple[str, ...]:
