@@ -34,6 +34,7 @@ from depthnav_daemon.pipeline.pose import PoseParams
 from depthnav_daemon.pipeline.scan import ScanParams
 from drivers.files import read_text
 from drivers.values import NumberError, short_repr, short_text, to_number
+from drivers.yaml_bounds import BoundedYamlLoader, YamlRefusedError
 
 NODES = ("laserscan_kinect", "cliff_detector", "depth_sensor_pose")
 
@@ -242,43 +243,6 @@ def load_ros_params(path: str | Path, node: str | None = None) -> RosParams:
     return RosParams(values, name, version, warnings)
 
 
-MAX_YAML_DEPTH = 64  # nesting levels; a parameter file has three
-
-
-class _YamlRefusedError(Exception):
-    """A document refused while it is composed (its nesting or an alias)."""
-
-
-class _BoundedLoader(yaml.SafeLoader):
-    """yaml.SafeLoader with nesting bounded and aliases of lists and mappings refused.
-
-    A billion-laughs document (each list nine aliases of the one before) is small on disk, cheap
-    to parse (aliases are shared nodes) and explodes in whatever walks it: an error message
-    formatting it took 8.4 GB and 160 s. A parameter file needs no aliases of collections;
-    aliases of single values (``*speed``) are still accepted.
-    """
-
-    _depth = 0
-
-    def compose_node(self, parent: Any, index: Any) -> Any:
-        if self.check_event(yaml.AliasEvent):
-            anchor = self.peek_event().anchor
-            node = self.anchors.get(anchor)
-            if isinstance(node, yaml.CollectionNode):
-                raise _YamlRefusedError(
-                    f"alias *{short_text(anchor, 40)} repeats a list or mapping "
-                    "(aliases of collections are not accepted)"
-                )
-            return super().compose_node(parent, index)
-        self._depth += 1
-        try:
-            if self._depth > MAX_YAML_DEPTH:
-                raise _YamlRefusedError(f"nested deeper than {MAX_YAML_DEPTH} levels")
-            return super().compose_node(parent, index)
-        finally:
-            self._depth -= 1
-
-
 def _read_yaml(p: Path) -> object:
     """The parsed YAML document of ``p`` (ConfigError: unreadable, not UTF-8, not YAML, nested
     too deeply, a collection alias, a number over Python's 4300-digit limit)."""
@@ -287,9 +251,9 @@ def _read_yaml(p: Path) -> object:
     text = read_text(p, what="parameter file", error=ConfigError)
     loader = None
     try:
-        loader = _BoundedLoader(text)  # its reader refuses control characters already
+        loader = BoundedYamlLoader(text)  # its reader refuses control characters already
         return loader.get_single_data()
-    except _YamlRefusedError as e:
+    except YamlRefusedError as e:
         raise ConfigError(f"{p}: not accepted as YAML: {e}") from None
     except yaml.YAMLError as e:
         mark = getattr(e, "problem_mark", None)

@@ -36,6 +36,7 @@ from drivers.base import MAX_IMAGE_SIDE
 from drivers.errors import DriverError, RecordingError
 from drivers.files import check_regular, read_text
 from drivers.values import short_text
+from drivers.yaml_bounds import BoundedYamlLoader, YamlRefusedError
 
 # a chunk holds at least one whole message: the largest image depthnav takes, 8192x8192 32FC1,
 # is 256 MiB; the rest of a chunk (CameraInfo, Imu, tf) is small
@@ -45,7 +46,6 @@ CHUNK_MAX_BYTES = MAX_IMAGE_SIDE * MAX_IMAGE_SIDE * 4 + (16 << 20)
 FILE_MAX_RATIO = 100
 PIECE_BYTES = 16 << 20  # inflated per call: ~10-30 ms, so a stop is seen that often
 METADATA_MAX_BYTES = 256 << 10  # a metadata.yaml is a few KB; 256 KiB lists ~600 topics
-MAX_YAML_DEPTH = 64  # as the ROS parameter files (depthnav_daemon/config/ros_params.py)
 # records in one MCAP chunk: rosbags walks them in Python and lists a chunk's messages before
 # yielding the first (~150 B each); a 256 MiB chunk of zeros or of 31-byte records is 8-30
 # million of them (minutes, GBs). Writers' chunks are 768 KiB-4 MiB: ~90,000 records at most
@@ -304,31 +304,6 @@ def _inflate_ros1(new: Callable[[], Any], size: int | None, what: str, data: byt
 
 
 # --- metadata.yaml -----------------------------------------------------------------------------
-class _RefusedError(Exception):
-    pass
-
-
-class _BoundedLoader(yaml.SafeLoader):
-    """SafeLoader with nesting bounded and aliases of lists and mappings refused (billion
-    laughs); the same rules as the ROS parameter files' loader, in the drivers' layer."""
-
-    _depth = 0
-
-    def compose_node(self, parent: Any, index: Any) -> Any:
-        if self.check_event(yaml.AliasEvent):
-            node = self.anchors.get(self.peek_event().anchor)
-            if isinstance(node, yaml.CollectionNode):
-                raise _RefusedError("an alias repeats a list or mapping")
-            return super().compose_node(parent, index)
-        self._depth += 1
-        try:
-            if self._depth > MAX_YAML_DEPTH:
-                raise _RefusedError(f"nested deeper than {MAX_YAML_DEPTH} levels")
-            return super().compose_node(parent, index)
-        finally:
-            self._depth -= 1
-
-
 def check_metadata(folder: Path) -> None:
     """Refuse a ROS 2 folder's ``metadata.yaml`` that is not a small, shallow YAML mapping, and
     storage files (``.mcap``, ``.db3``, ``.zstd``) that are not regular files.
@@ -339,10 +314,10 @@ def check_metadata(folder: Path) -> None:
     """
     path = folder / "metadata.yaml"
     text = read_text(path, what="bag metadata file", max_bytes=METADATA_MAX_BYTES)
-    loader = _BoundedLoader(text)
+    loader = BoundedYamlLoader(text)
     try:
         doc = loader.get_single_node()
-    except _RefusedError as exc:
+    except YamlRefusedError as exc:
         raise RecordingError(f"{path}: not accepted as bag metadata: {exc}", hint=HINT) from None
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
