@@ -26,15 +26,16 @@ import numpy.typing as npt
 
 from depthnav_daemon.pipeline.cliff import CliffParams, CliffResult, detect_cliffs
 from depthnav_daemon.pipeline.coverage import floor_extent
-from depthnav_daemon.pipeline.geometry import Mount
+from depthnav_daemon.pipeline.geometry import Mount, depth_to_mm
 from depthnav_daemon.pipeline.placement import base_layout, points_to_base, scan_to_base
+from depthnav_daemon.pipeline.placement_pixels import pixel_table, pixels_to_base
 from depthnav_daemon.pipeline.scan import (
     LaserScan,
     ScanParams,
     depth_to_scan,
     obstacle_pixels,
 )
-from depthnav_daemon.pipeline.scan_table import scan_rows
+from depthnav_daemon.pipeline.scan_table import exact_table, scan_rows
 
 if TYPE_CHECKING:
     from depthnav_daemon.pipeline.memory import MemoryResult
@@ -255,7 +256,7 @@ def process(
     base_scan, base_cliff = scan, cliff
     if mount.placed:
         t0 = tick()
-        base_scan, base_cliff = to_base_frame(scan, cliff, mount, params, intr)
+        base_scan, base_cliff = to_base_frame(scan, cliff, mount, params, intr, depth)
         timings["placement"] = tick() - t0
     return Result(
         seq=frame.seq,
@@ -279,10 +280,13 @@ def to_base_frame(
     mount: Mount,
     params: StageParams,
     intr: Intrinsics,
+    depth: np.ndarray | None = None,
 ) -> tuple[LaserScan, CliffResult | None]:
     """A sensor's level-frame scan and cliff result in the robot's base frame (one layout for
     both, see ``placement``); ``intr`` is the sensor's camera (what its view sees decides where
-    the base scans may say clear)."""
+    the base scans may say clear); ``depth``: the frame the exact scan read, whose obstacle
+    pixels give the base scan's ranges at pixel resolution (``placement_pixels``; None: from
+    the level scan's bins only, up to a wedge's range spread farther)."""
     rmin, rmax = scan.range_min, scan.range_max
     if params.cliff is not None:
         rmin, rmax = min(rmin, params.cliff.range_min_m), max(rmax, params.cliff.range_max_m)
@@ -297,7 +301,14 @@ def to_base_frame(
         rmax,
     )
     rows = scan_rows(intr, params.scan)
-    base_scan = scan_to_base(scan, mount, layout, intr, (rows.start, rows.stop, rows.step or 1))
+    row_span = (rows.start, rows.stop, rows.step or 1)
+    pixels = None
+    if depth is not None and params.scan.method == "exact" and (mount.x_m or mount.y_m):
+        level = mount.level_part()
+        table = exact_table(intr, level, params.scan)
+        ptable = pixel_table(intr, level, row_span, params.scan.col_step, mount.yaw_rad)
+        pixels = pixels_to_base(depth_to_mm(depth, intr), table, ptable, mount, layout)
+    base_scan = scan_to_base(scan, mount, layout, intr, row_span, pixels)
     if cliff is None:
         return base_scan, None
     assert params.cliff is not None
@@ -338,7 +349,7 @@ def prepare(intr: Intrinsics, mount: Mount, params: StageParams) -> None:
             blank, intr, level, params.cliff, scan.angle_min, scan.angle_increment, scan.ranges.size
         )
     if mount.placed:
-        to_base_frame(scan, cliff, mount, params, intr)
+        to_base_frame(scan, cliff, mount, params, intr, blank)
     # what this mount's view covers on the floor per bin (the memory's clearing, the contract's
     # clear claims): the exact scan built it already; the paper method did not
     rows = scan_rows(intr, params.scan)

@@ -352,7 +352,7 @@ def robot_work(frames: Sequence[Frame], mount: Mount, cliff: CliffParams) -> lis
     for i, v in enumerate(views):  # a memory that holds what these frames show
         update(state, (0.01 * i, 0.0, 0.0), i / 30.0, [v])
     nv = itertools.cycle(views).__next__
-    nl = itertools.cycle(level).__next__
+    nl = itertools.cycle(zip(frames, level, strict=True)).__next__
     npair = itertools.cycle(pairs).__next__
 
     def memory_update() -> None:
@@ -360,8 +360,8 @@ def robot_work(frames: Sequence[Frame], mount: Mount, cliff: CliffParams) -> lis
         update(state, (0.01 * k, 0.0, 0.0), k / 30.0, [nv()])
 
     def base_frame() -> None:
-        r = nl()
-        to_base_frame(r.scan, r.cliff, placed, params, r.intrinsics)
+        f, r = nl()
+        to_base_frame(r.scan, r.cliff, placed, params, r.intrinsics, f.depth_mm)
 
     return [
         Work("placement: scan + cliff to the base frame (0.2, -0.1 m, 30 deg)", base_frame),
