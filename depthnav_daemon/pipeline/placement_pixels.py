@@ -8,11 +8,13 @@ the next base bin). The bin's arc maps its nearest point, but what lies farther 
 in another base bin is lost: that base bin read the next wedge's arc, 17 cm beyond the wall's
 nearest point in it (200 generated drives: 22 base bins too far by 1-18 cm, and the merged scans
 and MAVLink sectors after them). Here every obstacle pixel (the exact scan's own test: the same
-depth bounds per pixel) goes to the base bin its point falls in, at its exact base range: the
+depth bounds per pixel) goes to the base bins its footprint covers, at its exact base range: the
 point is ``t + d (kx, ky)`` with per-pixel constants (the pixel's level-frame ray turned by the
-sensor's yaw, per millimetre of depth), so a frame costs one multiply-add pair, a square root
-and a polynomial arctangent per obstacle pixel; blocks of a row with no obstacle depth are
-skipped as the scan does (``scan_blocks``).
+sensor's yaw, per millimetre of depth). Blocks of a row with no obstacle depth are skipped as the
+scan does (``scan_blocks``); in the others a branch-free loop (it vectorises) finds every pixel's
+bearing, range and bins, and a second feeds the obstacle pixels. Cost on the bench fixture
+(640x480, 77,000 obstacle pixels, sensor 0.22 m off the origin): 1.4 ms a frame (2.9 ms one
+pixel at a time). The kernel is ``placement_pixel_kernels``.
 """
 
 from __future__ import annotations
@@ -23,7 +25,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from depthnav_daemon.pipeline._jit import helper, inlined, kernel
 from depthnav_daemon.pipeline.geometry import (
     F32,
     Mount,
@@ -32,16 +33,9 @@ from depthnav_daemon.pipeline.geometry import (
     normalized_coords,
     pixel_rays,
 )
-from depthnav_daemon.pipeline.memory_kernels import fast_atan2
-from depthnav_daemon.pipeline.scan_kernels import BLOCK
+from depthnav_daemon.pipeline.placement_pixel_kernels import pixels_to_base_kernel
 from depthnav_daemon.pipeline.scan_table import ExactTable
 from drivers.base import Intrinsics
-
-# two neighbouring obstacle pixels of a row this close in base range are one surface (a wall at
-# a 7 deg grazing angle changes 8 cm between the pixels of a 160-column image at 1.7 m); a gap
-# between two objects narrower than a pixel is filled (nearer, never farther)
-SEGMENT_JUMP_M = 0.25
-_EPS = 1e-12
 
 
 @dataclass(frozen=True, slots=True)
@@ -117,98 +111,3 @@ def pixels_to_base(
         out,
     )
     return out
-
-
-@helper
-def _segment(b_a, r_a, b_b, r_b, a0, inc, out):
-    """Feed the segment from (bearing b_a, range r_a) to (b_b, r_b) into every bin of ``out`` it
-    crosses: the range at the nearer end of its part inside the bin (linear in bearing)."""
-    if b_a > b_b:
-        b_a, b_b, r_a, r_b = b_b, b_a, r_b, r_a
-    span = b_b - b_a
-    slope = (r_b - r_a) / span if span > _EPS else 0.0
-    n = out.shape[0]
-    first = np.int64(np.ceil((b_a - a0) / inc - 0.5))
-    last = np.int64(np.floor((b_b - a0) / inc + 0.5))
-    for b in range(max(first, 0), min(last, n - 1) + 1):
-        lo = max(b_a, a0 + (b - 0.5) * inc)
-        hi = min(b_b, a0 + (b + 0.5) * inc)
-        v = np.float32(r_a + slope * ((lo if slope >= 0.0 else hi) - b_a))
-        out[b] = min(out[b], v)
-
-
-@inlined
-def _feed(px, py, hwp, tx, ty, a0, inc, out):
-    """Feed the point (px, py) (base frame, m) of a pixel of level half-width ``hwp`` into the
-    bins its footprint covers (pixels_to_base_kernel); returns its bearing (unwrapped next to the
-    layout's middle) and range."""
-    n = out.shape[0]
-    mid = a0 + 0.5 * (n - 1) * inc
-    beta = fast_atan2(py, px)
-    while beta < mid - np.pi:
-        beta += 2.0 * np.pi
-    while beta >= mid + np.pi:
-        beta -= 2.0 * np.pi
-    rho2 = px * px + py * py
-    w = hwp * abs(1.0 - (px * tx + py * ty) / max(rho2, _EPS))
-    b0 = np.int64(np.ceil((beta - w - a0) / inc - 1e-9))
-    b1 = np.int64(np.floor((beta + w - a0) / inc + 1e-9))
-    if b0 > b1:
-        b0 = np.int64(np.floor((beta - a0) / inc + 0.5))
-        b1 = b0
-    rho = np.sqrt(rho2)
-    v = np.float32(rho)
-    for b in range(max(b0, 0), min(b1, n - 1) + 1):
-        out[b] = min(out[b], v)
-    return beta, rho
-
-
-@kernel
-def pixels_to_base_kernel(depth, rows, k_mid, k_hi, blk, kx, ky, hw, tx, ty, a0, inc, out):
-    """Bin every obstacle pixel (k_mid < d <= k_hi) of the used grid into ``out`` (bin j centred
-    on a0 + j inc), keeping the nearest base range; +inf elsewhere. A pixel feeds every bin whose
-    centre its footprint covers, or the bin holding its centre where it covers none, as the exact
-    scan bins it: its level half-width hw seen from the base origin is hw (1 - P.t / |P|^2) for
-    the point P (the arc's width, placement.arcs_to_base_kernel). Two neighbouring obstacle
-    pixels of a row whose ranges differ by at most SEGMENT_JUMP_M are one surface: every bin
-    between their bearings takes the segment's nearest range within it (a face seen at a slant
-    changes range across a bin: its nearest point lies at the bin's edge, between two pixel
-    centres, 2-5 cm nearer than either; the judge's truth is the outline so binned)."""
-    n_rows, n_cols = k_mid.shape
-    nb = blk.shape[2]
-    n = out.shape[0]
-    inf = np.float32(np.inf)
-    for j in range(n):
-        out[j] = inf
-    jump = SEGMENT_JUMP_M
-    for ii in range(n_rows):
-        r = rows[ii]
-        prev = -2  # the column of the row's last obstacle pixel, its bearing and range
-        pb = 0.0
-        pr = 0.0
-        for k in range(nb):
-            lo = blk[0, ii, k]
-            hi = blk[1, ii, k]
-            if hi < lo:
-                continue
-            j0 = k * BLOCK
-            j1 = min(j0 + BLOCK, n_cols)
-            # as the scan kernel: some d in [lo, hi] iff min(d - lo) (uint16, wrapping) <= hi - lo
-            m = np.uint16(65535)
-            for j in range(j0, j1):
-                m = min(m, np.uint16(depth[r, j] - lo))
-            if m > np.uint16(hi - lo):
-                continue
-            for j in range(j0, j1):
-                d = depth[r, j]
-                if d <= k_mid[ii, j] or d > k_hi[ii, j]:
-                    continue
-                z = np.float64(d)
-                beta, rho = _feed(
-                    tx + z * kx[ii, j], ty + z * ky[ii, j], hw[ii, j], tx, ty, a0, inc, out
-                )
-                if prev == j - 1 and abs(rho - pr) <= jump and abs(beta - pb) < np.pi:
-                    _segment(pb, pr, beta, rho, a0, inc, out)
-                prev = j
-                pb = beta
-                pr = rho
