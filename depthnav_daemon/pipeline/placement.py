@@ -37,7 +37,8 @@ import numpy.typing as npt
 from depthnav_daemon.pipeline._jit import helper, kernel
 from depthnav_daemon.pipeline.geometry import F32, F64, Mount, frozen_table
 from depthnav_daemon.pipeline.memory_kernels import fast_atan2
-from depthnav_daemon.pipeline.placement_rays import ray_table, rays_to_base_kernel
+from depthnav_daemon.pipeline.placement_ray_kernels import rays_to_base_kernel
+from depthnav_daemon.pipeline.placement_rays import ray_table
 from depthnav_daemon.pipeline.scan import LaserScan
 from drivers.base import Intrinsics
 
@@ -243,6 +244,9 @@ def scan_to_base(
         rt.never,
         d * d,
         float(scan.range_min),
+        rt.wedges,
+        rt.foot,
+        rt.base,
         out,
     )
     # +inf claims free out to range_max - d (every base bearing within the sensor's reach)
