@@ -32,13 +32,13 @@ _HALF_PI = np.pi / 2.0
 
 @kernel
 def fast_atan2(y, x):
-    """atan2(y, x) within 1e-5 rad (a minimax polynomial on [0, 1] after octant reduction)."""
+    """atan2(y, x) within 1e-5 rad (a minimax polynomial on [0, 1] after octant reduction),
+    written in selects rather than branches, so that a loop calling it vectorises
+    (placement_pixel_kernels); atan2(0, 0) = 0."""
     ax = abs(x)
     ay = abs(y)
-    if ax == 0.0 and ay == 0.0:
-        return 0.0
-    swap = ay > ax
-    t = ax / ay if swap else ay / ax
+    hi = max(ax, ay)
+    t = min(ax, ay) / (hi if hi > 0.0 else 1.0)
     t2 = t * t
     a = t * (
         0.99997726
@@ -48,10 +48,8 @@ def fast_atan2(y, x):
             + t2 * (0.19354346 + t2 * (-0.11643287 + t2 * (0.05265332 - 0.0117212 * t2)))
         )
     )
-    if swap:
-        a = _HALF_PI - a
-    if x < 0.0:
-        a = _PI - a
+    a = _HALF_PI - a if ay > ax else a
+    a = _PI - a if x < 0.0 else a
     return -a if y < 0.0 else a
 
 

@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 
 from depthnav_daemon.pipeline._jit import inlined, kernel
+from depthnav_daemon.pipeline.memory_kernels import fast_atan2
 from depthnav_daemon.pipeline.scan_kernels import BLOCK
 
 # two neighbouring obstacle pixels of a row this close in base range are one surface (a wall at
@@ -31,28 +32,6 @@ def _segment(b_a, r_a, b_b, r_b, a0, inc, out):
         hi = min(b_b, a0 + (b + 0.5) * inc)
         v = np.float32(r_a + slope * ((lo if slope >= 0.0 else hi) - b_a))
         out[b] = min(out[b], v)
-
-
-@inlined
-def _atan2(y, x):
-    """memory_kernels.fast_atan2 (within 1e-5 rad) in selects, not branches, so that the loop
-    over a block's pixels vectorises."""
-    ax = abs(x)
-    ay = abs(y)
-    hi = max(ax, ay)
-    t = min(ax, ay) / (hi if hi > 0.0 else 1.0)
-    t2 = t * t
-    a = t * (
-        0.99997726
-        + t2
-        * (
-            -0.33262347
-            + t2 * (0.19354346 + t2 * (-0.11643287 + t2 * (0.05265332 - 0.0117212 * t2)))
-        )
-    )
-    a = 0.5 * np.pi - a if ay > ax else a
-    a = np.pi - a if x < 0.0 else a
-    return -a if y < 0.0 else a
 
 
 @kernel
@@ -113,7 +92,7 @@ def pixels_to_base_kernel(depth, rows, k_mid, k_hi, blk, kx, ky, hw, tx, ty, a0,
                 px = f_tx + z * kx[ii, j]
                 py = f_ty + z * ky[ii, j]
                 rho2 = px * px + py * py
-                beta = np.float64(_atan2(py, px))
+                beta = np.float64(fast_atan2(py, px))
                 beta = beta + 2.0 * np.pi if beta < lo_wrap else beta
                 beta = beta - 2.0 * np.pi if beta >= hi_wrap else beta
                 w = hw[ii, j] * abs(np.float32(1.0) - (px * f_tx + py * f_ty) / max(rho2, 1e-12))
