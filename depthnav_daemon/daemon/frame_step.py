@@ -277,7 +277,7 @@ _SMALL = SmallChange()
 
 
 def _unknown(scan: LaserScan) -> LaserScan:
-    return dataclasses.replace(scan, ranges=np.full_like(scan.ranges, np.nan))
+    return dataclasses.replace(scan, ranges=np.full_like(scan.ranges, np.nan), far=None)
 
 
 def unknown_ranges(result: Result, note: str | None = None) -> Result:

@@ -180,6 +180,7 @@ class MemoryKeeper:
             p.cell_m,
             note,
             self.rejected(),
+            read.hidden,
         )
 
     def rejected(self) -> dict[str, int]:

@@ -23,6 +23,9 @@ class LaserScan:
 
     Attributes:
         ranges: (N,) float32 metres.
+        far: (N,) float32 metres, the exact level scan's only: per bin the range of the farthest
+            obstacle pixel it saw (-inf: none): the memory marks [ranges, far] as a place where
+            something seen may stand that it did not keep. None elsewhere.
     """
 
     angle_min: float
@@ -31,6 +34,7 @@ class LaserScan:
     range_min: float
     range_max: float
     ranges: F32
+    far: F32 | None = None
 
     @property
     def angles(self) -> F64:

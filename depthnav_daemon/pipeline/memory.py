@@ -50,6 +50,7 @@ from depthnav_daemon.pipeline.memory_io import (
 )
 from depthnav_daemon.pipeline.memory_kernels import (
     CLIFF,
+    KNOWN_FREE,
     OBSTACLE,
     clear_lines,
     expire,
@@ -61,6 +62,8 @@ from drivers.base import OdomRefusal, check_odom_pose
 
 MAX_CELLS = 2048  # cells per side
 DEFAULT_RANGE_MAX_M = 4.0  # how far the memory scan's +inf claims known free, at most
+HOLE_CELLS = 0.5 * math.sqrt(2.0)  # hole_m: a cell's half diagonal, in cells
+HOLE_MARGIN_M = 0.02  # hole_m: the obstacles' stated error
 _EMPTY = np.empty(0, np.float32)
 _EMPTY_U8 = np.empty(0, np.uint8)
 
@@ -292,6 +295,7 @@ def update(
             near, far, cnear, cfar, a0, inc, float(sc.range_min), float(sc.range_max), crmin,
             crmax, margin, 1.0 / (m.height_m * v.intrinsics.fy), m.height_m**2,
             float(v.scan_margin_rows), float(v.cliff_margin_rows), t_rel,
+            _EMPTY if sc.far is None else np.ascontiguousarray(sc.far, dtype=np.float32),
         )  # fmt: skip
         cleared += k
         marked += j
@@ -316,6 +320,7 @@ def read_scan(state: MemoryState, pose: tuple[float, float, float]) -> MemorySca
     p = state.params
     nb = p.scan_bins
     out = np.empty(nb, np.float32)
+    hidden = np.zeros(nb, np.uint8)
     counts = np.zeros(3, np.int64)
     blind, rmax = scan_limits(state)
     checked = check_odom_pose(*pose)
@@ -325,12 +330,21 @@ def read_scan(state: MemoryState, pose: tuple[float, float, float]) -> MemorySca
     else:
         g = state
         memory_read(
-            g.grid, g.offx, g.offy, g.known, g.wx0, g.wy0, p.cell_m, *checked, blind, rmax, out,
-            counts,
+            g.grid, g.offx, g.offy, g.known, g.wx0, g.wy0, p.cell_m, *checked, blind, rmax,
+            hole_m(p), out, hidden, counts,
         )  # fmt: skip
     inc = 2.0 * math.pi / nb
     scan = LaserScan(-math.pi, -math.pi + (nb - 1) * inc, inc, 0.0, rmax, out)
-    return MemoryScan(scan, int(counts[OBSTACLE]), int(counts[CLIFF]), blind)
+    return MemoryScan(scan, int(counts[OBSTACLE]), int(counts[CLIFF]), blind, hidden.view(np.bool_))
+
+
+def hole_m(params: MemoryParams) -> float:
+    """How much nearer than a remembered point a shadow cell's centre must lie for the memory
+    scan to read that point's bins NaN, metres: a cell's half diagonal and the obstacles' stated
+    error. What stands in a cell whose centre lies nearer than the point by less is at most a
+    cell's diagonal and that error nearer (the memory's stated error: it keeps one point per
+    cell)."""
+    return HOLE_CELLS * params.cell_m + HOLE_MARGIN_M
 
 
 def snapshot(state: MemoryState) -> GridSnapshot:
@@ -338,7 +352,7 @@ def snapshot(state: MemoryState) -> GridSnapshot:
     n, cell = state.params.cells, state.params.cell_m
     shift, axes = (-(state.wx0 % n), -(state.wy0 % n)), (0, 1)
     g = np.roll(state.grid, shift, axis=axes)
-    known = np.roll(state.known, shift, axis=axes)
+    known = (np.roll(state.known, shift, axis=axes) == KNOWN_FREE).view(np.uint8)
     g.setflags(write=False)
     known.setflags(write=False)
     return GridSnapshot(g, (state.wx0 * cell, state.wy0 * cell), cell, known)

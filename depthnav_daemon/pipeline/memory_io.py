@@ -71,12 +71,16 @@ class MemoryScan:
             range_max; NaN = unknown.
         obstacle_cells, cliff_cells: remembered cells of each kind.
         blind_m: the radius around the base origin the scan did not judge, metres.
+        hidden: (N,) bool per bin of ``scan``: NaN because a cell in a view's shadow, never seen
+            free, lies in front of the bin's nearest remembered point (something may stand
+            there: a pooled output must not report that point for it); None: not known.
     """
 
     scan: LaserScan
     obstacle_cells: int
     cliff_cells: int
     blind_m: float = 0.0
+    hidden: npt.NDArray[np.bool_] | None = None
 
 
 @dataclass(frozen=True, slots=True)
@@ -113,6 +117,7 @@ class MemoryResult:
         note: why the status is not "on", or None.
         odometry_rejected: odometry samples refused so far, per kind (drivers.base
             ODOM_REFUSAL_KINDS).
+        hidden: MemoryScan.hidden of ``scan`` (None when frozen or not known).
     """
 
     status: str
@@ -125,6 +130,7 @@ class MemoryResult:
     cell_m: float
     note: str | None = None
     odometry_rejected: dict[str, int] = field(default_factory=dict)
+    hidden: npt.NDArray[np.bool_] | None = None
 
 
 __all__ = ["GridSnapshot", "MemoryResult", "MemoryScan", "SensorView", "UpdateReport"]

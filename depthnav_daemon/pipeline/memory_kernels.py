@@ -11,9 +11,10 @@ Two arrays say what is known of a cell: ``grid`` (FREE / OBSTACLE / CLIFF; mostl
 passes over what is remembered read it eight bytes at a time, row by row (the side is a multiple
 of 8: no word straddles two rows, and no integer division per cell), and cost in proportion to
 what is remembered) and
-``known`` (1 = seen free; 0 = unknown, or occupied). A cell is known free iff known = 1, which
-implies grid = FREE; a cell with known = 0 and grid = FREE has never been seen, left the window or
-was forgotten.
+``known`` (KNOWN_FREE = seen free; SHADOW = not seen free, but inside a view behind what it hit, so
+something it did not report may stand there; 0 = unknown, or occupied). A cell is known free iff
+known = KNOWN_FREE, which implies grid = FREE; a cell with known = 0 and grid = FREE has never been
+seen, left the window or was forgotten.
 """
 
 from __future__ import annotations
@@ -25,6 +26,8 @@ from depthnav_daemon.pipeline._jit import helper, kernel
 FREE = 0
 OBSTACLE = 1
 CLIFF = 2
+KNOWN_FREE = 1  # known: seen free
+SHADOW = 2  # known: not seen free, but inside a view behind what it hit (a surface may hide there)
 
 _PI = np.pi
 _HALF_PI = np.pi / 2.0

@@ -18,11 +18,21 @@ import math
 import numpy as np
 
 from depthnav_daemon.pipeline._jit import helper, kernel
-from depthnav_daemon.pipeline.memory_kernels import CLIFF, FREE, OBSTACLE, fast_atan2, row_empty
+from depthnav_daemon.pipeline.memory_kernels import (
+    CLIFF,
+    FREE,
+    KNOWN_FREE,
+    OBSTACLE,
+    SHADOW,
+    fast_atan2,
+    row_empty,
+)
 
 BLOCK = 8  # cells per block side (the grid side is a multiple of it)
 _ONES = 0x0101010101010101  # eight known-free cells
 _HALF_DIAGONAL = 0.7072  # a cell's circumscribed radius, in cells (sqrt(2) / 2, rounded up)
+_UNJUDGED = -1e9  # lim of a bin no cell can decide
+_UNKNOWN = -2e9  # lim of a bin decided unknown (NaN)
 _SERIES_UP_TO = 0.5  # _asin_up's x + x^3 / 5 bounds asin(x) from above up to here
 
 
@@ -43,11 +53,13 @@ def _wrap(j, nb):
 
 
 @helper
-def _judge(bad, fx, fy, h, inc, mark):
-    """The bins a disc of radius ``h`` at (fx, fy) (base frame, metres) touches; bin j is centred
-    on -pi + j inc. ``mark``: mark them not known free and return how many were not yet;
-    else return how many are not yet (without marking)."""
-    nb = bad.shape[0]
+def _judge(lim, out, fx, fy, h, lo, hi, inc, inf_only):
+    """Judge the bins a disc of radius ``h`` at (fx, fy) (base frame, metres) touches, for cells
+    whose centres lie between ``lo`` and ``hi`` metres from the robot; bin j is centred on
+    -pi + j inc. A bin with ``hi`` < lim[j] is decided unknown (lim[j] = _UNKNOWN); ``inf_only``:
+    only bins without a remembered point (``out`` = +inf) are judged. Returns (how many were
+    decided, how many others have ``lo`` < lim[j]: a cell of the disc may still decide them)."""
+    nb = lim.shape[0]
     r2 = fx * fx + fy * fy
     j0 = np.int64(0)
     j1 = np.int64(nb - 1)
@@ -58,18 +70,23 @@ def _judge(bad, fx, fy, h, inc, mark):
         j0 = np.int64(math.floor((b - hw + np.pi) / inc + 0.5))
         j1 = min(np.int64(math.floor((b + hw + np.pi) / inc + 0.5)), j0 + nb - 1)
     newly = 0
+    pending = 0
     jj = _wrap(j0, nb)
     for _ in range(j1 - j0 + 1):
-        if bad[jj] == 0:
-            newly += 1
-            if mark:
-                bad[jj] = 1
+        if not inf_only or out[jj] == np.inf:
+            if hi < lim[jj]:
+                lim[jj] = _UNKNOWN
+                newly += 1
+            elif lo < lim[jj]:
+                pending += 1
         jj = jj + 1 if jj + 1 < nb else 0
-    return newly
+    return newly, pending
 
 
 @kernel
-def memory_read(grid, offx, offy, known, wx0, wy0, cell, rx, ry, ryaw, blind, rmax, out, counts):
+def memory_read(
+    grid, offx, offy, known, wx0, wy0, cell, rx, ry, ryaw, blind, rmax, hole, out, hidden, counts
+):
     """The memory scan around the robot at (rx, ry, ryaw) (odometry frame).
 
     Each remembered point covers the bearings of a disc of half a cell about it (so a row of
@@ -78,11 +95,14 @@ def memory_read(grid, offx, offy, known, wx0, wy0, cell, rx, ry, ryaw, blind, rm
     Args:
         grid, offx, offy, known, wx0, wy0, cell: the memory (memory_kernels).
         rx, ry, ryaw: the robot's pose in the odometry frame.
-        blind, rmax: the cells judged are those whose centre lies at least ``blind`` from the
-            robot (no sensor sees under it) and whose circumscribed disc reaches within ``rmax``
+        blind, rmax: the cells judged are those whose circumscribed disc reaches beyond
+            ``blind`` from the robot (no sensor sees under it) and within ``rmax``
             (the scan's range_max: +inf claims known free all the way to it); points farther
             than rmax are not reported.
+        hole: a bin's remembered point is read NaN if an unknown cell it touches lies this much
+            nearer (centre to point), metres (0: never; unknown cells nearer are not judged).
         out: (N,) float32, overwritten: bin j centred on -pi + j * 2 pi / N (base frame).
+        hidden: (N,) uint8, overwritten: 1 where a remembered point was read NaN (``hole``).
         counts: (3,) int64, overwritten: cells per state (FREE unused, OBSTACLE, CLIFF).
     """
     n = grid.shape[0]
@@ -139,32 +159,34 @@ def memory_read(grid, offx, offy, known, wx0, wy0, cell, rx, ry, ryaw, blind, rm
                     jj = jj + 1 if jj + 1 < nb else 0
     counts[OBSTACLE] = n_obstacle
     counts[CLIFF] = n_cliff
-    # the other bins: +inf only if every judged cell they touch is known free
-    bad = np.zeros(nb, np.uint8)
+    # then the unknown cells: a bin is +inf only if every judged cell it touches is known free,
+    # and a remembered point only if no unknown cell it touches lies ``hole`` or more nearer;
+    # lim[j]: the cells whose centre lies nearer than it decide bin j
+    hd = _HALF_DIAGONAL * cell
+    outer = rmax + hd  # a cell is judged while its centre lies within this
+    inner = blind - hd  # and beyond this
+    lim = np.empty(nb, np.float64)
     undecided = 0
     for j in range(nb):
         if out[j] < np.inf:
-            bad[j] = 1  # decided: a remembered point
+            lim[j] = out[j] - hole if hole > 0.0 else _UNJUDGED
+        elif blind < rmax:
+            lim[j] = outer
         else:
+            lim[j] = _UNKNOWN  # nothing to judge: no bin is known free
+        if lim[j] > inner:
             undecided += 1
-    if blind >= rmax:
-        undecided = 0
-        for j in range(nb):
-            bad[j] = 1  # nothing to judge: no bin is known free
-    hd = _HALF_DIAGONAL * cell
     hdb = BLOCK * hd  # a block's circumscribed radius
     spread = (BLOCK - 1) * hd  # farthest cell centre from the block's centre
     kw = known.reshape(-1).view(np.uint64)
     ones = np.uint64(_ONES)
     reach = rmax + hdb
-    outer = rmax + hd  # a cell is judged while its centre lies within this
-    inner = blind - hd  # and beyond this
     bx0 = np.int64(math.floor((rx - reach) / cell)) // BLOCK
     bx1 = np.int64(math.floor((rx + reach) / cell)) // BLOCK
     by0 = np.int64(math.floor((ry - reach) / cell)) // BLOCK
     by1 = np.int64(math.floor((ry + reach) / cell)) // BLOCK
-    # first the blocks all known or all unknown (cheap); the mixed ones after, each skipped if
-    # the bins its disc touches are decided by then (a wall's blocks: behind it is unknown)
+    # first the blocks all known or all unknown (cheap); the others after, cell by cell, each
+    # skipped if the bins its disc touches are decided by then (a wall's blocks: behind it)
     mixed = np.empty((bx1 - bx0 + 1) * (by1 - by0 + 1), np.int64)
     n_mixed = 0
     for bx in range(bx0, bx1 + 1):
@@ -195,16 +217,20 @@ def memory_read(grid, offx, offy, known, wx0, wy0, cell, rx, ry, ryaw, blind, rm
                 for a in range(BLOCK):
                     wd = kw[(ix0 + a) * nw + wi]
                     all_known = all_known and wd == ones
-                    unknown = unknown and wd == 0
+                    unknown = unknown and wd == 0 and words[(ix0 + a) * nw + wi] == 0
                 if all_known:
                     continue
-            if unknown and rb - spread >= inner and rb + spread <= outer:
-                # every cell unknown and judged: the block's disc holds theirs (a block that
-                # crosses the blind radius or range_max is judged cell by cell, below)
-                undecided -= _judge(bad, c0 * px + s0 * py, -s0 * px + c0 * py, hdb, inc, True)
-                continue
-            mixed[n_mixed] = (bx - bx0) * (by1 - by0 + 1) + (by - by0)
-            n_mixed += 1
+            # every cell unknown and never in a view's shadow: the block's disc holds theirs and
+            # only bins without a remembered point are judged; those it decides whole are decided
+            # here, the others (a cell nearer than lim, another not) cell by cell
+            fx = c0 * px + s0 * py
+            fy = -s0 * px + c0 * py
+            hi = rb + spread if unknown and rb - spread >= inner else np.inf  # inf: none
+            k, pending = _judge(lim, out, fx, fy, hdb, rb - spread, hi, inc, unknown)
+            undecided -= k
+            if pending > 0:
+                mixed[n_mixed] = (bx - bx0) * (by1 - by0 + 1) + (by - by0)
+                n_mixed += 1
     for k in range(n_mixed):
         if undecided == 0:
             break
@@ -214,8 +240,11 @@ def memory_read(grid, offx, offy, known, wx0, wy0, cell, rx, ry, ryaw, blind, rm
         gy0 = by * BLOCK
         px = (gx0 + 0.5 * BLOCK) * cell - rx
         py = (gy0 + 0.5 * BLOCK) * cell - ry
-        if _judge(bad, c0 * px + s0 * py, -s0 * px + c0 * py, hdb, inc, False) == 0:
-            continue  # every bin it could touch is decided
+        rb = math.sqrt(px * px + py * py)
+        fx = c0 * px + s0 * py
+        fy = -s0 * px + c0 * py
+        if _judge(lim, out, fx, fy, hdb, rb - spread, np.inf, inc, False)[1] == 0:
+            continue  # every bin it could touch is decided by now
         for a in range(BLOCK):
             gx = gx0 + a
             qx = (gx + 0.5) * cell - rx
@@ -228,12 +257,21 @@ def memory_read(grid, offx, offy, known, wx0, wy0, cell, rx, ry, ryaw, blind, rm
                 rc = math.sqrt(qx * qx + qy * qy)
                 if rc < inner or rc > outer:
                     continue
+                inf_only = True  # outside the window: unknown, never in a shadow
                 if x_in and wy0 <= gy < wy0 + n:
                     iy = gy - wy0 + byn
                     iy = iy - n if iy >= n else iy
-                    if known[ix, iy] != 0:
+                    kc = known[ix, iy]
+                    if kc == KNOWN_FREE:
                         continue
-                undecided -= _judge(bad, c0 * qx + s0 * qy, -s0 * qx + c0 * qy, hd, inc, True)
+                    # a remembered point (its own range is read above) and a cell never in a
+                    # view's shadow judge only the bins without a remembered point
+                    inf_only = kc != SHADOW or grid[ix, iy] != FREE
+                fx = c0 * qx + s0 * qy
+                fy = -s0 * qx + c0 * qy
+                undecided -= _judge(lim, out, fx, fy, hd, rc, rc, inc, inf_only)[0]
     for j in range(nb):
-        if not out[j] < np.inf:
-            out[j] = np.nan if bad[j] != 0 else np.inf
+        hidden[j] = 0
+        if lim[j] == _UNKNOWN:
+            hidden[j] = out[j] < np.inf
+            out[j] = np.nan

@@ -80,6 +80,8 @@ def _exact_scan(
     t = exact_table(intr, mount, params)
     out = np.empty(t.n_bins + 1, dtype=np.float32)  # + a scratch slot for runs feeding no bin
     acc = np.empty(t.zlo_mm.shape[1], dtype=np.float32)
+    far = np.empty_like(out)
+    acc_far = np.empty_like(acc)
     exact_scan_kernel(
         depth_mm[:, t.col0 :: t.col_step],
         t.rows,
@@ -96,6 +98,8 @@ def _exact_scan(
         np.float32(params.range_max_m),
         acc,
         out,
+        acc_far,
+        far,
     )
     ranges = out[:-1]
     n = ranges.size
@@ -106,4 +110,5 @@ def _exact_scan(
         params.range_min_m,
         params.range_max_m,
         ranges,
+        far[:-1],
     )

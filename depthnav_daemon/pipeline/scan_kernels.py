@@ -117,8 +117,11 @@ def exact_scan_kernel(
     range_max,
     acc,
     out,
+    acc_far,
+    far,
 ):
-    """Exact scan of one frame into ``out[:n]`` (float32, REP 117 values).
+    """Exact scan of one frame into ``out[:n]`` (float32, REP 117 values), and the farthest
+    obstacle of each bin into ``far[:n]``.
 
     One row-major pass keeps a running minimum per column (``acc``) for as long as the column
     feeds the same bins; where a column's bins change from one row to the next (a "run" ends),
@@ -153,6 +156,9 @@ def exact_scan_kernel(
         acc: (Ws,) float32 work space.
         out: (n + 1,) float32, overwritten: the scan in out[:n]; out[n] is scratch (runs that
             feed no bin are flushed there).
+        acc_far: (Ws,) float32 work space.
+        far: (n + 1,) float32, overwritten: per bin the horizontal range of its farthest obstacle
+            pixel (-inf: none), the same way (the memory: what a bin saw beyond its nearest).
     """
     n_rows, n_cols = near_lo.shape
     nb = blk.shape[2]
@@ -161,8 +167,10 @@ def exact_scan_kernel(
     zero = np.float32(0.0)
     for b in range(out.shape[0]):
         out[b] = inf
+        far[b] = -inf
     for j in range(n_cols):
         acc[j] = inf
+        acc_far[j] = -inf
     dirty = np.zeros(nb, np.bool_)  # some column of the block holds a run minimum below +inf
     kind = np.zeros(nb, np.uint8)
     # per bin: a run's range_max row reads that far
@@ -234,6 +242,7 @@ def exact_scan_kernel(
                         j = j0 + np.uint64(jj)
                         d = depth[r, j]
                         v = np.float32(d) * kr[i, j]
+                        acc_far[j] = max(acc_far[j], v if d != 0 else -inf) + zero
                         v = v if d != 0 else inf
                         acc[j] = min(acc[j], v) + zero
                 else:
@@ -244,6 +253,7 @@ def exact_scan_kernel(
                         obstacle = (nh < d) & (d <= obst_hi[i, j])
                         close = (near_lo[i, j] <= d) & (d <= nh)
                         v = np.float32(d) * kr[i, j]
+                        acc_far[j] = max(acc_far[j], v if obstacle else -inf) + zero
                         v = v if obstacle else inf
                         v = -inf if close else v
                         acc[j] = min(acc[j], v) + zero
@@ -266,7 +276,12 @@ def exact_scan_kernel(
                 a = acc[c]
                 o = out[b]
                 out[b] = a if a < o else o
-                acc[c] = inf if x & np.uint32(1 << CODE_BITS) else a  # the run ends here
+                af = acc_far[c]
+                of = far[b]
+                far[b] = af if af > of else of
+                ends = x & np.uint32(1 << CODE_BITS)  # the run ends here
+                acc[c] = inf if ends else a
+                acc_far[c] = -inf if ends else af
             for q in range(k, k2):
                 if kind[q] == 0:  # (a block with obstacles in this row is pending anyway)
                     # still pending: some column's run minimum below +inf

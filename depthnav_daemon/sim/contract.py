@@ -149,11 +149,13 @@ def judge(
     circular: bool = False,
     err_claim: F64 | None = None,
     reach: npt.NDArray[np.int64] | None = None,
+    err_cover: F64 | None = None,
 ) -> Counts:
     """Judge one output's REP 117 ranges (n,) against its truth, with the stated error (n,) m at
     the visible truth (``err_claim``: at the claimed truth, default ``err``); ``circular``: the
     bins go round the circle (the first and last are neighbours); ``reach`` (n,): how many bins
-    either side a bin's truth may be reported on (default 1: the bearing's resolution)."""
+    either side a bin's truth may be reported on (default 1: the bearing's resolution);
+    ``err_cover``: the error coverage is judged with (default ``err``)."""
     r = np.asarray(ranges, dtype=np.float64)
     near = np.minimum(t.visible, t.visible_edge)
     fin, ninf, inf = np.isfinite(r), r == -np.inf, r == np.inf
@@ -167,7 +169,10 @@ def judge(
         near_any = _nearest_around(np.where(fin | ninf, r, np.inf), reach, circular)  # and -inf
         held_claim = near_any <= claim_lim
         truth_in = near <= range_max
-        good = (fin & (np.abs(r - near) <= err)) | (ninf & (near < range_min + TOO_CLOSE_SLACK_M))
+        within = err if err_cover is None else err_cover
+        good = (fin & (np.abs(r - near) <= within)) | (
+            ninf & (near < range_min + TOO_CLOSE_SLACK_M)
+        )
         # within the stated error of range_max a surface may read beyond it (noise, mm steps)
         claimed = inf & (t.claim <= range_max - (err if err_claim is None else err_claim))
         clear = claimed & ~held_claim
@@ -257,13 +262,18 @@ def noise_k(noise: KinectNoise | None) -> float:
 
 
 def stated_error(
-    t: vis.Truth, k: float, odom_m: float = 0.0, odom_rad: float = 0.0, at_claim: bool = False
+    t: vis.Truth,
+    k: float,
+    odom_m: float = 0.0,
+    odom_rad: float = 0.0,
+    cell_m: float = 0.0,
+    at_claim: bool = False,
 ) -> F64:
     """The stated error per bin (n,) m at the nearest visible (or ``at_claim``: claimed) truth
-    (module docstring)."""
+    (module docstring); ``cell_m``: the memory's cell (it keeps one point per cell)."""
     r = np.minimum(t.claim if at_claim else np.minimum(t.visible, t.visible_edge), 10.0)
     base = np.where(t.visible_edge < t.visible, ERR_EDGE_M, ERR_OBSTACLE_M)
-    return base + k * (r * r + 1.0) + 2.0 * (odom_m + odom_rad * r)
+    return base + k * (r * r + 1.0) + 2.0 * (odom_m + odom_rad * r) + math.sqrt(2.0) * cell_m
 
 
 OUTPUTS = tuple(
@@ -295,20 +305,22 @@ def _judge(
     claims: Claims,
     origin: vis.Origin,
     kinds: B | None,
-    err: tuple[float, float, float],
+    err: tuple[float, float, float, float],
     tag: str,
 ) -> None:
-    """Judge ranges (r, layout, range_min, range_max) seen from ``origin``; err: k and drift."""
+    """Judge ranges (r, layout, range_min, range_max) seen from ``origin``; err: k, drift and
+    the memory's cell (coverage is judged without the cell)."""
     r, lay, rmin, rmax = ranges
     t = truth(bd, claims, origin, lay, kinds)
     circular = lay[1] * lay[2] >= 2 * math.pi - 1e-6
     ec = stated_error(t, *err, at_claim=True)
-    _, odom_m, odom_rad = err
+    _, odom_m, odom_rad, _ = err
     reach = None
     if odom_m or odom_rad:  # the memory: its points turned by the odometry's drift (docstring)
         at = np.maximum(np.minimum(np.minimum(t.visible, t.visible_edge), t.claim), 0.1)
         reach = 1 + np.ceil((odom_rad + odom_m / at) / lay[1]).astype(np.int64)
-    out.add(judge(r, rmin, rmax, t, stated_error(t, *err), tag, circular, ec, reach))
+    tight = stated_error(t, *err[:3])
+    out.add(judge(r, rmin, rmax, t, stated_error(t, *err), tag, circular, ec, reach, tight))
 
 
 def _of(scan: LaserScan) -> tuple[F64, vis.Layout, float, float]:
@@ -337,7 +349,7 @@ def judge_drive(case: Case, steps: Sequence[Step] | None = None) -> dict[str, Co
     box, edge = ~bd.edge, bd.edge
     mstate = pm.new_state(pm.MemoryParams())  # only its blind_m: what the memory noted of the views
     for step in steps if steps is not None else run_case(case, params):
-        tag, pose, e = f"seed={case.seed} frame={step.index}", step.pose, (k, 0.0, 0.0)
+        tag, pose, e = f"seed={case.seed} frame={step.index}", step.pose, (k, 0.0, 0.0, 0.0)
         cams = [vis.Camera.at(m, case.intr, pose) for m in case.rig]
         sights = [vis.sight(bd, case.scene, c, sp, cp) for c in cams]
         for j, (cam, s, res) in enumerate(zip(cams, sights, step.results, strict=True)):
@@ -363,7 +375,7 @@ def judge_drive(case: Case, steps: Sequence[Step] | None = None) -> dict[str, Co
         for res in step.results:
             _note_view(mstate, sensor_view(res, params))
         inside = np.hypot(*(bd.xy - pose[:2]).T) < pm.scan_limits(mstate)[0]
-        mem, e = memory_claims(bd, seen_ever, inside), (k, *drift)
+        mem, e = memory_claims(bd, seen_ever, inside), (k, *drift, mstate.params.cell_m)
         _judge(out["memory"], _of(step.memory), bd, mem, pose, None, e, tag)
         sectors = sector_ranges(step.memory_sectors)
         _judge(out["memory_sectors"], sectors, bd, mem, pose, None, e, tag)

@@ -377,10 +377,19 @@ def run_case(
         scan = scans[0] if len(scans) == 1 else merge_scans(scans)
         cliff = None if not cliffs else cliffs[0] if len(cliffs) == 1 else merge_scans(cliffs)
         update(state, case.odom[i], t, [sensor_view(r, params) for r in results])
-        mem = read_scan(state, case.odom[i]).scan
+        mread = read_scan(state, case.odom[i])
+        mem = mread.scan
         sectors = obstacle_sectors(scan)
         if cliff is not None:
             sectors = merge_cliff(sectors, cliff)
         yield Step(
-            i, pose, case.odom[i], tuple(results), scan, cliff, mem, sectors, memory_sectors(mem)
+            i,
+            pose,
+            case.odom[i],
+            tuple(results),
+            scan,
+            cliff,
+            mem,
+            sectors,
+            memory_sectors(mem, hidden=mread.hidden),
         )

@@ -267,3 +267,23 @@ def test_unknown_and_clear_memory_bins_reach_json_and_mavlink_as_such() -> None:
     assert out["scan"]["ranges"][0] is None and out["scan"]["ranges"][180] == "Infinity"
     np.testing.assert_array_equal(decoded, ranges.astype(np.float64))
     assert out["scan"]["range_max"] == 3.9
+
+
+def test_a_memory_sector_with_a_hidden_bin_is_unknown() -> None:
+    """A memory bin read NaN because a view's shadow lies in front of its remembered point
+    (MemoryScan.hidden) may hide something nearer than the sector's other points: the sector is
+    unknown, not their minimum; a plain unknown bin beside a point leaves the point."""
+    inc = 2 * math.pi / 360
+    ranges = np.full(360, np.inf, np.float32)
+    ranges[178:181] = 2.0  # ahead, sector 36 (177.5-182.5 deg from behind)
+    ranges[181] = np.nan
+    scan = LaserScan(-math.pi, -math.pi + 359 * inc, inc, 0.0, 3.9, ranges)
+    assert memory_sectors(scan).distances_cm[36] == 200
+    hidden = np.zeros(360, bool)
+    hidden[181] = True
+    got, before = (
+        memory_sectors(scan, hidden=hidden).distances_cm,
+        memory_sectors(scan).distances_cm,
+    )
+    assert got[36] == UINT16_MAX
+    assert np.array_equal(np.delete(got, 36), np.delete(before, 36))  # the others as they were

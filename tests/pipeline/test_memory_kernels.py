@@ -15,9 +15,9 @@ import numpy as np
 import pytest
 
 from depthnav_daemon.pipeline.memory import MemoryParams, MemoryState, new_state, update
-from depthnav_daemon.pipeline.memory_kernels import OBSTACLE
+from depthnav_daemon.pipeline.memory_kernels import KNOWN_FREE, OBSTACLE, SHADOW
 from depthnav_daemon.pipeline.memory_read_kernels import memory_read
-from depthnav_daemon.pipeline.memory_update_kernels import clear_view, fill_view
+from depthnav_daemon.pipeline.memory_update_kernels import clear_view, fill_view, shadow_view
 
 CELL = 0.05
 
@@ -165,11 +165,17 @@ def test_fill_view_marks_only_cells_wholly_inside_what_it_saw_and_all_inner_ones
 
 
 def _reference_scan(
-    state: MemoryState, pose: tuple[float, float, float], blind: float, rmax: float, nb: int
-) -> tuple[np.ndarray, np.ndarray]:
+    state: MemoryState,
+    pose: tuple[float, float, float],
+    blind: float,
+    rmax: float,
+    nb: int,
+    hole: float = 0.0,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(nearest point per bin, whether some judged cell the bin's wedge touches is not known
-    free: its centre at least ``blind`` away, its circumscribed disc within ``rmax``), by dense
-    rays across each bin."""
+    free: its centre at least ``blind`` away, its circumscribed disc within ``rmax``, whether a
+    SHADOW cell (no point in it) the wedge touches has its centre more than ``hole`` nearer than
+    the bin's nearest point), by dense rays across each bin."""
     rx, ry, ryaw = pose
     inc = 2 * np.pi / nb
     gx, gy = _window_cells(state)
@@ -189,6 +195,7 @@ def _reference_scan(
         for j in range(j0, j1 + 1):
             near[j % nb] = min(near[j % nb], r[k])
     unknown = np.zeros(nb, bool)
+    shaded = np.zeros(nb, bool)
     t = np.arange(blind - CELL, rmax + 2 * CELL, CELL / 8)
     n = state.grid.shape[0]
     for j in range(nb):
@@ -197,16 +204,37 @@ def _reference_scan(
             qx = np.floor((rx + t * math.cos(a)) / CELL).astype(np.int64)
             qy = np.floor((ry + t * math.sin(a)) / CELL).astype(np.int64)
             rc = np.hypot((qx + 0.5) * CELL - rx, (qy + 0.5) * CELL - ry)
-            judged = (rc >= blind) & (rc - 0.7072 * CELL <= rmax)
+            judged = (rc + 0.7072 * CELL >= blind) & (rc - 0.7072 * CELL <= rmax)
             inwin = (
                 (qx >= state.wx0) & (qx < state.wx0 + n) & (qy >= state.wy0) & (qy < state.wy0 + n)
             )
-            free = inwin & (state.known[qx % n, qy % n] == 1)
+            free = inwin & (state.known[qx % n, qy % n] == KNOWN_FREE)
             unknown[j] |= bool((judged & ~free).any())
-    return near, unknown
+            shadow = inwin & (state.known[qx % n, qy % n] == SHADOW)
+            shadow &= state.grid[qx % n, qy % n] == 0
+            shaded[j] |= bool((judged & shadow & (rc < near[j] - hole)).any())
+    return near, unknown, shaded
 
 
-@pytest.mark.parametrize("seed", range(4))
+def _read(
+    s: MemoryState,
+    pose: tuple[float, float, float],
+    blind: float,
+    rmax: float,
+    out: np.ndarray,
+    hole: float = 0.0,
+) -> np.ndarray:
+    """memory_read into ``out``; returns its ``hidden`` flags (bool)."""
+    hidden = np.zeros(out.size, np.uint8)
+    counts = np.zeros(3, np.int64)
+    memory_read(
+        s.grid, s.offx, s.offy, s.known, s.wx0, s.wy0, CELL, *pose, blind, rmax, hole, out,
+        hidden, counts,
+    )  # fmt: skip
+    return hidden.view(bool)
+
+
+@pytest.mark.parametrize("seed", range(8))
 def test_memory_read_matches_dense_rays(seed: int) -> None:
     rng = np.random.default_rng(200 + seed)
     pose = (rng.uniform(-50, 50), rng.uniform(-50, 50), rng.uniform(-np.pi, np.pi))
@@ -219,18 +247,24 @@ def test_memory_read_matches_dense_rays(seed: int) -> None:
         w = int(rng.integers(1, 12))
         sel = (np.abs(gx - gx[cx]) < w) & (np.abs(gy - gy[cy]) < w)
         ix, iy = _index(state, gx[sel], gy[sel])
-        state.known[ix, iy] = 0
+        state.known[ix, iy] = SHADOW if seed % 2 else 0  # odd seeds: in a view's shadow
     _put_points(state, rng, int(rng.integers(0, 40)))
     blind, rmax, nb = float(rng.uniform(0.5, 1.0)), float(rng.uniform(1.5, 3.9)), 360
+    hole = float(rng.uniform(0.0, 0.1))
     out = np.empty(nb, np.float32)
-    counts = np.zeros(3, np.int64)
-    s = state
-    memory_read(
-        s.grid, s.offx, s.offy, s.known, s.wx0, s.wy0, CELL, *pose, blind, rmax, out, counts
-    )  # fmt: skip
-    near, unknown = _reference_scan(state, pose, blind, rmax, nb)
+    hidden = _read(state, pose, blind, rmax, out, hole)
+    near, unknown, shaded = _reference_scan(state, pose, blind, rmax, nb, hole)
     fin = np.isfinite(near)
-    np.testing.assert_allclose(out[fin], near[fin], atol=1e-5)
+    # a point is read where no shadow cell lies in front of it (by more than the hole), and is
+    # never read where the dense rays found one (a disc is wider than its cell: three bins more)
+    grown_shade = shaded.copy()
+    for k in (1, 2, 3):
+        grown_shade |= np.roll(shaded, k) | np.roll(shaded, -k)
+    assert np.isnan(out[fin & shaded]).all() and hidden[fin & shaded].all()
+    read = fin & ~grown_shade
+    np.testing.assert_allclose(out[read], near[read], atol=1e-5)
+    assert not hidden[~fin].any() and (np.isnan(out) | ~hidden).all()
+    fin &= ~hidden
     # +inf only where every cell is known free (never where the dense rays found one unknown)
     assert not (np.isposinf(out) & unknown).any()
     # not much more careful than that: NaN only within three bins of a bin whose wedge holds a
@@ -240,28 +274,21 @@ def test_memory_read_matches_dense_rays(seed: int) -> None:
     grown = unknown.copy()
     for k in (1, 2, 3):
         grown |= np.roll(unknown, k) | np.roll(unknown, -k)
-    assert not (np.isnan(out) & ~grown).any()
-    assert np.isposinf(out).sum() > 10 and np.isnan(out).any() == (~fin & unknown).any()
+    assert not (np.isnan(out) & ~grown & ~hidden).any()
+    assert not (hidden & ~grown_shade).any()
+    assert np.isposinf(out).sum() > 10 and np.isnan(out[~hidden]).any() == (~fin & unknown).any()
 
 
 def test_memory_read_with_nothing_known_is_unknown_everywhere() -> None:
     state = _state((3.0, -2.0, 1.0))
     out = np.empty(360, np.float32)
-    counts = np.zeros(3, np.int64)
-    s = state
-    memory_read(
-        s.grid, s.offx, s.offy, s.known, s.wx0, s.wy0, CELL, 3.0, -2.0, 1.0, 0.5, 3.9, out, counts
-    )
+    _read(state, (3.0, -2.0, 1.0), 0.5, 3.9, out)
     assert np.isnan(out).all()
     # and from a pose whose disc leaves the window: what lies outside it is unknown
     state.known[:] = 1
-    memory_read(
-        s.grid, s.offx, s.offy, s.known, s.wx0, s.wy0, CELL, 3.0, -2.0, 1.0, 0.5, 3.9, out, counts
-    )
+    _read(state, (3.0, -2.0, 1.0), 0.5, 3.9, out)
     assert np.isposinf(out).all()
-    memory_read(
-        s.grid, s.offx, s.offy, s.known, s.wx0, s.wy0, CELL, 5.0, -2.0, 1.0, 0.5, 3.9, out, counts
-    )
+    _read(state, (5.0, -2.0, 1.0), 0.5, 3.9, out)
     assert np.isnan(out).any() and np.isposinf(out).any()
 
 
@@ -275,10 +302,7 @@ def test_the_grid_reach_is_judged_inside_the_window_wherever_the_robot_sits_in_i
     state = _state(pose)
     state.known[:] = 1
     out = np.empty(360, np.float32)
-    counts = np.zeros(3, np.int64)
-    s = state
-    rmax = s.params.grid_reach_m
-    memory_read(s.grid, s.offx, s.offy, s.known, s.wx0, s.wy0, CELL, *pose, 0.5, rmax, out, counts)
+    _read(state, pose, 0.5, state.params.grid_reach_m, out)
     assert np.isposinf(out).all()
 
 
@@ -292,9 +316,92 @@ def test_a_point_on_the_robot_covers_every_bearing() -> None:
     state.offx[ix, iy] = state.offy[ix, iy] = 0.0
     out = np.empty(362, np.float32)
     out[-1] = out[0] = 7.0  # guards: the kernel's scan is out[1:-1]
-    counts = np.zeros(3, np.int64)
-    s = state
-    memory_read(
-        s.grid, s.offx, s.offy, s.known, s.wx0, s.wy0, CELL, *pose, 0.5, 3.9, out[1:-1], counts
-    )  # fmt: skip
+    _read(state, pose, 0.5, 3.9, out[1:-1])
     assert (out[1:-1] == 0.0).all() and out[0] == out[-1] == 7.0
+
+
+@pytest.mark.parametrize("before", [SHADOW, 0])
+def test_a_point_behind_a_shadow_reads_unknown_behind_never_seen_cells_it_is_read(
+    before: int,
+) -> None:
+    """A remembered point 2 m ahead with cells 1.0-1.3 m ahead not known free: in a view's shadow
+    (something a view did not report may stand there) its bins read NaN and are flagged hidden;
+    never seen by any view (beside the views, dead zones) the point is read."""
+    pose = (1.0, 2.0, 0.0)
+    state = _state(pose)
+    state.known[:] = KNOWN_FREE
+    gx, gy = np.array([round((1.0 + 2.0) / CELL)]), np.array([round(2.0 / CELL)])
+    ix, iy = _index(state, gx, gy)
+    state.grid[ix, iy] = OBSTACLE
+    state.known[ix, iy] = 0
+    state.offx[ix, iy] = state.offy[ix, iy] = 0.5 * CELL
+    px, py = np.meshgrid(np.arange(20, 26) + round(1.0 / CELL), np.arange(-2, 3) + gy[0])
+    patch = _index(state, px.ravel(), py.ravel())
+    state.known[patch] = before
+    out = np.empty(360, np.float32)
+    hidden = _read(state, pose, 0.5, 3.9, out, hole=0.055)
+    ahead = 180  # bin 180 is centred straight ahead
+    if before == SHADOW:
+        assert np.isnan(out[ahead]) and hidden[ahead]
+    else:
+        assert out[ahead] == pytest.approx(math.hypot(2.0 + 0.5 * CELL, 0.5 * CELL), abs=1e-5)
+        assert not hidden.any()
+    # a shadow cell within the hole of the point (its own cell's neighbour) does not hide it
+    state.known[patch] = KNOWN_FREE
+    state.known[_index(state, gx - 1, gy)] = SHADOW
+    hidden = _read(state, pose, 0.5, 3.9, out, hole=0.055)
+    assert np.isfinite(out[ahead]) and not hidden.any()
+
+
+def test_shadow_view_marks_only_cells_never_seen_and_a_one_bin_sliver() -> None:
+    """The cells of [lo, hi] per bin that are neither known free nor occupied, and a shadow on one
+    bin alone (a face seen edge-on) too."""
+    pose = (0.3, -0.2, 0.5)
+    state = _state(pose)
+    m, inc = 60, math.radians(1.0)
+    a0 = -0.5 * (m - 1) * inc
+    lo, hi = np.full(m, 1.5), np.full(m, 2.5)
+    sx, sy, syaw = pose
+    along = np.array([2.0])  # a cell 2 m out on the view's axis: known free before
+    fx = np.floor((sx + along * math.cos(syaw)) / CELL).astype(np.int64)
+    fy = np.floor((sy + along * math.sin(syaw)) / CELL).astype(np.int64)
+    free = _index(state, fx, fy)
+    state.known[free] = KNOWN_FREE
+    occ = _index(state, fx + 1, fy)
+    state.grid[occ] = OBSTACLE
+    shadow_view(
+        state.grid, state.known, state.free_t, state.wx0, state.wy0, CELL, sx, sy, syaw, a0, inc,
+        lo, hi, np.float32(1.0),
+    )  # fmt: skip
+    assert state.known[free] == KNOWN_FREE and state.known[occ] == 0
+    gx, gy = _window_cells(state)
+    ix, iy = _index(state, gx, gy)
+    shadow = state.known[ix, iy] == SHADOW
+    cx, cy = (gx + 0.5) * CELL - sx, (gy + 0.5) * CELL - sy
+    r = np.hypot(cx, cy)
+    b = (np.arctan2(cy, cx) - syaw + np.pi) % (2 * np.pi) - np.pi
+    inside = (r > 1.5 + CELL) & (r < 2.5 - CELL) & (np.abs(b) < (m / 2 - 1) * inc)
+    outside = (r < 1.5 - CELL) | (r > 2.5 + CELL) | (np.abs(b) > m / 2 * inc + CELL / r)
+    # a ray through it meets a marked cell (SHADOW_STEP_CELLS), none outside it
+    assert shadow[inside].mean() > 0.5 and not shadow[outside].any()
+    # one bin of 0.1 deg among 600 (its neighbours saw nothing beyond their points)
+    state = _state(pose)
+    m, inc = 600, math.radians(0.1)
+    a0 = -0.5 * (m - 1) * inc
+    lo, hi = np.zeros(m), np.full(m, -1.0)
+    lo[437], hi[437] = 2.0, 2.6
+    shadow_view(
+        state.grid, state.known, state.free_t, state.wx0, state.wy0, CELL, sx, sy, syaw, a0, inc,
+        lo, hi, np.float32(1.0),
+    )  # fmt: skip
+    b = syaw + a0 + 437 * inc
+    for r in (2.05, 2.3, 2.55):
+        gx, gy = (
+            math.floor((sx + r * math.cos(b)) / CELL),
+            math.floor((sy + r * math.sin(b)) / CELL),
+        )
+        near = state.known[
+            _index(state, np.arange(gx - 1, gx + 2)[:, None], np.arange(gy - 1, gy + 2))
+        ]
+        assert (near == SHADOW).any(), r
+    assert (state.known == SHADOW).sum() <= 2 * 0.6 / CELL

@@ -164,7 +164,7 @@ def sectors_for(result: Result, cliff: bool) -> Sectors:
     cliff scan when ``cliff``)."""
     memory = result.memory
     if memory is not None and memory.scan is not None:
-        return memory_sectors(memory.scan)
+        return memory_sectors(memory.scan, hidden=memory.hidden)
     sectors = obstacle_sectors(result.scan)
     if cliff and result.cliff is not None:
         sectors = merge_cliff(sectors, result.cliff.scan)
@@ -186,11 +186,14 @@ def trust_statustext(trust: MountTrust | None, cliff: bool, untrusted: str) -> t
     return MAV_SEVERITY_WARNING, f"depthnav: {why}{what}"[:STATUSTEXT_CHARS]
 
 
-def memory_sectors(scan: LaserScan, n: int = SECTORS) -> Sectors:
+def memory_sectors(
+    scan: LaserScan, n: int = SECTORS, hidden: npt.NDArray[np.bool_] | None = None
+) -> Sectors:
     """72 sectors of 5 deg all around the robot from a 360 deg memory scan: element 0 centred
     straight behind (-180 deg clockwise), then clockwise. A sector is the nearest remembered
     point in it; max_distance + 1 (no obstacle) only where the memory knows all of it free;
-    else unknown (UINT16_MAX)."""
+    else unknown (UINT16_MAX). A sector with a ``hidden`` bin (MemoryScan.hidden: something may
+    stand in front of its remembered point) is unknown."""
     min_cm = 1
     max_cm = min(UNKNOWN - 2, max(min_cm + 1, round(scan.range_max * 100.0)))
     out = np.full(n, float(UNKNOWN))
@@ -200,8 +203,13 @@ def memory_sectors(scan: LaserScan, n: int = SECTORS) -> Sectors:
     # every bin's footprint into [left, left + 360): the scan's -180 deg bin is sector 0's
     shift = left + np.mod(lo - left, 360.0) - lo
     lo, hi = lo + shift, hi + shift
-    unknown = _pool_min(out, lo, hi, bins_to_cm(scan.ranges, min_cm, max_cm), left, width)
+    cm = bins_to_cm(scan.ranges, min_cm, max_cm)
+    unknown = _pool_min(out, lo, hi, cm, left, width)
     _clear_only_if_known(out, unknown, max_cm)
+    if hidden is not None and hidden.any():
+        flag = np.full(n, 0.0)
+        _pool_min(flag, lo, hi, np.where(hidden, -1.0, np.nan), left, width)
+        out[flag < 0] = UNKNOWN
     return Sectors(out.astype(np.uint16), width, left + width / 2.0, min_cm, max_cm)
 
 
