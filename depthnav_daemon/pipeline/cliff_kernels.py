@@ -58,9 +58,10 @@ def cliff_kernel(
     A bin of the cliff scan holds the nearest drop-off range (``refine`` False, paper: the floor
     range of the drop-off samples of detected blocks that cover it; True, exact: the edges
     ``edges`` finds); else NaN if ``short[b]``; else +inf if one of its reach samples (those in
-    its highest sample row read, cliff_table._reach_samples) has a reading below ``hi``
-    (one beyond it says nothing of the floor on the way; ``refine`` False, paper: any reading of
-    any covering sample); else NaN.
+    its highest sample row read, cliff_table._reach_samples) reads the floor or something on it
+    (d <= lo) and none reads a drop-off (lo < d < hi: one that did not make a block, or an edge
+    crossing the bin; a reading beyond ``hi`` says nothing of the floor on the way); ``refine``
+    False, paper: any reading of any covering sample); else NaN.
 
     Per block row: a sweep counts drop-offs per sample column (uint16 lanes, no branches). If the
     block row holds at least ``thresh`` drop-offs in all, its blocks are decided (eq. 7-8), and
@@ -130,7 +131,9 @@ def cliff_kernel(
             for p in range(probe_start[i], probe_start[i + 1]):
                 x = probe_code[p]
                 d = drow[x & CODE_MASK]
-                seen[x >> CODE_BITS] = (d != 0) & ((d < hi) | paper)
+                # the floor (or something on it) read there: not a drop-off sample of a block
+                # that missed the threshold (a drop-off seen by a few samples is not clear)
+                seen[x >> CODE_BITS] = (d != 0) & ((d <= lo_i[x & CODE_MASK]) | paper)
         total = 0
         for k in range(n_cols):  # a vectorised sum: most block rows see the floor and no drop-off
             total += colcnt[k]
@@ -191,14 +194,30 @@ def cliff_kernel(
         if short[b]:
             out[b] = nan
             continue
-        if seen[b]:
+        if paper:
+            if seen[b]:
+                continue
+            for m in range(cov_start[b], cov_start[b + 1] - 1):  # the probe (last) read nothing
+                x = cov_code[m]
+                if depth[rows[x >> CODE_BITS], x & CODE_MASK] != 0:
+                    break
+            else:
+                out[b] = nan
             continue
-        for m in range(cov_start[b], cov_start[b + 1] - 1):  # the probe (the last) had no reading
+        # exact: +inf if a reach sample reads the floor or something on it and none a drop-off
+        # (a drop-off too few samples saw to make a block, or whose edge crosses the bin, is not
+        # clear; a wall hides the floor behind it, but the obstacle scan reports the wall)
+        floor = seen[b]
+        for m in range(cov_start[b], cov_start[b + 1]):
             x = cov_code[m]
-            d = depth[rows[x >> CODE_BITS], x & CODE_MASK]
-            if (d != 0) & ((d < hi) | paper):
+            i = x >> CODE_BITS
+            c = x & CODE_MASK
+            d = depth[rows[i], c]
+            if (lo[i, c] < d) & (d < hi):
+                floor = False
                 break
-        else:
+            floor = floor | ((d != 0) & (d <= lo[i, c]))
+        if not floor:
             out[b] = nan
     blocks = np.empty((n_found, 2), np.int64)
     points = np.empty((n_found, 2), np.float32)

@@ -387,14 +387,18 @@ def reference_edges(
                 fresh = rows_b & ~pushed[:, b2]
                 stack += [(b2, a, z) for _, a, z in runs(fresh[:, None])]
                 pushed[:, b2] |= fresh
-    # no drop-off: NaN where the read rows do not see out to range_max or no covering sample
-    # has a reading, else +inf
+    # no drop-off: NaN where the read rows do not see out to range_max, or no reach sample reads
+    # the floor (or something on it), or one reads a drop-off; else +inf
     clear = np.isinf(out)
     out[clear & t.short] = np.nan
     for b in np.flatnonzero(clear & ~t.short):
         codes = t.cov_code[t.cov_start[b] : t.cov_start[b + 1]]
-        d = depth[t.rows[codes >> 15], t.cols[codes & 0x7FFF]]
-        if not ((d != 0) & (d < t.hi_mm)).any():
+        i, k = codes >> 15, codes & 0x7FFF
+        d = depth[t.rows[i], t.cols[k]].astype(np.int64)
+        slo = t.lo_mm[i, k].astype(np.int64)
+        # the floor or something on it read there, and no drop-off (one too few samples saw to
+        # make a block is not clear)
+        if not ((d != 0) & (d <= slo)).any() or ((slo < d) & (d < t.hi_mm)).any():
             out[b] = np.nan
     return out, np.array(pts, np.float32).reshape(-1, 2)
 

@@ -390,3 +390,17 @@ def test_the_live_cliff_scan_holds_a_step_edge_from_the_dead_zone_to_3_m() -> No
                 bad.append(f"{name} edge {want:.2f} m: {r:.3f}")
     assert seen and min(seen) < 1.0 and max(seen) > 2.9, seen
     assert bad == [], "\n".join(bad)
+
+
+def test_a_drop_off_whose_lower_floor_lies_past_range_max_is_not_read_clear() -> None:
+    """Seed 1006 (outside the CI drives): a pit's edge 4.1-4.9 m away, its floor seen beyond the
+    cliff stage's range_max (5 m). Its drop-off samples were too few to make a block, and the
+    bins read +inf because a sample in their highest row read something: the pit itself, or a
+    box 2 m away standing in front of the floor there (51 level and 7 base-frame bins). A +inf
+    now needs a reach sample that reads the floor and none that reads a drop-off. Left: 13 bins
+    where the pit's edge crosses the bin at a slant between the samples (every second column),
+    whose one reach sample reads floor beside the pit."""
+    totals = judge_drive(random_case(1006, FRAMES, KINECT_V1.scaled(160, 120)))
+    assert totals["level_cliff"].unsafe_clear <= 13, totals["level_cliff"].examples
+    assert totals["base_cliff"].unsafe_clear == 0, totals["base_cliff"].examples
+    assert totals["sectors"].unsafe == 0, totals["sectors"].examples
