@@ -16,12 +16,16 @@ sensor view (its level-frame scan, cliff scan and placement on the robot) update
 - obstacle cells are marked at the scan's points, cliff cells at the cliff scan's (the nearest
   drop-off floor point per bearing, i.e. the edge); a -inf bin (too close) marks an obstacle at
   the scan's range_min on its bearing (it is there or nearer);
+- what a bin saw beyond its point (up to its farthest obstacle pixel, LaserScan.far: a face seen
+  edge-on, a wall above a low box) is not kept: the never-seen cells there become a SHADOW (from
+  1.5 cells behind the point; memory_update_kernels.shadow_view);
 - cells it does not see (dead zones, behind, beside, beyond ``far``) keep their state; with
   ``max_age_s`` > 0 a cell not seen again for that long (occupied or free) becomes unknown.
 
 The memory scan (:func:`read_scan`) follows REP 117 around the robot: a finite range is the
-nearest remembered point on the bearing (unknown cells before the first remembered thing are not
-judged); +inf = every cell the bearing's bin touches from ``blind_m`` (no sensor sees under the
+nearest remembered point on the bearing, unless a SHADOW cell lies in front of it (by more than
+:func:`hole_m`): then NaN, and MemoryScan.hidden says so (cells never seen before the point are
+not judged); +inf = every cell the bearing's bin touches from ``blind_m`` (no sensor sees under the
 robot) out to ``range_max_m`` is known free; NaN = unknown.
 
 State lives in :class:`MemoryState`, owned by the caller and passed to every call (no globals);
@@ -312,10 +316,10 @@ def update(
 def read_scan(state: MemoryState, pose: tuple[float, float, float]) -> MemoryScan:
     """The memory scan around the robot at ``pose`` (odometry frame), in the base frame.
 
-    Per bin: the nearest remembered point covering it within range_max (unknown cells before the
-    first remembered thing are not judged); else +inf if every cell the bin touches between
-    ``blind_m`` and range_max (:func:`scan_limits`) is known free; else NaN. Every bearing is NaN
-    for a pose outside the odometry limits.
+    Per bin: the nearest remembered point covering it within range_max, NaN if a SHADOW cell lies
+    in front of it (:func:`hole_m`; cells never seen are not judged); else +inf if every cell the
+    bin touches between ``blind_m`` and range_max (:func:`scan_limits`) is known free; else NaN.
+    Every bearing is NaN for a pose outside the odometry limits.
     """
     p = state.params
     nb = p.scan_bins

@@ -110,7 +110,8 @@ def expire(grid, stamp, oldest):
 
 @kernel
 def expire_free(known, free_t, oldest):
-    """Forget free cells last seen free before ``oldest``: they become unknown. Returns how many."""
+    """Forget free and SHADOW cells last seen before ``oldest``: they become unknown. Returns how
+    many."""
     k = known.reshape(-1)
     t = free_t.reshape(-1)
     gone = 0

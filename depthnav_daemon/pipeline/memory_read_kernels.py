@@ -1,6 +1,7 @@
 """Compiled read-back of the obstacle memory (``memory.read_scan``): the 360 deg memory scan.
 
-Per bin: the nearest remembered point covering it (within range_max); else +inf if every cell
+Per bin: the nearest remembered point covering it (within range_max), NaN if a SHADOW cell lies in
+front of it (``hole``: what a view saw there, the memory did not keep); else +inf if every cell
 the bin's wedge touches between the blind radius and range_max is known free; else NaN. The
 grid layout and the two arrays (``grid``, ``known``) are ``memory_kernels``'.
 

@@ -2,8 +2,9 @@
 
 ``view_extent`` says per scan bin which ranges the view saw free (between the near and far floor
 ranges of its image, up to what it hit), ``clear_view`` frees the remembered points inside that,
-``fill_view`` marks the cells inside it known free, ``mark_view`` marks what the view hit;
-``update_view`` runs the four. The grid's layout is ``memory_kernels``'.
+``fill_view`` marks the cells inside it known free, ``shadow_view`` (memory_shadow_kernels) the
+cells where it saw more than it keeps, ``mark_view`` marks what the view hit; ``update_view`` runs
+them. The grid's layout is ``memory_kernels``'.
 """
 
 from __future__ import annotations
@@ -18,21 +19,14 @@ from depthnav_daemon.pipeline.memory_kernels import (
     FREE,
     KNOWN_FREE,
     OBSTACLE,
-    SHADOW,
     fast_atan2,
 )
+from depthnav_daemon.pipeline.memory_shadow_kernels import SHADOW_FROM_CELLS, shadow_view
 
 # spacing of the fill's samples, in cells: samples at most s apart radially and across put one into
 # every disc of diameter s * sqrt(2), so no cell wholly inside the seen region is missed at
 # s <= 1 / sqrt(2)
 FILL_STEP_CELLS = 0.7
-# shadow_view: the samples' spacing along a group of bins and the group's width at its farthest
-# sample, in cells
-SHADOW_STEP_CELLS = 1.0
-SHADOW_GROUP_CELLS = 0.7
-# where a bin's shadow starts behind the point it reports, in cells: what it saw nearer behind the
-# point is the point's own surface, within the memory's stated error of it (a cell's diagonal)
-SHADOW_FROM_CELLS = 1.5
 
 
 @helper
@@ -297,64 +291,6 @@ def fill_view(grid, known, free_t, wx0, wy0, cell, sx, sy, syaw, a0, inc, lo, hi
         if band_hi >= r1:
             return written
         band_lo = band_hi
-
-
-@helper
-def shadow_view(grid, known, free_t, wx0, wy0, cell, sx, sy, syaw, a0, inc, lo, hi, t_rel):
-    """Mark as SHADOW at ``t_rel`` the cells never seen (neither known free nor occupied) between
-    lo[i] and hi[i] of each bin (hi < lo: none): where the view saw something beyond the point it
-    reports (the memory keeps only that point). A face seen edge-on is a sliver of one bin, so
-    every bin is walked: bins in groups as wide as SHADOW_GROUP_CELLS at the farthest hi (one
-    bin where bins are wider), each group's centre from its least lo to its largest hi,
-    SHADOW_STEP_CELLS apart. A shadow needs no cell-tight marking (a cell left out is judged as
-    never seen, one marked too many makes the memory scan more cautious). Returns the samples
-    written."""
-    n = grid.shape[0]
-    m = lo.shape[0]
-    step = SHADOW_STEP_CELLS * cell
-    reach = 0.0
-    for i in range(m):
-        if hi[i] >= lo[i]:
-            reach = max(reach, hi[i])
-    if reach <= 0.0:
-        return 0
-    g = max(np.int64(1), np.int64(SHADOW_GROUP_CELLS * cell / (inc * reach)))  # bins per group
-    inv = 1.0 / cell
-    bx = wx0 % n
-    by = wy0 % n
-    written = 0
-    for i0 in range(0, m, g):
-        i1 = min(i0 + g, m)
-        a = np.inf
-        b = -1.0
-        for i in range(i0, i1):
-            if hi[i] >= lo[i]:
-                a = min(a, lo[i])
-                b = max(b, hi[i])
-        if not b >= a:
-            continue
-        th = syaw + a0 + 0.5 * (i0 + i1 - 1) * inc
-        c = math.cos(th)
-        s = math.sin(th)
-        count = np.int64(math.ceil((b - a) / step)) + 1
-        dr = (b - a) / (count - 1) if count > 1 else 0.0
-        u = (sx + a * c) * inv - wx0
-        v = (sy + a * s) * inv - wy0
-        du = dr * c * inv
-        dv = dr * s * inv
-        for j in range(count):
-            dx = np.int64(math.floor(u + j * du))
-            dy = np.int64(math.floor(v + j * dv))
-            if 0 <= dx < n and 0 <= dy < n:
-                ix = bx + dx
-                ix = ix - n if ix >= n else ix
-                iy = by + dy
-                iy = iy - n if iy >= n else iy
-                if grid[ix, iy] == FREE and known[ix, iy] == 0:
-                    known[ix, iy] = SHADOW
-                    free_t[ix, iy] = t_rel
-                    written += 1
-    return written
 
 
 @helper

@@ -17,7 +17,8 @@ import pytest
 from depthnav_daemon.pipeline.memory import MemoryParams, MemoryState, new_state, update
 from depthnav_daemon.pipeline.memory_kernels import KNOWN_FREE, OBSTACLE, SHADOW
 from depthnav_daemon.pipeline.memory_read_kernels import memory_read
-from depthnav_daemon.pipeline.memory_update_kernels import clear_view, fill_view, shadow_view
+from depthnav_daemon.pipeline.memory_shadow_kernels import shadow_view
+from depthnav_daemon.pipeline.memory_update_kernels import clear_view, fill_view
 
 CELL = 0.05
 
