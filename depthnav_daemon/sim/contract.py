@@ -29,7 +29,9 @@ sensor sees (geometry only, no stage code) and the judge reads the contract so:
   turns them as much as it moves them (a box corner 1.28 m away read 1.5 bins over with a
   0.015 rad heading drift).
 - +inf, the memory (``memory``, ``memory_sectors``): unsafe if anything is on the bin within its
-  range_max, except table tops no sensor ever saw (``overhang``) and what lies nearer the robot
+  range_max, except table tops no sensor ever saw (``overhang``), the edges of a hole the cliff
+  stage only ever saw below its resolution (``below``: the memory clears what the live cliff scan
+  read free, under the live scan's own exception) and what lies nearer the robot
   than the memory's ``blind_m`` (the disc round the base origin it does not judge; the value the
   memory used, pipeline.memory.scan_limits): counted ``blind``. A table top seen before and read
   +inf later is unsafe, but counted apart as ``overhang_cleared`` (the memory may clear it when
@@ -244,13 +246,24 @@ def base_claims(sights: Sequence[vis.Sight]) -> Claims:
     return Claims(any_("visible"), claim, any_("overhang"), any_("below"), np.zeros_like(claim))
 
 
-def memory_claims(bd: vis.Boundary, seen_ever: B, inside: B | None = None) -> Claims:
+def memory_claims(
+    bd: vis.Boundary, seen_ever: B, inside: B | None = None, below_ever: B | None = None
+) -> Claims:
     """What the memory is judged with: everything, but table tops never seen (overhang) or seen
-    (cleared) and what lies ``inside`` its blind disc (blind; None: nothing)."""
+    (cleared), what lies ``inside`` its blind disc (blind; None: nothing) and the edges of a hole
+    the cliff stage only ever saw below its resolution (``below_ever``: some of its edge samples;
+    none of them ever seen: below; the memory clears what the live cliff scan read free, under
+    the live scan's own exception)."""
     up, no = bd.raised, np.zeros_like(bd.raised)
     inside = no if inside is None else inside
-    out = ~inside
-    return Claims(seen_ever, ~up & out, up & ~seen_ever & out, no, up & seen_ever & out, inside)
+    below = no
+    if below_ever is not None and bd.edge.any():  # per hole: some edge below, none ever seen
+        n = int(bd.owner[bd.edge].max()) + 1
+        hit = np.bincount(bd.owner[bd.edge], below_ever[bd.edge], n) > 0
+        saw = np.bincount(bd.owner[bd.edge], seen_ever[bd.edge], n) > 0
+        below = bd.edge & (hit & ~saw)[np.where(bd.edge, bd.owner, 0)] & ~inside
+    out = ~inside & ~below
+    return Claims(seen_ever, ~up & out, up & ~seen_ever & out, below, up & seen_ever & out, inside)
 
 
 def noise_k(noise: KinectNoise | None) -> float:
@@ -343,6 +356,7 @@ def judge_drive(case: Case, steps: Sequence[Step] | None = None) -> dict[str, Co
     assert cp is not None
     bd = vis.boundary(case.scene, sp)
     seen_ever = np.zeros(len(bd.xy), bool)
+    below_ever = np.zeros(len(bd.xy), bool)
     k = noise_k(case.depth_noise)
     out = {name: Counts() for name in OUTPUTS}
     drift = (0.0, 0.0)
@@ -354,6 +368,7 @@ def judge_drive(case: Case, steps: Sequence[Step] | None = None) -> dict[str, Co
         sights = [vis.sight(bd, case.scene, c, sp, cp) for c in cams]
         for j, (cam, s, res) in enumerate(zip(cams, sights, step.results, strict=True)):
             seen_ever |= s.seen
+            below_ever |= s.below
             live, base, where = live_claims(s), base_claims([s]), f"{tag} sensor={j}"
             _judge(out["level_scan"], _of(res.level_scan), bd, live, cam.origin, box, e, where)
             _judge(out["base_scan"], _of(res.scan), bd, base, pose, box, e, where)
@@ -375,7 +390,8 @@ def judge_drive(case: Case, steps: Sequence[Step] | None = None) -> dict[str, Co
         for res in step.results:
             _note_view(mstate, sensor_view(res, params))
         inside = np.hypot(*(bd.xy - pose[:2]).T) < pm.scan_limits(mstate)[0]
-        mem, e = memory_claims(bd, seen_ever, inside), (k, *drift, mstate.params.cell_m)
+        mem = memory_claims(bd, seen_ever, inside, below_ever)
+        e = (k, *drift, mstate.params.cell_m)
         _judge(out["memory"], _of(step.memory), bd, mem, pose, None, e, tag)
         sectors = sector_ranges(step.memory_sectors)
         _judge(out["memory_sectors"], sectors, bd, mem, pose, None, e, tag)

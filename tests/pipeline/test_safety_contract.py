@@ -276,8 +276,8 @@ SLOW_CEILING = {
     "merged_scan": 2,
     "merged_cliff": 1,
     "sectors": 5,
-    "memory": 5,
-    "memory_sectors": 1,
+    "memory": 0,
+    "memory_sectors": 0,
 }
 
 
