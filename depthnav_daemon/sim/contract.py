@@ -43,9 +43,10 @@ sensor sees (geometry only, no stage code) and the judge reads the contract so:
 The memory's finite truth is every outline sample a sensor has seen so far on the drive (visible
 within the stage's range limits), read from the true pose. Stated errors: 0.02 m obstacles,
 0.05 m drop-off edges; + k (r^2 + 1) with Kinect-like depth noise (k: 3 sigma of its depth error
-+ half its quantisation step); + twice the odometry's drift so far (position + heading x r) for
-the memory. Coverage: the share of bins with a visible truth within range_max whose output is
-within err of it (all-NaN is safe but useless).
++ half its quantisation step); + twice the odometry's drift so far (position + heading x r) and a
+cell's diagonal (it keeps one point per cell; coverage is judged without it) for the memory.
+Coverage: the share of bins with a visible truth within range_max whose output is within err of
+it (all-NaN is safe but useless).
 
 ``python -m depthnav_daemon.sim.contract --drives N --seed S`` prints the table per output.
 """
