@@ -100,8 +100,9 @@ def memory_read(
             ``blind`` from the robot (no sensor sees under it) and within ``rmax``
             (the scan's range_max: +inf claims known free all the way to it); points farther
             than rmax are not reported.
-        hole: a bin's remembered point is read NaN if an unknown cell it touches lies this much
-            nearer (centre to point), metres (0: never; unknown cells nearer are not judged).
+        hole: a bin's remembered point is read NaN if a SHADOW cell it touches lies more than
+            this much nearer (centre to point), metres (0: never); cells never seen are not
+            judged before a point.
         out: (N,) float32, overwritten: bin j centred on -pi + j * 2 pi / N (base frame).
         hidden: (N,) uint8, overwritten: 1 where a remembered point was read NaN (``hole``).
         counts: (3,) int64, overwritten: cells per state (FREE unused, OBSTACLE, CLIFF).
