@@ -19,9 +19,11 @@ seen, left the window or was forgotten.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
-from depthnav_daemon.pipeline._jit import helper, kernel
+from depthnav_daemon.pipeline._jit import helper, inlined, kernel
 
 FREE = 0
 OBSTACLE = 1
@@ -64,6 +66,44 @@ def row_empty(words, ix, nw):
     for wi in range(ix * nw, ix * nw + nw):
         acc |= words[wi]
     return acc == 0
+
+
+@inlined
+def mark_segment(
+    grid, known, free_t, wx0, wy0, bx, by, sx, sy, c, s, a, b, step, inv, t_rel, value
+):
+    """Mark the cells along the segment from range ``a`` to ``b`` (metres) on heading (c, s) from
+    (sx, sy), samples at most ``step`` apart: ``value`` KNOWN_FREE on every FREE cell, SHADOW on
+    the FREE cells never seen (known 0), stamped ``t_rel``. (bx, by): (wx0, wy0) mod n, which the
+    caller works out once (an integer division costs more than a cell). Returns the cells
+    written."""
+    n = grid.shape[0]
+    count = np.int64(math.ceil((b - a) / step)) + 1
+    dr = (b - a) / (count - 1) if count > 1 else 0.0
+    # in cells, relative to the window's corner
+    u = (sx + a * c) * inv - wx0
+    v = (sy + a * s) * inv - wy0
+    du = dr * c * inv
+    dv = dr * s * inv
+    written = 0
+    last_x = last_y = -1
+    for j in range(count):
+        dx = np.int64(math.floor(u + j * du))
+        dy = np.int64(math.floor(v + j * dv))
+        if dx == last_x and dy == last_y:
+            continue  # the previous sample's cell (samples are under a cell apart)
+        last_x = dx
+        last_y = dy
+        if 0 <= dx < n and 0 <= dy < n:
+            ix = bx + dx
+            ix = ix - n if ix >= n else ix
+            iy = by + dy
+            iy = iy - n if iy >= n else iy
+            if grid[ix, iy] == FREE and (value == KNOWN_FREE or known[ix, iy] == 0):
+                known[ix, iy] = value
+                free_t[ix, iy] = t_rel
+                written += 1
+    return written
 
 
 @kernel

@@ -11,7 +11,7 @@ import math
 import numpy as np
 
 from depthnav_daemon.pipeline._jit import helper
-from depthnav_daemon.pipeline.memory_kernels import FREE, SHADOW
+from depthnav_daemon.pipeline.memory_kernels import SHADOW, mark_segment
 
 # shadow_view: the samples' spacing along a group of bins and the group's width at its farthest
 # sample, in cells
@@ -33,6 +33,8 @@ def shadow_view(grid, known, free_t, wx0, wy0, cell, sx, sy, syaw, a0, inc, lo, 
     never seen, one marked too many makes the memory scan more cautious). Returns the samples
     written."""
     n = grid.shape[0]
+    bx = wx0 % n  # once: an integer division costs more than a cell
+    by = wy0 % n
     m = lo.shape[0]
     step = SHADOW_STEP_CELLS * cell
     reach = 0.0
@@ -43,8 +45,6 @@ def shadow_view(grid, known, free_t, wx0, wy0, cell, sx, sy, syaw, a0, inc, lo, 
         return 0
     g = max(np.int64(1), np.int64(SHADOW_GROUP_CELLS * cell / (inc * reach)))  # bins per group
     inv = 1.0 / cell
-    bx = wx0 % n
-    by = wy0 % n
     written = 0
     for i0 in range(0, m, g):
         i1 = min(i0 + g, m)
@@ -59,22 +59,7 @@ def shadow_view(grid, known, free_t, wx0, wy0, cell, sx, sy, syaw, a0, inc, lo, 
         th = syaw + a0 + 0.5 * (i0 + i1 - 1) * inc
         c = math.cos(th)
         s = math.sin(th)
-        count = np.int64(math.ceil((b - a) / step)) + 1
-        dr = (b - a) / (count - 1) if count > 1 else 0.0
-        u = (sx + a * c) * inv - wx0
-        v = (sy + a * s) * inv - wy0
-        du = dr * c * inv
-        dv = dr * s * inv
-        for j in range(count):
-            dx = np.int64(math.floor(u + j * du))
-            dy = np.int64(math.floor(v + j * dv))
-            if 0 <= dx < n and 0 <= dy < n:
-                ix = bx + dx
-                ix = ix - n if ix >= n else ix
-                iy = by + dy
-                iy = iy - n if iy >= n else iy
-                if grid[ix, iy] == FREE and known[ix, iy] == 0:
-                    known[ix, iy] = SHADOW
-                    free_t[ix, iy] = t_rel
-                    written += 1
+        written += mark_segment(
+            grid, known, free_t, wx0, wy0, bx, by, sx, sy, c, s, a, b, step, inv, t_rel, SHADOW
+        )
     return written

@@ -20,6 +20,7 @@ from depthnav_daemon.pipeline.memory_kernels import (
     KNOWN_FREE,
     OBSTACLE,
     fast_atan2,
+    mark_segment,
 )
 from depthnav_daemon.pipeline.memory_shadow_kernels import SHADOW_FROM_CELLS, shadow_view
 
@@ -219,6 +220,8 @@ def fill_view(grid, known, free_t, wx0, wy0, cell, sx, sy, syaw, a0, inc, lo, hi
     interior in the dead zone, behind a cell whose far part was seen).
     """
     n = grid.shape[0]
+    bx = wx0 % n  # once: an integer division costs more than a cell
+    by = wy0 % n
     m = lo.shape[0]
     r0 = np.inf
     r1 = 0.0
@@ -235,8 +238,6 @@ def fill_view(grid, known, free_t, wx0, wy0, cell, sx, sy, syaw, a0, inc, lo, hi
     c_start = math.cos(th0)
     s_start = math.sin(th0)
     inv = 1.0 / cell
-    bx = wx0 % n
-    by = wy0 % n
     written = 0
     band_lo = r0
     while True:
@@ -263,30 +264,10 @@ def fill_view(grid, known, free_t, wx0, wy0, cell, sx, sy, syaw, a0, inc, lo, hi
                     a = max(a, lo[j] + diag)
                     b = min(b, hi[j] - diag)
             if a <= b:
-                count = np.int64(math.ceil((b - a) / step)) + 1
-                dr = (b - a) / (count - 1) if count > 1 else 0.0
-                # in cells, relative to the window's corner
-                u = (sx + a * c) * inv - wx0
-                v = (sy + a * s) * inv - wy0
-                du = dr * c * inv
-                dv = dr * s * inv
-                last_x = last_y = -1
-                for j in range(count):
-                    dx = np.int64(math.floor(u + j * du))
-                    dy = np.int64(math.floor(v + j * dv))
-                    if dx == last_x and dy == last_y:
-                        continue  # the previous sample's cell (samples are 0.7 cells apart)
-                    last_x = dx
-                    last_y = dy
-                    if 0 <= dx < n and 0 <= dy < n:
-                        ix = bx + dx
-                        ix = ix - n if ix >= n else ix
-                        iy = by + dy
-                        iy = iy - n if iy >= n else iy
-                        if grid[ix, iy] == FREE:
-                            known[ix, iy] = KNOWN_FREE
-                            free_t[ix, iy] = t_rel
-                            written += 1
+                written += mark_segment(
+                    grid, known, free_t, wx0, wy0, bx, by, sx, sy, c, s, a, b, step, inv, t_rel,
+                    KNOWN_FREE,
+                )  # fmt: skip
             c, s = c * cd - s * sd, s * cd + c * sd
         if band_hi >= r1:
             return written
