@@ -68,8 +68,10 @@ def cliff_kernel(
     each stretch of adjacent detected blocks is swept again (its rows still in cache) for the
     ranges, with the run-minimum scheme of the exact scan: a minimum per column while the column
     covers the same bins, written to them when a run ends (runs end at block-row boundaries too).
-    Whether a bin is seen that far is asked of one reach sample (its "probe", in its highest
-    row read) while its row is in cache, the other reach samples only when the probe has none.
+    Whether a bin is seen that far: paper, asked of one reach sample (its "probe", in its highest
+    row read) while its row is in cache, the other reach samples only when the probe has none;
+    exact, every reach sample of a bin that found no drop-off, at the end (one reading a drop-off
+    decides it).
 
     Args:
         depth: (H, C) uint16 mm, the sample columns only (a column-strided view is fine; with
@@ -128,12 +130,10 @@ def cliff_kernel(
             for k in range(n_cols):
                 d = drow[k]
                 colcnt[k] += (lo_i[k] < d) & (d < hi)
-            for p in range(probe_start[i], probe_start[i + 1]):
-                x = probe_code[p]
-                d = drow[x & CODE_MASK]
-                # the floor (or something on it) read there: not a drop-off sample of a block
-                # that missed the threshold (a drop-off seen by a few samples is not clear)
-                seen[x >> CODE_BITS] = (d != 0) & ((d <= lo_i[x & CODE_MASK]) | paper)
+            if paper:  # the exact method reads every reach sample at the end
+                for p in range(probe_start[i], probe_start[i + 1]):
+                    x = probe_code[p]
+                    seen[x >> CODE_BITS] = drow[x & CODE_MASK] != 0
         total = 0
         for k in range(n_cols):  # a vectorised sum: most block rows see the floor and no drop-off
             total += colcnt[k]
@@ -207,7 +207,7 @@ def cliff_kernel(
         # exact: +inf if a reach sample reads the floor or something on it and none a drop-off
         # (a drop-off too few samples saw to make a block, or whose edge crosses the bin, is not
         # clear; a wall hides the floor behind it, but the obstacle scan reports the wall)
-        floor = seen[b]
+        floor = False
         for m in range(cov_start[b], cov_start[b + 1]):
             x = cov_code[m]
             i = x >> CODE_BITS
