@@ -97,6 +97,7 @@ class Counts:
     overhang_cleared: int = 0
     below_resolution: int = 0
     blind: int = 0
+    subpixel: int = 0  # finite bins beyond a side seen edge-on (narrower than a pixel column)
     false_too_close: int = 0
     nan: int = 0
     with_truth: int = 0
@@ -134,7 +135,8 @@ class Counts:
         x = np.concatenate(self.excess) if self.excess else np.zeros(1)
         p = " ".join(f"{v:6.3f}" for v in self.percentiles())
         counts = (self.unsafe_far, self.unsafe_clear, self.clear_held, self.beside, self.overhang)
-        counts += (self.overhang_cleared, self.below_resolution, self.blind, self.false_too_close)
+        counts += (self.overhang_cleared, self.below_resolution, self.blind, self.subpixel)
+        counts += (self.false_too_close,)
         return (
             f"{name:<15}{self.bins:>8}" + "".join(f"{v:>7}" for v in counts)
             + f"{self.nan / max(self.bins, 1):>7.1%}{self.coverage:>7.1%}  {p}"
@@ -153,12 +155,14 @@ def judge(
     err_claim: F64 | None = None,
     reach: npt.NDArray[np.int64] | None = None,
     err_cover: F64 | None = None,
+    err_subpixel: F64 | None = None,
 ) -> Counts:
     """Judge one output's REP 117 ranges (n,) against its truth, with the stated error (n,) m at
     the visible truth (``err_claim``: at the claimed truth, default ``err``); ``circular``: the
     bins go round the circle (the first and last are neighbours); ``reach`` (n,): how many bins
     either side a bin's truth may be reported on (default 1: the bearing's resolution);
-    ``err_cover``: the error coverage is judged with (default ``err``)."""
+    ``err_cover``: the error coverage is judged with (default ``err``); ``err_subpixel``: the
+    stated error at the nearest side seen edge-on (default ``err``)."""
     r = np.asarray(ranges, dtype=np.float64)
     near = np.minimum(t.visible, t.visible_edge)
     fin, ninf, inf = np.isfinite(r), r == -np.inf, r == np.inf
@@ -186,6 +190,10 @@ def judge(
             kinds.append(rest & (within <= range_max))
             rest &= ~kinds[-1]
         lie = far & ~held
+        sub = np.full(r.size, np.inf) if t.subpixel is None else t.subpixel
+        edge_on = (
+            fin & ~lie & ~(far & held) & (r > sub + (err if err_subpixel is None else err_subpixel))
+        )
         c = Counts(
             bins=r.size,
             unsafe_far=int(lie.sum()),
@@ -196,6 +204,7 @@ def judge(
             overhang_cleared=int(kinds[0].sum()),
             below_resolution=int(kinds[2].sum()),
             blind=int(kinds[3].sum()),
+            subpixel=int(edge_on.sum()),
             false_too_close=int((ninf & ~(t.any < range_min + TOO_CLOSE_SLACK_M)).sum()),
             nan=int(np.isnan(r).sum()),
             with_truth=int(truth_in.sum()),
@@ -233,7 +242,7 @@ def _nearest_around(side: F64, reach: npt.NDArray[np.int64], circular: bool) -> 
 
 def live_claims(s: vis.Sight) -> Claims:
     """What a sensor's own (level-frame) scans are judged with."""
-    return Claims(s.visible, s.claim, s.overhang, s.below, np.zeros_like(s.claim))
+    return Claims(s.visible, s.claim, s.overhang, s.below, np.zeros_like(s.claim), None, s.subpixel)
 
 
 def base_claims(sights: Sequence[vis.Sight]) -> Claims:
@@ -244,7 +253,10 @@ def base_claims(sights: Sequence[vis.Sight]) -> Claims:
         return np.logical_or.reduce([getattr(s, name) for s in sights])
 
     claim = any_("claim") | (any_("drop") & ~any_("covered") & ~any_("dead"))
-    return Claims(any_("visible"), claim, any_("overhang"), any_("below"), np.zeros_like(claim))
+    no = np.zeros_like(claim)
+    return Claims(
+        any_("visible"), claim, any_("overhang"), any_("below"), no, None, any_("subpixel")
+    )
 
 
 def memory_claims(
@@ -282,10 +294,13 @@ def stated_error(
     odom_rad: float = 0.0,
     cell_m: float = 0.0,
     at_claim: bool = False,
+    at: F64 | None = None,
 ) -> F64:
-    """The stated error per bin (n,) m at the nearest visible (or ``at_claim``: claimed) truth
-    (module docstring); ``cell_m``: the memory's cell (it keeps one point per cell)."""
-    r = np.minimum(t.claim if at_claim else np.minimum(t.visible, t.visible_edge), 10.0)
+    """The stated error per bin (n,) m at the nearest visible (or ``at_claim``: claimed; ``at``:
+    these ranges') truth (module docstring); ``cell_m``: the memory's cell (it keeps one point
+    per cell)."""
+    r = t.claim if at_claim else np.minimum(t.visible, t.visible_edge) if at is None else at
+    r = np.minimum(r, 10.0)
     base = np.where(t.visible_edge < t.visible, ERR_EDGE_M, ERR_OBSTACLE_M)
     return base + k * (r * r + 1.0) + 2.0 * (odom_m + odom_rad * r) + math.sqrt(2.0) * cell_m
 
@@ -334,7 +349,8 @@ def _judge(
         at = np.maximum(np.minimum(np.minimum(t.visible, t.visible_edge), t.claim), 0.1)
         reach = 1 + np.ceil((odom_rad + odom_m / at) / lay[1]).astype(np.int64)
     tight = stated_error(t, *err[:3])
-    out.add(judge(r, rmin, rmax, t, stated_error(t, *err), tag, circular, ec, reach, tight))
+    es = None if t.subpixel is None else stated_error(t, *err, at=t.subpixel)
+    out.add(judge(r, rmin, rmax, t, stated_error(t, *err), tag, circular, ec, reach, tight, es))
 
 
 def _of(scan: LaserScan) -> tuple[F64, vis.Layout, float, float]:
@@ -401,9 +417,9 @@ def judge_drive(case: Case, steps: Sequence[Step] | None = None) -> dict[str, Co
 
 def table(totals: dict[str, Counts]) -> str:
     """Per output: bins; unsafe far and clear; beside (held: its +inf bins), overhang, overhang
-    cleared, below resolution and blind (reported, not unsafe); false too-close; NaN share;
+    cleared, below resolution, blind and subpixel (reported, not unsafe); false too-close; NaN share;
     coverage; safe-side error p50/p95/max (m); worst excess of an unsafe far bin (m)."""
-    names = "far clear (held) beside overhg oh_clr below blind close NaN cover".split()
+    names = "far clear (held) beside overhg oh_clr below blind subpx close NaN cover".split()
     head = f"{'output':<15}{'bins':>8}" + "".join(f"{n:>7}" for n in names)
     head += f"  {'p50':>6} {'p95':>6} {'max':>6}  {'excess':>6}"
     return "\n".join(

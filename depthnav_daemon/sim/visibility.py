@@ -64,8 +64,9 @@ FAR_M = 100.0  # beyond every world
 @dataclass(frozen=True, slots=True)
 class Boundary:
     """Outline samples: world points (N, 2), the next sample on the same outline (N,), drop-off
-    edge or box (N,), height span inside the scan band (N,) m (edges 0), box or hole index, and
-    whether a box stands above the floor (a table top: ``raised``)."""
+    edge or box (N,), height span inside the scan band (N,) m (edges 0), box or hole index,
+    whether a box stands above the floor (a table top: ``raised``), and the side of its outline
+    each sample lies on: the side's two corners (N, 2, 2) (a sample at a corner starts its side)."""
 
     xy: F64
     nxt: npt.NDArray[np.int64]
@@ -74,6 +75,7 @@ class Boundary:
     z_hi: F64
     owner: npt.NDArray[np.int64]
     raised: B
+    side: F64
 
 
 def boundary(scene: Scene, scan: ScanParams, step_m: float = SAMPLE_STEP_M) -> Boundary:
@@ -92,7 +94,22 @@ def boundary(scene: Scene, scan: ScanParams, step_m: float = SAMPLE_STEP_M) -> B
     col = [np.repeat(np.array([p[k] for p in parts]), sizes) for k in range(1, 6)]
     xy = np.concatenate([p[0] for p in parts]) if parts else np.zeros((0, 2))
     edge, raised = col[0].astype(bool), col[4].astype(bool)
-    return Boundary(xy, nxt, edge, col[1] * 1.0, col[2] * 1.0, col[3].astype(np.int64), raised)
+    side = np.concatenate([_sides(p[0]) for p in parts]) if parts else np.zeros((0, 2, 2))
+    return Boundary(
+        xy, nxt, edge, col[1] * 1.0, col[2] * 1.0, col[3].astype(np.int64), raised, side
+    )
+
+
+def _sides(outline: F64) -> F64:
+    """Per sample of a rectangle's outline (perimeter: corners included, in order), the corners
+    (N, 2, 2) of the side it lies on: the samples from one corner up to the next."""
+    d = np.diff(np.concatenate([outline, outline[:1]]), axis=0)
+    turn = np.abs(d[:, 0] * np.roll(d, 1, 0)[:, 1] - d[:, 1] * np.roll(d, 1, 0)[:, 0]) > 1e-12
+    corners = np.flatnonzero(turn)  # the samples where the outline turns: its corners
+    k = np.searchsorted(corners, np.arange(len(outline)), side="right") - 1  # -1: before the first
+    start = outline[corners[k % len(corners)]]
+    end = outline[corners[(k + 1) % len(corners)]]
+    return np.stack([start, end], axis=1)
 
 
 @dataclass(frozen=True, slots=True)
@@ -231,10 +248,11 @@ def _unhidden(scene: Scene, cam: Camera, xy: F64, r: F64, z: F64) -> B:
 @dataclass(frozen=True, slots=True)
 class Sight:
     """One sensor's view of the outline samples at one pose (N,) each (module docstring):
-    ``visible`` (the finite truth), ``claim`` (the +inf truth of its own scans), ``overhang``,
-    ``below`` (resolution), ``covered``, ``dead``, ``drop`` (a box, or a near edge of a hole
-    deeper than the margin: what the contract speaks of), ``seen`` (visible within the stage's
-    range limits: what the memory may keep)."""
+        ``visible`` (the finite truth), ``claim`` (the +inf truth of its own scans), ``overhang``,
+        ``below`` (resolution), ``covered``, ``dead``, ``drop`` (a box, or a near edge of a hole
+        deeper than the margin: what the contract speaks of), ``seen`` (visible within the stage's
+        range limits: what the memory may keep), ``subpixel`` (in view and unhidden, but inside a side
+    seen edge-on: narrower than a pixel column, so not in ``visible``)."""
 
     visible: B
     claim: B
@@ -244,6 +262,7 @@ class Sight:
     dead: B
     drop: B
     seen: B
+    subpixel: B
 
 
 def sight(bd: Boundary, scene: Scene, cam: Camera, scan: ScanParams, cliff: CliffParams) -> Sight:
@@ -270,6 +289,8 @@ def sight(bd: Boundary, scene: Scene, cam: Camera, scan: ScanParams, cliff: Clif
         k0[k, None] + (k1 - k0)[k, None] * np.linspace(0, 1, Z_LEVELS)
     )
     visible[k] = _unhidden(scene, cam, bd.xy[k], r[k], cam.height_at_row(bd.xy[k], at))
+    subpixel = visible & _subpixel_side(bd, cam, rows, scan.col_step)
+    visible &= ~subpixel
     seen = visible & (r >= scan.range_min_m) & (r <= scan.range_max_m)
     claim, below, covered, drop = inview | (floor & ~over), np.zeros(n, bool), inview | floor, box
 
@@ -303,7 +324,40 @@ def sight(bd: Boundary, scene: Scene, cam: Camera, scan: ScanParams, cliff: Clif
     fr = cam.floor_row(bd.xy[e])
     near = cam.nearest_floor(i.height - 1, cols)
     dead[e] = (np.isfinite(fr) & (fr > i.height - 1)) | (r[e] < near)
-    return Sight(visible, claim, over, below, covered, dead, drop, seen)
+    return Sight(visible, claim, over, below, covered, dead, drop, seen, subpixel)
+
+
+def _subpixel_side(bd: Boundary, cam: Camera, rows: range, col_step: int) -> B:
+    """Box samples (N,) inside a side of their outline that no row of pixel centres the stage
+    reads crosses twice: at most one used pixel centre per row has its level-frame bearing within
+    the side's bearing span from the camera. Such a side is seen edge-on: a pixel's centre ray
+    meets it at one depth while the side runs along the ray (seed 83: a 0.6 m side within
+    0.03 deg), and no stage can tell where along it the rest lies. The side's corners stay (they
+    end the sides beside it)."""
+    inner = ~bd.edge & np.any(np.abs(bd.side[:, 0] - bd.xy) > 1e-9, axis=1)
+    inner &= np.any(np.abs(bd.side[:, 1] - bd.xy) > 1e-9, axis=1)
+    if not inner.any():
+        return inner
+    i = cam.intr
+    v = np.arange(rows.start, min(rows.stop, i.height), rows.step or 1, dtype=float)
+    u = np.arange(0, i.width, col_step, dtype=float)
+    ray = np.stack(np.broadcast_arrays((u[None, :] - i.cx) / i.fx, (v[:, None] - i.cy) / i.fy, 1.0))
+    a, g = cam.axes()
+    fwd, left, _ = np.tensordot(a.T, ray * g[:, None, None], axes=1)
+    beta = np.sort(np.arctan2(left, fwd), axis=1)  # (rows, cols) level bearings, ascending
+    sides, inv = np.unique(bd.side[inner].reshape(-1, 4), axis=0, return_inverse=True)
+    ends = [
+        np.arctan2(sides[:, 2 * k + 1] - cam.y, sides[:, 2 * k] - cam.x) - cam.yaw for k in (0, 1)
+    ]
+    lo = np.remainder(ends[0] + np.pi, 2 * np.pi) - np.pi
+    hi = lo + np.remainder(ends[1] - ends[0] + np.pi, 2 * np.pi) - np.pi
+    lo, hi = np.minimum(lo, hi), np.maximum(lo, hi)
+    most = np.zeros(len(sides), np.int64)
+    for row in beta:  # bearings round the back of the camera do not fall in any row's span
+        most = np.maximum(most, np.searchsorted(row, hi, "right") - np.searchsorted(row, lo))
+    out = np.zeros(len(bd.xy), bool)
+    out[np.flatnonzero(inner)] = (most <= 1)[inv.reshape(-1)]
+    return out
 
 
 def _floor_range_at_row(cam: Camera, d: F64, v: F64, r0: F64) -> F64:
@@ -324,7 +378,8 @@ class Claims:
     """Sample masks (N,) an output is judged with (sim.contract builds them per output):
     ``visible`` (its finite truth), ``claim`` (its +inf truth), and what +inf may lie over without
     being unsafe, each reported apart: ``overhang``, ``below`` (resolution), ``cleared`` (the
-    memory's seen table tops), ``blind`` (the memory's blind disc; None: none)."""
+    memory's seen table tops), ``blind`` (the memory's blind disc; None: none); ``subpixel``:
+    sides seen edge-on, not in ``visible`` (a finite range beyond them is reported apart)."""
 
     visible: B
     claim: B
@@ -332,6 +387,7 @@ class Claims:
     below: B
     cleared: B
     blind: B | None = None
+    subpixel: B | None = None
 
 
 def segment_bins(b0: F64, b1: F64, r0: F64, r1: F64, layout: Layout) -> tuple[F64, ...]:
@@ -362,7 +418,8 @@ def segment_bins(b0: F64, b1: F64, r0: F64, r1: F64, layout: Layout) -> tuple[F6
 class Truth:
     """Per bin (n,) m, +inf none: the nearest visible obstacle and edge (finite check), the
     nearest claimed point (+inf check), the nearest of all (reports), and the nearest point of
-    each kind +inf may lie over (Claims; ``blind`` None: no such kind)."""
+    each kind +inf may lie over (Claims; ``blind`` None: no such kind), and the nearest side
+    seen edge-on (``subpixel``)."""
 
     visible: F64
     visible_edge: F64
@@ -372,6 +429,7 @@ class Truth:
     below: F64
     cleared: F64
     blind: F64 | None = None
+    subpixel: F64 | None = None
 
 
 def truth(bd: Boundary, c: Claims, origin: Origin, layout: Layout, kinds: B | None = None) -> Truth:
@@ -415,4 +473,5 @@ def truth(bd: Boundary, c: Claims, origin: Origin, layout: Layout, kinds: B | No
         either(c.below),
         either(c.cleared),
         None if c.blind is None else either(c.blind),
+        None if c.subpixel is None else either(c.subpixel),
     )
