@@ -417,8 +417,8 @@ def judge_drive(case: Case, steps: Sequence[Step] | None = None) -> dict[str, Co
 
 def table(totals: dict[str, Counts]) -> str:
     """Per output: bins; unsafe far and clear; beside (held: its +inf bins), overhang, overhang
-    cleared, below resolution, blind and subpixel (reported, not unsafe); false too-close; NaN share;
-    coverage; safe-side error p50/p95/max (m); worst excess of an unsafe far bin (m)."""
+    cleared, below resolution, blind and subpixel (reported, not unsafe); false too-close; NaN
+    share; coverage; safe-side error p50/p95/max (m); worst excess of an unsafe far bin (m)."""
     names = "far clear (held) beside overhg oh_clr below blind subpx close NaN cover".split()
     head = f"{'output':<15}{'bins':>8}" + "".join(f"{n:>7}" for n in names)
     head += f"  {'p50':>6} {'p95':>6} {'max':>6}  {'excess':>6}"

@@ -58,6 +58,7 @@ SENSOR_DEPTH_M = (0.35, 8.0)  # optical depth the simulated sensor reads (synthe
 Z_LEVELS = 6  # heights tried per sample for occlusion
 NEAR_EDGE_M = 0.015  # an edge sample this close to where its ray enters the hole is a near edge
 EPS = 1e-9
+TURN_M2 = 1e-12  # cross product of two outline steps (m^2) at a corner (steps ~1 cm: ~1e-4)
 FAR_M = 100.0  # beyond every world
 
 
@@ -104,7 +105,7 @@ def _sides(outline: F64) -> F64:
     """Per sample of a rectangle's outline (perimeter: corners included, in order), the corners
     (N, 2, 2) of the side it lies on: the samples from one corner up to the next."""
     d = np.diff(np.concatenate([outline, outline[:1]]), axis=0)
-    turn = np.abs(d[:, 0] * np.roll(d, 1, 0)[:, 1] - d[:, 1] * np.roll(d, 1, 0)[:, 0]) > 1e-12
+    turn = np.abs(d[:, 0] * np.roll(d, 1, 0)[:, 1] - d[:, 1] * np.roll(d, 1, 0)[:, 0]) > TURN_M2
     corners = np.flatnonzero(turn)  # the samples where the outline turns: its corners
     k = np.searchsorted(corners, np.arange(len(outline)), side="right") - 1  # -1: before the first
     start = outline[corners[k % len(corners)]]
@@ -251,8 +252,8 @@ class Sight:
         ``visible`` (the finite truth), ``claim`` (the +inf truth of its own scans), ``overhang``,
         ``below`` (resolution), ``covered``, ``dead``, ``drop`` (a box, or a near edge of a hole
         deeper than the margin: what the contract speaks of), ``seen`` (visible within the stage's
-        range limits: what the memory may keep), ``subpixel`` (in view and unhidden, but inside a side
-    seen edge-on: narrower than a pixel column, so not in ``visible``)."""
+        range limits: what the memory may keep), ``subpixel`` (in view and unhidden, but inside a
+    side seen edge-on: below pixel resolution, so not in ``visible``)."""
 
     visible: B
     claim: B
@@ -281,16 +282,17 @@ def sight(bd: Boundary, scene: Scene, cam: Camera, scan: ScanParams, cliff: Clif
     flo, fhi = cam.window(bd.xy, zero, zero, (rows.start, last), cols)
     floor = box & (flo <= fhi)
     over = bd.raised & floor & (lo > hi)  # a raised body wholly outside the view (top or sides)
-    fr = cam.floor_row(bd.xy)
-    dead = (np.isfinite(fr) & (fr > last)) | (r < cam.nearest_floor(last, cols))
-    visible = np.zeros(n, bool)
+    fr = cam.floor_row(bd.xy)  # below: the box's dead zone; the edges' is set further down
+    dead, visible = (
+        (np.isfinite(fr) & (fr > last)) | (r < cam.nearest_floor(last, cols)),
+        np.zeros(n, bool),
+    )
     k = np.flatnonzero(inview)
     at = rows.start + step * np.round(
         k0[k, None] + (k1 - k0)[k, None] * np.linspace(0, 1, Z_LEVELS)
     )
     visible[k] = _unhidden(scene, cam, bd.xy[k], r[k], cam.height_at_row(bd.xy[k], at))
-    subpixel = visible & _subpixel_side(bd, cam, rows, scan.col_step)
-    visible &= ~subpixel
+    visible, subpixel = _split_subpixel(visible, bd, cam, rows, scan.col_step)
     seen = visible & (r >= scan.range_min_m) & (r <= scan.range_max_m)
     claim, below, covered, drop = inview | (floor & ~over), np.zeros(n, bool), inview | floor, box
 
@@ -327,6 +329,14 @@ def sight(bd: Boundary, scene: Scene, cam: Camera, scan: ScanParams, cliff: Clif
     return Sight(visible, claim, over, below, covered, dead, drop, seen, subpixel)
 
 
+def _split_subpixel(
+    visible: B, bd: Boundary, cam: Camera, rows: range, col_step: int
+) -> tuple[B, B]:
+    """``visible`` without the samples of sides seen edge-on, and those samples (N,) each."""
+    sub = visible & _subpixel_side(bd, cam, rows, col_step)
+    return visible & ~sub, sub
+
+
 def _subpixel_side(bd: Boundary, cam: Camera, rows: range, col_step: int) -> B:
     """Box samples (N,) inside a side of their outline that no row of pixel centres the stage
     reads crosses twice: at most one used pixel centre per row has its level-frame bearing within
@@ -334,8 +344,8 @@ def _subpixel_side(bd: Boundary, cam: Camera, rows: range, col_step: int) -> B:
     meets it at one depth while the side runs along the ray (seed 83: a 0.6 m side within
     0.03 deg), and no stage can tell where along it the rest lies. The side's corners stay (they
     end the sides beside it)."""
-    inner = ~bd.edge & np.any(np.abs(bd.side[:, 0] - bd.xy) > 1e-9, axis=1)
-    inner &= np.any(np.abs(bd.side[:, 1] - bd.xy) > 1e-9, axis=1)
+    inner = ~bd.edge & np.any(np.abs(bd.side[:, 0] - bd.xy) > EPS, axis=1)
+    inner &= np.any(np.abs(bd.side[:, 1] - bd.xy) > EPS, axis=1)
     if not inner.any():
         return inner
     i = cam.intr
