@@ -317,7 +317,7 @@ def to_base_frame(
         points_to_base(cliff.points_m, mount),
         cliff.blocks,
         cliff.block_size,
-        scan_to_base(cliff.scan, mount, layout, intr, cliff_rows),
+        scan_to_base(cliff.scan, mount, layout, intr, cliff_rows, drop_offs=True),
     )
     return base_scan, base_cliff
 

@@ -169,6 +169,7 @@ def scan_to_base(
     intr: Intrinsics,
     rows: tuple[int, int, int],
     pixels: F32 | None = None,
+    drop_offs: bool = False,
 ) -> LaserScan:
     """A level-frame scan of a sensor at ``mount`` in the base frame, in ``layout`` (module
     docstring).
@@ -181,6 +182,8 @@ def scan_to_base(
             what its view sees on the floor (coverage.floor_extent), for the +inf claims.
         pixels: (n,) the obstacle pixels binned in the base frame (placement_pixels), nearest
             range per bin, +inf where none; None: the arcs' ranges only (the cliff scan).
+        drop_offs: a cliff scan: a wedge's NaN says nothing of the floor's dead zone, which no
+            camera sees (an obstacle scan's does: the image sees tall things there).
     """
     a0, inc, n = layout
     if not mount.placed:
@@ -242,6 +245,7 @@ def scan_to_base(
         rt.centre,
         rt.check,
         rt.never,
+        rt.none if drop_offs else rt.full,
         d * d,
         float(scan.range_min),
         rt.wedges,

@@ -113,18 +113,21 @@ def _s_span(rho0, rho1, a, d2):
 
 
 @helper
-def _prefix_counts(ranges, rmin):
+def _prefix_counts(ranges, rmin, full):
     """(m + 1,) int64 each: how many of wedges 0..i-1 read -inf, or something that may hide an
     obstacle nearer than ``rmin`` (a finite reading below it, which REP 117 says is -inf, is
-    counted with them to be safe), and NaN."""
+    counted with them to be safe), NaN, and NaN where the wedge's view reaches range_max
+    (``full``: its NaN is this frame's, not the view's)."""
     m = ranges.shape[0]
     n_close = np.zeros(m + 1, np.int64)
     n_nan = np.zeros(m + 1, np.int64)
+    n_nan_full = np.zeros(m + 1, np.int64)
     for i in range(m):
         v = ranges[i]
         n_close[i + 1] = n_close[i] + (1 if v < rmin else 0)
         n_nan[i + 1] = n_nan[i] + (1 if np.isnan(v) else 0)
-    return n_close, n_nan
+        n_nan_full[i + 1] = n_nan_full[i] + (1 if np.isnan(v) and full[i] else 0)
+    return n_close, n_nan, n_nan_full
 
 
 @helper
@@ -170,8 +173,8 @@ def _range_min(t, lo, hi):
 
 @kernel
 def rays_to_base_kernel(
-    ranges, start, k, k_hi, run, s, rho, a, centre, check, never, d2, rmin, wedges, foot, base,
-    out,
+    ranges, start, k, k_hi, run, s, rho, a, centre, check, never, full, d2, rmin, wedges, foot,
+    base, out,
 ):  # fmt: skip
     """Finish the base scan ``out`` (float32, arcs already mapped in with REP 117 values, +inf
     where no arc fed a bin): arc crossings and too-close wedges on the centre ray by min; then a
@@ -183,7 +186,7 @@ def rays_to_base_kernel(
     width) of the sensor's wedges in the base frame; ``foot``: (x, y) of the sensor; ``base``:
     (first bearing, width) of the base bins."""
     inf = np.float32(np.inf)
-    n_close, n_nan = _prefix_counts(ranges, rmin)
+    n_close, n_nan, n_nan_full = _prefix_counts(ranges, rmin, full)
     rmq = _range_min_table(ranges)
     a0s, incs = wedges
     tx, ty = foot
@@ -196,14 +199,16 @@ def rays_to_base_kernel(
         for e in range(start[j], start[j + 1]):
             if run[e]:  # a finite reading (>= range_min) lies past every one of these crossings
                 close = n_close[k_hi[e] + 1] - n_close[k[e]] > 0
-                if close or (check[e] and n_nan[k_hi[e] + 1] - n_nan[k[e]] > 0):
+                nan = n_nan if check[e] else n_nan_full
+                if close or nan[k_hi[e] + 1] - nan[k[e]] > 0:
                     seen = False
                 if close and centre[e] and s[e, 0] <= rmin:
                     best = -inf
                 continue
             if k_hi[e] > k[e]:
                 mv = _range_min(rmq, k[e], k_hi[e])
-                if check[e] and n_nan[k_hi[e] + 1] - n_nan[k[e]] > 0:
+                nan = n_nan if check[e] else n_nan_full
+                if nan[k_hi[e] + 1] - nan[k[e]] > 0:
                     seen = False
                 if mv > s[e, 1]:
                     continue  # every wedge seen free past the entry (or unknown, above)
@@ -221,7 +226,7 @@ def rays_to_base_kernel(
             # before the crossing's far end (else the ray meets it or runs in its shadow: a
             # wall's end 1.3 m off read +inf on the base bin beside it)
             free = v == inf or (v > s[e, 1] and v < inf)
-            if not free and (check[e] or v <= s[e, 1]):
+            if not free and (check[e] or v <= s[e, 1] or (np.isnan(v) and full[k[e]])):
                 seen = False
             if not centre[e]:
                 continue

@@ -7,6 +7,10 @@ every part of that ray is either in the sensor's lower dead zone (nearer than wh
 meets the floor: the contract's stated exception) or inside a wedge that saw free floor past the
 crossing (a +inf bin, or a hit farther than the crossing, within the wedge's view ``far``); a part
 outside the view (beside or behind the sensor, or past a wedge's far) makes it unknown (NaN).
+In the dead zone the image still sees tall things: a crossing there of a wedge whose view reaches
+range_max but that read NaN this frame (a box too close to read: all 0) makes an obstacle scan's
+bin unknown too (seed 1801: a box 0.33 m before the lens, 0.67 m from the base origin, read +inf
+on 6 base bins); a cliff scan's NaN says nothing there (no camera sees the floor's dead zone).
 The rays at the bin's centre and at both its edges are checked, so a clear bin is clear across its
 width. The centre ray also takes the exact range where it crosses a hit's arc (``|rho u - t| = r``
 inside the wedge), so a near obstacle seen from the side leaves no hole between the arcs that
@@ -63,6 +67,8 @@ class RayTable:
     check: npt.NDArray[np.bool_]  # (C,) outside the dead zone: must be seen free for +inf
     run: npt.NDArray[np.bool_]  # (R,) nearer than range_min: only -inf and NaN readings matter
     never: npt.NDArray[np.bool_]  # (N,)
+    full: npt.NDArray[np.bool_]  # (M,) the sensor wedge's view reaches range_max
+    none: npt.NDArray[np.bool_]  # (M,) False: ``full`` for a cliff scan (placement.scan_to_base)
     range_max_m: float  # base range out to which +inf claims free (sensor's range_max - |t|)
     # the sensor's wedges (first centre bearing in the base frame, width) and its foot: where a
     # merged entry's arc crossing lies (which wedge it is in)
@@ -148,6 +154,8 @@ def ray_table(
             check=check[lo].copy(),
             run=near_rm[lo] & near_rm[last],
             never=never,
+            full=fr >= range_max_m,
+            none=np.zeros(m, np.bool_),
             range_max_m=rmax,
             wedges=(a0s + yaw_rad, incs),
             foot=(x_m, y_m),

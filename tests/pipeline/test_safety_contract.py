@@ -441,3 +441,26 @@ def test_a_drop_off_whose_lower_floor_lies_past_range_max_is_not_read_clear() ->
     assert totals["level_cliff"].unsafe_clear <= 13, totals["level_cliff"].examples
     assert totals["base_cliff"].unsafe_clear == 0, totals["base_cliff"].examples
     assert totals["sectors"].unsafe == 0, totals["sectors"].examples
+
+
+def test_a_box_too_close_to_read_in_the_dead_zone_is_not_clear_in_the_base_frame() -> None:
+    """Seed 1801 (outside the CI drives): a sensor 0.34 m off the base origin, yawed 139 deg
+    right, with a tall box 0.33 m in front of its lens: inside the floor's dead zone (the bottom
+    row meets the floor 0.67 m out) and too close to read (the image's lower left is all 0).
+    The level scan says NaN there; the base bins whose rays pass the sensor's foot and cross
+    those wedges inside the dead zone read +inf over the box 0.67 m away (6 bins). A wedge
+    whose view reaches range_max and that read NaN now makes a dead-zone crossing unknown."""
+    mount = Mount(0.3925, 7.82, -1.18, x_m=-0.2622, y_m=-0.2146, yaw_deg=-139.16)
+    box = Box(1.2497, -0.8698, 0.525, 0.3554, 0.8349, yaw_deg=71.06)
+    pose = (1.4592, 0.0329, 0.3108)
+    case = Case(0, Scene(boxes=(box,)), (mount,), ((0.0, *pose),), (pose,), SMALL, None, None)
+    step = next(run_case(case))
+    view = render(case.scene, SMALL, mount, robot_pose=pose)
+    assert (view.depth_mm[60:, :40] == 0).all()  # the box, too close to read
+    totals = judge_drive(case, [step])
+    assert totals["base_scan"].unsafe == 0, totals["base_scan"].examples
+    assert totals["sectors"].unsafe == 0, totals["sectors"].examples
+    # the bins over the box (base bearings -134..-132 deg) are unknown, not clear
+    scan = step.results[0].scan
+    over = _bins_near(scan, math.radians(-134.0), math.radians(-132.0))
+    assert np.isnan(scan.ranges[over]).all()
