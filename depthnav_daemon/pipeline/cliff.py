@@ -23,7 +23,8 @@ never beyond it; where an obstacle hides the edge, its point is taken. ``points_
 edge points, one per column and drop-off; the cliff scan bins each by its pixel's footprint (the
 bearings between its left and right edges, as the obstacle scan), nearest first. A bin without a
 drop-off is +inf only where the read rows see the floor on it out to range_max
-(``coverage.floor_extent``), else NaN (the safety contract).
+(``coverage.floor_extent``) and no sample of its columns, or of the sample columns beside them,
+read a drop-off (one too few samples saw to make a block), else NaN (the safety contract).
 
 ``paper``: eq. 6 as published: per-row floor depth with the linear row angle (eq. 3), no roll,
 margin in optical depth, ``range_min_m < depth < range_max_m`` (ROS 1 cliff_detector); every

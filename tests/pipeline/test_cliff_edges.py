@@ -388,17 +388,21 @@ def reference_edges(
                 stack += [(b2, a, z) for _, a, z in runs(fresh[:, None])]
                 pushed[:, b2] |= fresh
     # no drop-off: NaN where the read rows do not see out to range_max, or no reach sample reads
-    # the floor (or something on it), or one reads a drop-off; else +inf
+    # the floor (or something on it), or one reads a drop-off, or its sample column or one beside
+    # it read a drop-off in any sample row; else +inf
     clear = np.isinf(out)
     out[clear & t.short] = np.nan
+    every = depth[np.ix_(t.rows, t.cols)].astype(np.int64)
+    dropped = ((t.lo_mm.astype(np.int64) < every) & (every < t.hi_mm)).any(axis=0)
+    near = dropped | np.r_[dropped[1:], False] | np.r_[False, dropped[:-1]]
     for b in np.flatnonzero(clear & ~t.short):
         codes = t.cov_code[t.cov_start[b] : t.cov_start[b + 1]]
         i, k = codes >> 15, codes & 0x7FFF
         d = depth[t.rows[i], t.cols[k]].astype(np.int64)
         slo = t.lo_mm[i, k].astype(np.int64)
         # the floor or something on it read there, and no drop-off (one too few samples saw to
-        # make a block is not clear)
-        if not ((d != 0) & (d <= slo)).any() or ((slo < d) & (d < t.hi_mm)).any():
+        # make a block, or an edge crossing at a slant between two sample columns, is not clear)
+        if not ((d != 0) & (d <= slo)).any() or ((slo < d) & (d < t.hi_mm)).any() or near[k].any():
             out[b] = np.nan
     return out, np.array(pts, np.float32).reshape(-1, 2)
 
