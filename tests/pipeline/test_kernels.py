@@ -97,6 +97,7 @@ def reference_exact_scan(
     ws = d.shape[1]
     out = np.full(t.n_bins, np.inf, dtype=np.float32)
     seen = np.zeros(t.n_bins, dtype=bool)
+    blocked = np.zeros(t.n_bins, dtype=bool)
     for i in range(d.shape[0]):
         for b in np.flatnonzero(g_lo[i] < ws):
             c0, c1 = int(g_lo[i, b]), int(min(g_hi[i, b], ws - 1))
@@ -104,7 +105,7 @@ def reference_exact_scan(
     # +inf only where one of the bin's runs asked (the table's runs: a column's rows feeding the
     # same bins) reads at or beyond range_max at its last row whose floor point lies 2 % beyond
     # range_max (this file's projection; the margin covers depth rounding and noise): that ray
-    # was seen free that far
+    # was seen free that far; and none of them reads something nearer there
     rm = np.float32(params.range_max_m)
     reach_m = params.range_max_m * 1.02
     for b in range(t.n_bins):
@@ -117,7 +118,8 @@ def reference_exact_scan(
                 asked.append((lim, c))
         for lim, c in {asked[0], asked[len(asked) // 2], asked[-1]} if asked else ():
             seen[b] |= bool(d[lim, c] != 0 and val_range[lim, c] >= rm)
-    out[(out == np.inf) & ~seen] = np.nan
+            blocked[b] |= bool(d[lim, c] != 0 and val_range[lim, c] < rm)
+    out[(out == np.inf) & (~seen | blocked)] = np.nan
     # the view's reach (coverage.floor_extent, tested on its own in test_coverage): a bin whose
     # floor is not seen to range_max says NaN where it found nothing
     short = np.zeros(t.n_bins, dtype=bool)
