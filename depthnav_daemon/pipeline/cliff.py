@@ -123,6 +123,7 @@ def detect_cliffs(
         nj,
         ni,
         t.lo_mm,
+        t.ob_mm,
         np.uint16(t.hi_mm),
         t.range_m,
         t.block_ok,

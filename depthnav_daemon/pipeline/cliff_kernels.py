@@ -30,6 +30,7 @@ def cliff_kernel(
     nj,
     ni,
     lo,
+    ob,
     hi,
     range_m,
     block_ok,
@@ -83,6 +84,8 @@ def cliff_kernel(
             each) from the top, so sample rows tb * nj ... hold block row nbr - 1 - tb.
         nj, ni: sample rows and columns per block.
         lo: (R, C) uint16, hi: uint16 scalar: a sample is a drop-off iff lo < d < hi.
+        ob: (R, C) uint16: (exact) a reading 0 < d < ob stands above the floor (65535: no
+            floor point in reach, the sample's reading says nothing of it).
         range_m: (R, C) float32 horizontal range of the sample's floor point, metres.
         block_ok: (nbr, nbc) bool: the block's centre ray meets the floor (else never reported).
         thresh: drop-off samples a block needs (eq. 8).
@@ -211,9 +214,10 @@ def cliff_kernel(
             else:
                 out[b] = nan
             continue
-        # exact: +inf if a reach sample reads the floor or something on it and none a drop-off
-        # (a drop-off too few samples saw to make a block, or whose edge crosses the bin, is not
-        # clear; a wall hides the floor behind it, but the obstacle scan reports the wall)
+        # exact: +inf if a reach sample reads the floor, none a drop-off (a drop-off too few
+        # samples saw to make a block, or whose edge crosses the bin, is not clear) and none
+        # something standing on the floor (it hides the floor behind it: a costmap fed the cliff
+        # scan would clear a drop-off marked there before; seed 1422)
         floor = False
         for m in range(cov_start[b], cov_start[b + 1]):
             x = cov_code[m]
@@ -221,7 +225,9 @@ def cliff_kernel(
             c = x & CODE_MASK
             d = depth[rows[i], c]
             near = dropped[max(c - 1, 0)] | dropped[c] | dropped[min(c + 1, n_cols - 1)]
-            if ((lo[i, c] < d) & (d < hi)) | near:
+            o = ob[i, c]
+            above = (d != 0) & (d < o) & (o != np.uint16(65535))
+            if ((lo[i, c] < d) & (d < hi)) | near | above:
                 floor = False
                 break
             floor = floor | ((d != 0) & (d <= lo[i, c]))

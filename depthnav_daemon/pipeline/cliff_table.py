@@ -52,6 +52,9 @@ class CliffTable:
     cols: npt.NDArray[np.intp]  # (nbc * ni,) image column of every sample column
     shape4: tuple[int, int, int, int]  # (nbr, nj, nbc, ni)
     lo_mm: npt.NDArray[np.uint16]  # (nbr * nj, nbc * ni) sample counts iff lo < d < hi
+    # (nbr * nj, nbc * ni) exact: a reading below it stands above the floor (px_band_mm[1] at the
+    # sample; NEVER_MM: no floor point in reach); paper: NEVER_MM (unused)
+    ob_mm: npt.NDArray[np.uint16]
     hi_mm: int  # the same upper bound for every sample (the range limit or none)
     range_m: F32  # (nbr * nj, nbc * ni) horizontal range of the floor point, +inf none
     block_xy_m: F32  # (nbr, nbc, 2) floor point of each block's centre ray, NaN none
@@ -262,7 +265,9 @@ def cliff_table(
         px_band, px_xyt, px_bins = _pixel_tables(
             intr, mount, params, rot, row0, angle_min, inc, n_bins
         )
-        lo_mm = np.ascontiguousarray(px_band[0][rows - row0][:, cols])  # the samples' pixels'
+        # the samples' pixels' bounds: a reading beyond lo_mm is a drop-off, one short of ob_mm
+        # stands on the floor
+        lo_mm, ob_mm = (np.ascontiguousarray(b[rows - row0][:, cols]) for b in px_band)
         # the rows the decision reads: from the top sample row down, one in row_step (the top
         # row and the image's sides bound the view; fewer rows only see less: the safe side)
         read = (int(rows[0]), intr.height, params.row_step)
@@ -272,7 +277,7 @@ def cliff_table(
         px_band = np.empty((2, 0, intr.width), np.uint16)
         px_xyt = np.empty((0, intr.width, 3), np.float32)
         px_bins = np.empty((2, 0, intr.width), np.int16)
-        short = np.zeros(n_bins, np.bool_)
+        short, ob_mm = np.zeros(n_bins, np.bool_), np.full(lo_mm.shape, NEVER_MM, np.uint16)
 
     # a ray that grazes the floor meets it beyond float32's range (~1e41 m at 1e-40 deg tilt):
     # +inf there, which is what +inf means here (no floor point in reach), not an error
@@ -285,6 +290,7 @@ def cliff_table(
         cols=cols,
         shape4=(nbr, j.size, nbc, i.size),
         lo_mm=lo_mm,
+        ob_mm=ob_mm,
         hi_mm=hi_mm,
         range_m=range32,
         block_xy_m=block_xy,

@@ -159,15 +159,18 @@ def test_a_drop_off_only_in_rows_the_stage_does_not_read_is_unknown_not_clear() 
     assert math.isinf(ahead(full)) and ahead(full) > 0
 
 
-def test_coverage_is_the_rows_geometry_not_this_frames_readings() -> None:
-    # a wall 3 m ahead hides the floor behind it, and a reading on it is no drop-off: the bin
-    # stays +inf, the rows' geometry seeing out to range_max there (coverage.floor_extent; the
-    # obstacle scan reports the wall, and a merged output keeps the nearest)
+def test_a_wall_hiding_the_floor_leaves_the_cliff_scan_unknown_behind_it() -> None:
+    # a wall 3 m ahead hides the floor behind it: a reading on it is no drop-off, but the floor
+    # out to range_max was not seen, so the bin is NaN, not +inf (a costmap fed the cliff scan
+    # would clear a drop-off it marked there before); the obstacle scan reports the wall
     mount = Mount(0.55, 15.0, 0.0)
     layout = scan_layout(ASYM_640, mount, ScanParams())
     view = render(Scene(boxes=(wall(3.0),)), ASYM_640, mount)
     res = detect_cliffs(view.depth_mm, ASYM_640, mount, CliffParams(), *layout)
-    assert len(res.points_m) == 0 and math.isinf(ahead(res))
+    assert len(res.points_m) == 0 and math.isnan(ahead(res))
+    open_floor = render(Scene(), ASYM_640, mount)
+    res = detect_cliffs(open_floor.depth_mm, ASYM_640, mount, CliffParams(), *layout)
+    assert math.isinf(ahead(res)) and ahead(res) > 0
 
 
 # --- the depth-noise margin -----------------------------------------------------------------------
@@ -400,9 +403,12 @@ def reference_edges(
         i, k = codes >> 15, codes & 0x7FFF
         d = depth[t.rows[i], t.cols[k]].astype(np.int64)
         slo = t.lo_mm[i, k].astype(np.int64)
-        # the floor or something on it read there, and no drop-off (one too few samples saw to
-        # make a block, or an edge crossing at a slant between two sample columns, is not clear)
-        if not ((d != 0) & (d <= slo)).any() or ((slo < d) & (d < t.hi_mm)).any() or near[k].any():
+        ob = t.ob_mm[i, k].astype(np.int64)
+        above = (d != 0) & (d < ob) & (ob != NEVER_MM)  # something standing: hides the floor
+        # the floor read there, no drop-off (one too few samples saw to make a block, or an edge
+        # crossing at a slant between two sample columns, is not clear) and nothing standing
+        drop = ((slo < d) & (d < t.hi_mm)).any() or near[k].any()
+        if not ((d != 0) & (d <= slo)).any() or drop or above.any():
             out[b] = np.nan
     return out, np.array(pts, np.float32).reshape(-1, 2)
 
