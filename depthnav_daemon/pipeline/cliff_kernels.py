@@ -30,7 +30,6 @@ def cliff_kernel(
     nj,
     ni,
     lo,
-    ob,
     hi,
     range_m,
     block_ok,
@@ -39,6 +38,8 @@ def cliff_kernel(
     ev_code,
     cov_start,
     cov_code,
+    cov_lo,
+    cov_ob,
     probe_start,
     probe_code,
     block_xy,
@@ -58,14 +59,14 @@ def cliff_kernel(
 
     A bin of the cliff scan holds the nearest drop-off range (``refine`` False, paper: the floor
     range of the drop-off samples of detected blocks that cover it; True, exact: the edges
-    ``edges`` finds); else NaN if ``short[b]``; else +inf if one of its reach samples (those in
-    its highest sample row read, cliff_table._reach_samples) reads the floor or something on it
-    (d <= lo) and none reads a drop-off (lo < d < hi: one that did not make a block, or an edge
-    crossing the bin; a reading beyond ``hi`` says nothing of the floor on the way), and (exact)
-    no sample of their sample columns or the columns beside them read a drop-off in any row (a
-    hole too small for a block, or an edge running at a slant between two sample columns: seed
-    1336 read +inf over an edge 0.8 m away); ``refine`` False, paper: any reading of any
-    covering sample); else NaN.
+    ``edges`` finds); else NaN if ``short[b]``; else (exact) +inf if one of its reach samples
+    (its highest sample row read and the next one above, past range_max,
+    cliff_table._reach_samples) within range reads the floor, none reads a drop-off (one that
+    did not make a block, or an edge crossing the bin; a reading beyond ``hi`` says nothing of
+    the floor on the way) or something standing on the floor, and no sample of their sample
+    columns or the columns beside them read a drop-off in any row (a hole too small for a block,
+    or an edge at a slant between two sample columns: seed 1336 read +inf over an edge 0.8 m
+    away); (paper) +inf if any covering sample has a reading; else NaN.
 
     Per block row: a sweep counts drop-offs per sample column (uint16 lanes, no branches). If the
     block row holds at least ``thresh`` drop-offs in all, its blocks are decided (eq. 7-8), and
@@ -84,8 +85,6 @@ def cliff_kernel(
             each) from the top, so sample rows tb * nj ... hold block row nbr - 1 - tb.
         nj, ni: sample rows and columns per block.
         lo: (R, C) uint16, hi: uint16 scalar: a sample is a drop-off iff lo < d < hi.
-        ob: (R, C) uint16: (exact) a reading 0 < d < ob stands above the floor (65535: no
-            floor point in reach, the sample's reading says nothing of it).
         range_m: (R, C) float32 horizontal range of the sample's floor point, metres.
         block_ok: (nbr, nbc) bool: the block's centre ray meets the floor (else never reported).
         thresh: drop-off samples a block needs (eq. 8).
@@ -94,7 +93,9 @@ def cliff_kernel(
         ev_code: (E,) int32 ``col | last << 15 | bin << 16``: column col's run minimum goes into
             bin (bin n: scratch, a run that covers no bin); ``last``: the run ends there.
         cov_start: (n + 1,) int64, cov_code: (M,) int32 ``col | row << 15``: the reach samples
-            of bin b, cov_start[b]:cov_start[b + 1], the probe last.
+            of bin b, cov_start[b]:cov_start[b + 1], the probe last; cov_lo, cov_ob: (M,)
+            uint16 (exact) their bounds: a reading beyond cov_lo is a drop-off, one short of
+            cov_ob (65535: none) stands on the floor (CliffTable.cov_lo_mm: past range_max too).
         probe_start: (R + 1,) int64, probe_code: (P,) int32 ``col | bin << 15``: the probes in
             sample row i are probe_start[i]:probe_start[i + 1].
         block_xy: (nbr, nbc, 2) float32 floor point of each block's centre ray.
@@ -225,12 +226,15 @@ def cliff_kernel(
             c = x & CODE_MASK
             d = depth[rows[i], c]
             near = dropped[max(c - 1, 0)] | dropped[c] | dropped[min(c + 1, n_cols - 1)]
-            o = ob[i, c]
+            lo_m = cov_lo[m]
+            o = cov_ob[m]
             above = (d != 0) & (d < o) & (o != np.uint16(65535))
-            if ((lo[i, c] < d) & (d < hi)) | near | above:
+            if ((lo_m < d) & (d < hi)) | near | above:
                 floor = False
                 break
-            floor = floor | ((d != 0) & (d <= lo[i, c]))
+            # the floor read: by a sample within range (lo[i, c] is 65535 past range_max: one
+            # there may only forbid +inf, its ray passes over the floor nearer than its own)
+            floor = floor | ((d != 0) & (d <= lo_m) & (lo[i, c] != np.uint16(65535)))
         if not floor:
             out[b] = nan
     blocks = np.empty((n_found, 2), np.int64)

@@ -52,9 +52,6 @@ class CliffTable:
     cols: npt.NDArray[np.intp]  # (nbc * ni,) image column of every sample column
     shape4: tuple[int, int, int, int]  # (nbr, nj, nbc, ni)
     lo_mm: npt.NDArray[np.uint16]  # (nbr * nj, nbc * ni) sample counts iff lo < d < hi
-    # (nbr * nj, nbc * ni) exact: a reading below it stands above the floor (px_band_mm[1] at the
-    # sample; NEVER_MM: no floor point in reach); paper: NEVER_MM (unused)
-    ob_mm: npt.NDArray[np.uint16]
     hi_mm: int  # the same upper bound for every sample (the range limit or none)
     range_m: F32  # (nbr * nj, nbc * ni) horizontal range of the floor point, +inf none
     block_xy_m: F32  # (nbr, nbc, 2) floor point of each block's centre ray, NaN none
@@ -64,6 +61,11 @@ class CliffTable:
     ev_code: npt.NDArray[np.int32]  # (E,) .. col | run ends << 15 | bin << 16
     cov_start: npt.NDArray[np.int64]  # (N + 1,) bin b's reach samples: cov_start[b]:cov_start[b+1]
     cov_code: npt.NDArray[np.int32]  # (M,) col | sample row << 15 (_reach_samples: probe last)
+    # (M,) exact: each reach sample's bounds, its pixel's (px_band_mm) or, past range_max, the
+    # same formula: a reading beyond cov_lo_mm is a drop-off, one short of cov_ob_mm stands on the
+    # floor (NEVER_MM: none); paper: NEVER_MM (unused)
+    cov_lo_mm: npt.NDArray[np.uint16]
+    cov_ob_mm: npt.NDArray[np.uint16]
     probe_start: npt.NDArray[np.int64]  # (R + 1,) probes (a bin's lowest sample) by sample row
     probe_code: npt.NDArray[np.int32]  # (P,) col | bin << 15
     # exact: every pixel of the used rows (image rows row0..H-1); paper: empty (0 rows)
@@ -143,11 +145,14 @@ def _reach_samples(
     params: CliffParams,
 ) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.int32], npt.NDArray[np.int32]]:
     """Of every bin's covering samples, those that say whether it is seen out to range_max: the
-    samples read (floor point within [range_min, range_max]) in the bin's highest sample row read.
-    A bin is +inf (no drop-off) only if one of them has a reading: a drop-off nearer than them
-    shows as lower-floor readings in the rows above its edge, and where the highest row reads
-    nothing (a lower floor beyond the sensor's reach) the far end of the bin is unknown (the
-    safety contract). The next row down is no stand-in: at 4 m its floor lies ~0.4 m nearer.
+    samples read (floor point within [range_min, range_max]) in the bin's highest sample row read,
+    and those of the next sample row above it, whose floor lies past range_max (at 160x120 the
+    highest row read can end 0.3 m short of it: a pit whose edge lies between read +inf, seed
+    1006; the kernel judges these with bounds of their own, CliffTable.cov_lo_mm). A bin is +inf
+    (no drop-off) only if one of them has a reading: a drop-off nearer than them shows as
+    lower-floor readings in the rows above its edge, and where the highest row reads nothing (a
+    lower floor beyond the sensor's reach) the far end of the bin is unknown (the safety
+    contract). The next row down is no stand-in: at 4 m its floor lies ~0.4 m nearer.
 
     The paper method keeps them all (the original: +inf where any covering sample reads).
 
@@ -158,12 +163,16 @@ def _reach_samples(
         return cov_start, cov_row, cov_col
     r = range_m[cov_row, cov_col]
     read = (r >= params.range_min_m) & (r <= params.range_max_m)
+    past = np.isfinite(r) & (r > params.range_max_m)
     n = cov_start.size - 1
     bin_of = np.repeat(np.arange(n), np.diff(cov_start))
     big = np.iinfo(np.int32).max
     top = np.full(n, big, np.int64)
     np.minimum.at(top, bin_of[read], cov_row[read])
-    keep = read & (cov_row == top[bin_of])
+    beyond = np.full(n, -1, np.int64)  # the bin's nearest sample row past range_max, above top
+    above = past & (cov_row < top[bin_of])
+    np.maximum.at(beyond, bin_of[above], cov_row[above])
+    keep = (read & (cov_row == top[bin_of])) | (above & (cov_row == beyond[bin_of]))
     rows, cols = cov_row[keep], cov_col[keep]  # bin by bin, as _covering_samples gave them
     start = np.zeros(n + 1, dtype=np.int64)
     np.cumsum(np.bincount(bin_of[keep], minlength=n), out=start[1:])
@@ -237,7 +246,7 @@ def cliff_table(
     rot = cam_to_level(mount.tilt_rad, mount.roll_rad)
     u = cols.astype(np.float64)[None, :]
     v = rows.astype(np.float64)[:, None]
-    lo_mm, hi_mm, range_m = _thresholds(intr, mount, params, rot, rows, u, v)
+    lo_mm, hi_mm, range_m, t_floor = _thresholds(intr, mount, params, rot, rows, u, v)
     block_xy = _block_floor_points(intr, rot, mount.height_m, bs, nbr, nbc)
 
     # each sample covers the bearings between the left and right edges of its col_step footprint
@@ -265,19 +274,21 @@ def cliff_table(
         px_band, px_xyt, px_bins = _pixel_tables(
             intr, mount, params, rot, row0, angle_min, inc, n_bins
         )
-        # the samples' pixels' bounds: a reading beyond lo_mm is a drop-off, one short of ob_mm
-        # stands on the floor
-        lo_mm, ob_mm = (np.ascontiguousarray(b[rows - row0][:, cols]) for b in px_band)
+        lo_mm = np.ascontiguousarray(px_band[0][rows - row0][:, cols])  # the samples' pixels'
+        cov_lo, cov_ob = _reach_bounds(mount, params, px_band, row0, rows, cols, t_floor, cov_code)
         # the rows the decision reads: from the top sample row down, one in row_step (the top
         # row and the image's sides bound the view; fewer rows only see less: the safe side)
         read = (int(rows[0]), intr.height, params.row_step)
         _, far = floor_extent(intr, mount, angle_min, inc, n_bins, read)
         short = ~seen_to(far, params.range_max_m)
     else:  # the original's scan: no pixel tables, no coverage mask (same array types)
-        px_band = np.empty((2, 0, intr.width), np.uint16)
-        px_xyt = np.empty((0, intr.width, 3), np.float32)
-        px_bins = np.empty((2, 0, intr.width), np.int16)
-        short, ob_mm = np.zeros(n_bins, np.bool_), np.full(lo_mm.shape, NEVER_MM, np.uint16)
+        px_band, px_xyt, px_bins = (
+            np.empty((2, 0, intr.width), np.uint16),
+            np.empty((0, intr.width, 3), np.float32),
+            np.empty((2, 0, intr.width), np.int16),
+        )
+        short, cov_lo = np.zeros(n_bins, np.bool_), np.full(cov_code.shape, NEVER_MM, np.uint16)
+        cov_ob = cov_lo
 
     # a ray that grazes the floor meets it beyond float32's range (~1e41 m at 1e-40 deg tilt):
     # +inf there, which is what +inf means here (no floor point in reach), not an error
@@ -290,7 +301,6 @@ def cliff_table(
         cols=cols,
         shape4=(nbr, j.size, nbc, i.size),
         lo_mm=lo_mm,
-        ob_mm=ob_mm,
         hi_mm=hi_mm,
         range_m=range32,
         block_xy_m=block_xy,
@@ -300,6 +310,8 @@ def cliff_table(
         ev_code=ev_code,
         cov_start=cov_start,
         cov_code=cov_code,
+        cov_lo_mm=cov_lo,
+        cov_ob_mm=cov_ob,
         probe_start=probe_start,
         probe_code=probe_code,
         row0=row0,
@@ -319,8 +331,9 @@ def _thresholds(
     rows: npt.NDArray[np.intp],
     u: F64,
     v: F64,
-) -> tuple[npt.NDArray[np.uint16], int, F64]:
-    """Per-sample drop-off thresholds: (lo_mm (R, C) uint16, hi_mm, floor range_m (R, C)).
+) -> tuple[npt.NDArray[np.uint16], int, F64, F64]:
+    """Per-sample drop-off thresholds: (lo_mm (R, C) uint16, hi_mm, floor range_m (R, C), floor
+    depth along the optical axis t_m (R, C), +inf none).
 
     A reading d (mm) is a drop-off sample iff lo_mm < d < hi_mm: deeper than the floor plus the
     ground margin (``paper``: eq. 6's per-row floor). ``exact``: lo_mm is left for the caller to
@@ -333,12 +346,38 @@ def _thresholds(
         t_floor = np.where(down, h / np.where(down, -kz, 1.0), np.inf)  # floor depth, m
         range_m = np.where(down, t_floor * np.hypot(kx, ky), np.inf)  # (nr, nc)
     if params.method == "exact":  # the samples' bounds are their pixels' (cliff_table)
-        return np.empty(range_m.shape, np.uint16), NEVER_MM, range_m
+        return np.empty(range_m.shape, np.uint16), NEVER_MM, range_m, t_floor
     delta = paper_row_angles_rad(intr)[rows][:, None]
     ground = paper_floor_depth_m(h, mount.tilt_rad, delta) + params.ground_margin_m  # eq. 6
     lo = np.broadcast_to(np.maximum(ground, params.range_min_m), range_m.shape)
     hi_mm = min(math.ceil(params.range_max_m * 1000.0), NEVER_MM)
-    return _to_mm(lo), hi_mm, range_m
+    return _to_mm(lo), hi_mm, range_m, t_floor
+
+
+def _reach_bounds(
+    mount: Mount,
+    params: CliffParams,
+    px_band: npt.NDArray[np.uint16],
+    row0: int,
+    rows: npt.NDArray[np.intp],
+    cols: npt.NDArray[np.intp],
+    t_floor: F64,
+    cov_code: npt.NDArray[np.int32],
+) -> tuple[npt.NDArray[np.uint16], npt.NDArray[np.uint16]]:
+    """(M,) uint16 each: the drop-off and standing bounds of every reach sample: its pixel's
+    (px_band_mm: within the range limits) or, for a sample whose floor lies past range_max (the
+    pixel tables say NEVER there), the same formula (cliff_table_kernels.edge_table_kernel)."""
+    i, c = cov_code >> CODE_BITS, cov_code & CODE_MASK
+    lo = px_band[0][rows[i] - row0, cols[c]].copy()
+    ob = px_band[1][rows[i] - row0, cols[c]].copy()
+    h, m, nk = mount.height_m, params.ground_margin_m, params.noise_sigmas * params.depth_noise_k
+    t = t_floor[i, c]
+    past = (lo == NEVER_MM) & np.isfinite(t)
+    tp = t[past]
+    lo[past] = _to_mm(np.maximum((h + m) / h * tp, tp + nk * tp * tp))
+    up = np.maximum(np.minimum((h - m) / h * tp, tp - nk * tp * tp), 0.0)
+    ob[past] = np.clip(np.ceil(up * 1000.0), 0, NEVER_MM).astype(np.uint16)
+    return lo, ob
 
 
 def _to_mm(lo: F64) -> npt.NDArray[np.uint16]:

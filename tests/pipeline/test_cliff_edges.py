@@ -340,6 +340,26 @@ def column_edge(
     return cand, base
 
 
+def _reach_bounds_by_formula(
+    t: CliffTable, mount: Mount, p: CliffParams, intr: Intrinsics, i: np.ndarray, k: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """The drop-off and standing bounds (mm) of samples (i, k): the pixel table's within the
+    range limits, else the same formula at the sample's floor depth (this file's projection)."""
+    lo = t.px_band_mm[0][t.rows[i] - t.row0, t.cols[k]].astype(np.int64)
+    ob = t.px_band_mm[1][t.rows[i] - t.row0, t.cols[k]].astype(np.int64)
+    rays = level_rays(intr, mount.tilt_rad, mount.roll_rad)
+    kz = rays[t.rows[i], t.cols[k], 2]
+    h, m, nk = mount.height_m, p.ground_margin_m, p.noise_sigmas * p.depth_noise_k
+    past = (lo == NEVER_MM) & (kz < 0)
+    tf = h / -kz[past]
+    lo[past] = np.minimum(
+        np.floor(np.maximum((h + m) / h * tf, tf + nk * tf * tf) * 1000), NEVER_MM
+    )
+    up = np.maximum(np.minimum((h - m) / h * tf, tf - nk * tf * tf), 0.0)
+    ob[past] = np.minimum(np.ceil(up * 1000), NEVER_MM)
+    return lo, ob
+
+
 def reference_edges(
     depth: np.ndarray,
     intr: Intrinsics,
@@ -402,13 +422,16 @@ def reference_edges(
         codes = t.cov_code[t.cov_start[b] : t.cov_start[b + 1]]
         i, k = codes >> 15, codes & 0x7FFF
         d = depth[t.rows[i], t.cols[k]].astype(np.int64)
-        slo = t.lo_mm[i, k].astype(np.int64)
-        ob = t.ob_mm[i, k].astype(np.int64)
+        # the bounds of the reach samples: their pixels' where those are set, else (the row
+        # past range_max) the edge search's formula at their floor depth
+        slo, ob = _reach_bounds_by_formula(t, mount, p, intr, i, k)
+        within = t.lo_mm[i, k] != NEVER_MM
         above = (d != 0) & (d < ob) & (ob != NEVER_MM)  # something standing: hides the floor
-        # the floor read there, no drop-off (one too few samples saw to make a block, or an edge
-        # crossing at a slant between two sample columns, is not clear) and nothing standing
+        # the floor read there (within range), no drop-off (one too few samples saw to make a
+        # block, or an edge crossing at a slant between two sample columns, is not clear) and
+        # nothing standing
         drop = ((slo < d) & (d < t.hi_mm)).any() or near[k].any()
-        if not ((d != 0) & (d <= slo)).any() or drop or above.any():
+        if not ((d != 0) & (d <= slo) & within).any() or drop or above.any():
             out[b] = np.nan
     return out, np.array(pts, np.float32).reshape(-1, 2)
 
