@@ -61,7 +61,8 @@ def cliff_kernel(
     range of the drop-off samples of detected blocks that cover it; True, exact: the edges
     ``edges`` finds); else NaN if ``short[b]``; else (exact) +inf if one of its reach samples
     (its highest sample row read and the next one above, past range_max,
-    cliff_table._reach_samples) within range reads the floor, none reads a drop-off (one that
+    cliff_table._reach_samples) within range reads the floor, and one past it where the bin has
+    any there (the stretch up to range_max seen), none reads a drop-off (one that
     did not make a block, or an edge crossing the bin; a reading beyond ``hi`` says nothing of
     the floor on the way) or something standing on the floor, and no sample of their sample
     columns or the columns beside them read a drop-off in any row (a hole too small for a block,
@@ -220,6 +221,8 @@ def cliff_kernel(
         # something standing on the floor (it hides the floor behind it: a costmap fed the cliff
         # scan would clear a drop-off marked there before; seed 1422)
         floor = False
+        past = False  # the bin has reach samples past range_max
+        past_floor = False  # and one of them read the floor
         for m in range(cov_start[b], cov_start[b + 1]):
             x = cov_code[m]
             i = x >> CODE_BITS
@@ -232,10 +235,14 @@ def cliff_kernel(
             if ((lo_m < d) & (d < hi)) | near | above:
                 floor = False
                 break
-            # the floor read: by a sample within range (lo[i, c] is 65535 past range_max: one
-            # there may only forbid +inf, its ray passes over the floor nearer than its own)
-            floor = floor | ((d != 0) & (d <= lo_m) & (lo[i, c] != np.uint16(65535)))
-        if not floor:
+            # the floor read within range (lo[i, c] is 65535 past range_max) and past it: the
+            # stretch between the highest row read and range_max was seen
+            read = (d != 0) & (d <= lo_m)
+            beyond = lo[i, c] == np.uint16(65535)
+            floor = floor | (read & ~beyond)
+            past = past | beyond
+            past_floor = past_floor | (read & beyond)
+        if not floor or (past and not past_floor):
             out[b] = nan
     blocks = np.empty((n_found, 2), np.int64)
     points = np.empty((n_found, 2), np.float32)

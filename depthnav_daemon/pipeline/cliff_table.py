@@ -149,7 +149,7 @@ def _reach_samples(
     and those of the next sample row above it, whose floor lies past range_max (at 160x120 the
     highest row read can end 0.3 m short of it: a pit whose edge lies between read +inf, seed
     1006; the kernel judges these with bounds of their own, CliffTable.cov_lo_mm). A bin is +inf
-    (no drop-off) only if one of them has a reading: a drop-off nearer than them shows as
+    (no drop-off) only if one of each row reads the floor: a drop-off nearer than them shows as
     lower-floor readings in the rows above its edge, and where the highest row reads nothing (a
     lower floor beyond the sensor's reach) the far end of the bin is unknown (the safety
     contract). The next row down is no stand-in: at 4 m its floor lies ~0.4 m nearer.

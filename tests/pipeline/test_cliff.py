@@ -201,7 +201,11 @@ def test_flat_floor_with_noise_and_boxes_has_no_cliff(mount: Mount) -> None:
     seen = seen_to_range_max(ASYM_640, mount, PARAMS, scan_layout(ASYM_640, mount, ScanParams()))
     clear = np.isposinf(res.scan.ranges)
     assert not (clear & ~seen).any(), f"+inf on {np.flatnonzero(clear & ~seen)[:5]} (not seen)"
-    assert clear.sum() >= 0.5 * seen.sum()
+    # +inf also needs a reading of the floor past range_max (the first sample row there: the
+    # highest row within it can end 0.6 m short at these strides), which the Kinect's far
+    # dropouts often deny at 5 m: 54 % of the seen bins at 0.55 m / 15 deg, 39 % for the level
+    # camera 0.3 m high (74 % and 59 % before; a cliff range_max of 4 m gives 79 % and 58 %)
+    assert clear.sum() >= 0.35 * seen.sum()
 
 
 def test_paper_method_finds_a_step_but_exact_is_the_one_that_ignores_roll_and_noise() -> None:

@@ -360,6 +360,43 @@ def _reach_bounds_by_formula(
     return lo, ob
 
 
+def _reference_unknown(
+    out: np.ndarray,
+    t: CliffTable,
+    depth: np.ndarray,
+    mount: Mount,
+    p: CliffParams,
+    intr: Intrinsics,
+) -> None:
+    """The exact cliff scan's NaN, by definition, into ``out``'s bins without a drop-off."""
+    # no drop-off: NaN where the read rows do not see out to range_max, or no reach sample reads
+    # the floor (or something on it), or one reads a drop-off, or its sample column or one beside
+    # it read a drop-off in any sample row; else +inf
+    clear = np.isinf(out)
+    out[clear & t.short] = np.nan
+    every = depth[np.ix_(t.rows, t.cols)].astype(np.int64)
+    dropped = ((t.lo_mm.astype(np.int64) < every) & (every < t.hi_mm)).any(axis=0)
+    near = dropped | np.r_[dropped[1:], False] | np.r_[False, dropped[:-1]]
+    for b in np.flatnonzero(clear & ~t.short):
+        codes = t.cov_code[t.cov_start[b] : t.cov_start[b + 1]]
+        i, k = codes >> 15, codes & 0x7FFF
+        d = depth[t.rows[i], t.cols[k]].astype(np.int64)
+        # the bounds of the reach samples: their pixels' where those are set, else (the row
+        # past range_max) the edge search's formula at their floor depth
+        slo, ob = _reach_bounds_by_formula(t, mount, p, intr, i, k)
+        within = t.lo_mm[i, k] != NEVER_MM
+        above = (d != 0) & (d < ob) & (ob != NEVER_MM)  # something standing: hides the floor
+        # the floor read there (within range), no drop-off (one too few samples saw to make a
+        # block, or an edge crossing at a slant between two sample columns, is not clear) and
+        # nothing standing
+        drop = ((slo < d) & (d < t.hi_mm)).any() or near[k].any()
+        read = (d != 0) & (d <= slo)
+        # and, where the bin has samples past range_max, one of them read the floor there too
+        seen_past = within.all() or (read & ~within).any()
+        if not (read & within).any() or drop or above.any() or not seen_past:
+            out[b] = np.nan
+
+
 def reference_edges(
     depth: np.ndarray,
     intr: Intrinsics,
@@ -410,29 +447,7 @@ def reference_edges(
                 fresh = rows_b & ~pushed[:, b2]
                 stack += [(b2, a, z) for _, a, z in runs(fresh[:, None])]
                 pushed[:, b2] |= fresh
-    # no drop-off: NaN where the read rows do not see out to range_max, or no reach sample reads
-    # the floor (or something on it), or one reads a drop-off, or its sample column or one beside
-    # it read a drop-off in any sample row; else +inf
-    clear = np.isinf(out)
-    out[clear & t.short] = np.nan
-    every = depth[np.ix_(t.rows, t.cols)].astype(np.int64)
-    dropped = ((t.lo_mm.astype(np.int64) < every) & (every < t.hi_mm)).any(axis=0)
-    near = dropped | np.r_[dropped[1:], False] | np.r_[False, dropped[:-1]]
-    for b in np.flatnonzero(clear & ~t.short):
-        codes = t.cov_code[t.cov_start[b] : t.cov_start[b + 1]]
-        i, k = codes >> 15, codes & 0x7FFF
-        d = depth[t.rows[i], t.cols[k]].astype(np.int64)
-        # the bounds of the reach samples: their pixels' where those are set, else (the row
-        # past range_max) the edge search's formula at their floor depth
-        slo, ob = _reach_bounds_by_formula(t, mount, p, intr, i, k)
-        within = t.lo_mm[i, k] != NEVER_MM
-        above = (d != 0) & (d < ob) & (ob != NEVER_MM)  # something standing: hides the floor
-        # the floor read there (within range), no drop-off (one too few samples saw to make a
-        # block, or an edge crossing at a slant between two sample columns, is not clear) and
-        # nothing standing
-        drop = ((slo < d) & (d < t.hi_mm)).any() or near[k].any()
-        if not ((d != 0) & (d <= slo) & within).any() or drop or above.any():
-            out[b] = np.nan
+    _reference_unknown(out, t, depth, mount, p, intr)
     return out, np.array(pts, np.float32).reshape(-1, 2)
 
 
