@@ -300,7 +300,7 @@ def exact_scan_kernel(
         # +inf only where the view reaches range_max, a run of the bin reads that far at its
         # range_max row (its ray was seen free that far; the safety contract) and none reads
         # nearer: a bin whose readings end nearer (something below the obstacle band in the way:
-        # a wall's foot under the view's top edge, seed 1400), or that read nothing that far
+        # a wall's foot under the view's top edge, seed 1424), or that read nothing that far
         # (no return from far away), is unknown
         if out[b] == inf and (short[b] or not reach[b] or blocked[b]):
             out[b] = nan

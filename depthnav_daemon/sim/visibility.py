@@ -155,13 +155,18 @@ class Camera:
             for k in range(3)
         ]
 
+    def level_dirs(self, u: F64, v: F64) -> F64:
+        """Level-frame (forward, left, up) (3, ...) of the rays through pixel coordinates u, v
+        (broadcast together), per unit of camera z."""
+        i = self.intr
+        cam = np.stack(np.broadcast_arrays((u - i.cx) / i.fx, (v - i.cy) / i.fy, 1.0))
+        a, g = self.axes()
+        return np.tensordot(a.T, cam * g.reshape((3,) + (1,) * (cam.ndim - 1)), axes=1)
+
     def nearest_floor(self, row: float, cols: tuple[float, float]) -> float:
         """The nearest floor range from the camera's foot that pixel row ``row`` sees within
         ``cols`` (where the bottom row read meets the floor), m; +inf if none looks down."""
-        i, u = self.intr, np.arange(cols[0], cols[1] + 1)
-        cam = np.stack([(u - i.cx) / i.fx, np.full(u.size, (row - i.cy) / i.fy), np.ones(u.size)])
-        a, g = self.axes()
-        fwd, left, up = a.T @ (cam * g[:, None])
+        fwd, left, up = self.level_dirs(np.arange(cols[0], cols[1] + 1.0), np.float64(row))
         with np.errstate(divide="ignore", invalid="ignore"):
             r = np.where(up < 0, self.h * np.hypot(fwd, left) / -up, np.inf)
         return float(r.min(initial=np.inf))
@@ -249,10 +254,10 @@ def _unhidden(scene: Scene, cam: Camera, xy: F64, r: F64, z: F64) -> B:
 @dataclass(frozen=True, slots=True)
 class Sight:
     """One sensor's view of the outline samples at one pose (N,) each (module docstring):
-        ``visible`` (the finite truth), ``claim`` (the +inf truth of its own scans), ``overhang``,
-        ``below`` (resolution), ``covered``, ``dead``, ``drop`` (a box, or a near edge of a hole
-        deeper than the margin: what the contract speaks of), ``seen`` (visible within the stage's
-        range limits: what the memory may keep), ``subpixel`` (in view and unhidden, but inside a
+    ``visible`` (the finite truth), ``claim`` (the +inf truth of its own scans), ``overhang``,
+    ``below`` (resolution), ``covered``, ``dead``, ``drop`` (a box, or a near edge of a hole
+    deeper than the margin: what the contract speaks of), ``seen`` (visible within the stage's
+    range limits: what the memory may keep), ``subpixel`` (in view and unhidden, but inside a
     side seen edge-on: below pixel resolution, so not in ``visible``)."""
 
     visible: B
@@ -282,17 +287,9 @@ def sight(bd: Boundary, scene: Scene, cam: Camera, scan: ScanParams, cliff: Clif
     flo, fhi = cam.window(bd.xy, zero, zero, (rows.start, last), cols)
     floor = box & (flo <= fhi)
     over = bd.raised & floor & (lo > hi)  # a raised body wholly outside the view (top or sides)
-    fr = cam.floor_row(bd.xy)  # below: the box's dead zone; the edges' is set further down
-    dead, visible = (
-        (np.isfinite(fr) & (fr > last)) | (r < cam.nearest_floor(last, cols)),
-        np.zeros(n, bool),
-    )
-    k = np.flatnonzero(inview)
-    at = rows.start + step * np.round(
-        k0[k, None] + (k1 - k0)[k, None] * np.linspace(0, 1, Z_LEVELS)
-    )
-    visible[k] = _unhidden(scene, cam, bd.xy[k], r[k], cam.height_at_row(bd.xy[k], at))
-    visible, subpixel = _split_subpixel(visible, bd, cam, rows, scan.col_step)
+    fr = cam.floor_row(bd.xy)
+    dead = (np.isfinite(fr) & (fr > last)) | (r < cam.nearest_floor(last, cols))
+    visible, subpixel = _box_visibility(bd, scene, cam, inview, r, (k0, k1), rows, scan)
     seen = visible & (r >= scan.range_min_m) & (r <= scan.range_max_m)
     claim, below, covered, drop = inview | (floor & ~over), np.zeros(n, bool), inview | floor, box
 
@@ -329,11 +326,25 @@ def sight(bd: Boundary, scene: Scene, cam: Camera, scan: ScanParams, cliff: Clif
     return Sight(visible, claim, over, below, covered, dead, drop, seen, subpixel)
 
 
-def _split_subpixel(
-    visible: B, bd: Boundary, cam: Camera, rows: range, col_step: int
+def _box_visibility(
+    bd: Boundary,
+    scene: Scene,
+    cam: Camera,
+    inview: B,
+    r: F64,
+    k: tuple[F64, F64],
+    rows: range,
+    scan: ScanParams,
 ) -> tuple[B, B]:
-    """``visible`` without the samples of sides seen edge-on, and those samples (N,) each."""
-    sub = visible & _subpixel_side(bd, cam, rows, col_step)
+    """(N,) each: the samples in view that no box hides at some of the pixel rows the stage
+    reads between the first and last (``k``: indices into ``rows``) their band falls in, but
+    those of sides seen edge-on; and those."""
+    visible = np.zeros(len(bd.xy), bool)
+    q = np.flatnonzero(inview)
+    k0, k1 = k[0][q, None], k[1][q, None]
+    at = rows.start + (rows.step or 1) * np.round(k0 + (k1 - k0) * np.linspace(0, 1, Z_LEVELS))
+    visible[q] = _unhidden(scene, cam, bd.xy[q], r[q], cam.height_at_row(bd.xy[q], at))
+    sub = visible & _subpixel_side(bd, cam, rows, scan.col_step)
     return visible & ~sub, sub
 
 
@@ -351,9 +362,7 @@ def _subpixel_side(bd: Boundary, cam: Camera, rows: range, col_step: int) -> B:
     i = cam.intr
     v = np.arange(rows.start, min(rows.stop, i.height), rows.step or 1, dtype=float)
     u = np.arange(0, i.width, col_step, dtype=float)
-    ray = np.stack(np.broadcast_arrays((u[None, :] - i.cx) / i.fx, (v[:, None] - i.cy) / i.fy, 1.0))
-    a, g = cam.axes()
-    fwd, left, _ = np.tensordot(a.T, ray * g[:, None, None], axes=1)
+    fwd, left, _ = cam.level_dirs(u[None, :], v[:, None])
     beta = np.sort(np.arctan2(left, fwd), axis=1)  # (rows, cols) level bearings, ascending
     sides, inv = np.unique(bd.side[inner].reshape(-1, 4), axis=0, return_inverse=True)
     ends = [
