@@ -245,7 +245,7 @@ def scan_to_base(
         rt.centre,
         rt.check,
         rt.never,
-        rt.none if drop_offs else rt.full,
+        None if drop_offs else rt.full,
         d * d,
         float(scan.range_min),
         rt.wedges,

@@ -116,8 +116,8 @@ def _s_span(rho0, rho1, a, d2):
 def _prefix_counts(ranges, rmin, full):
     """(m + 1,) int64 each: how many of wedges 0..i-1 read -inf, or something that may hide an
     obstacle nearer than ``rmin`` (a finite reading below it, which REP 117 says is -inf, is
-    counted with them to be safe), NaN, and NaN where the wedge's view reaches range_max
-    (``full``: its NaN is this frame's, not the view's)."""
+    counted with them to be safe), NaN, and NaN where ``full`` (the wedge's view reaches
+    range_max: its NaN is this frame's, not the view's; None: never)."""
     m = ranges.shape[0]
     n_close = np.zeros(m + 1, np.int64)
     n_nan = np.zeros(m + 1, np.int64)
@@ -126,7 +126,9 @@ def _prefix_counts(ranges, rmin, full):
         v = ranges[i]
         n_close[i + 1] = n_close[i] + (1 if v < rmin else 0)
         n_nan[i + 1] = n_nan[i] + (1 if np.isnan(v) else 0)
-        n_nan_full[i + 1] = n_nan_full[i] + (1 if np.isnan(v) and full[i] else 0)
+        n_nan_full[i + 1] = n_nan_full[i] + (
+            1 if full is not None and np.isnan(v) and full[i] else 0
+        )
     return n_close, n_nan, n_nan_full
 
 
@@ -182,9 +184,11 @@ def rays_to_base_kernel(
     (wedges k..k_hi crossed nearer than range_min) asks only whether one of them reads -inf or
     (checked) NaN, through prefix counts; another entry of several wedges asks their least
     reading (a sparse table) against its farthest point, and only where that is not beyond it
-    looks at each wedge (its arc crossing, if it lies in the wedge). ``wedges``: (first bearing,
-    width) of the sensor's wedges in the base frame; ``foot``: (x, y) of the sensor; ``base``:
-    (first bearing, width) of the base bins."""
+    looks at each wedge (its arc crossing, if it lies in the wedge). ``full``: (m,) bool, the
+    wedges whose view reaches range_max, whose NaN makes a crossing in the dead zone unknown too
+    (None: a cliff scan, whose NaN says nothing there). ``wedges``: (first bearing, width) of the
+    sensor's wedges in the base frame; ``foot``: (x, y) of the sensor; ``base``: (first bearing,
+    width) of the base bins."""
     inf = np.float32(np.inf)
     n_close, n_nan, n_nan_full = _prefix_counts(ranges, rmin, full)
     rmq = _range_min_table(ranges)
@@ -226,7 +230,8 @@ def rays_to_base_kernel(
             # before the crossing's far end (else the ray meets it or runs in its shadow: a
             # wall's end 1.3 m off read +inf on the base bin beside it)
             free = v == inf or (v > s[e, 1] and v < inf)
-            if not free and (check[e] or v <= s[e, 1] or (np.isnan(v) and full[k[e]])):
+            unread = full is not None and np.isnan(v) and full[k[e]]  # in the dead zone too
+            if not free and (check[e] or v <= s[e, 1] or unread):
                 seen = False
             if not centre[e]:
                 continue

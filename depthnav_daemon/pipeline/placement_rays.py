@@ -68,7 +68,6 @@ class RayTable:
     run: npt.NDArray[np.bool_]  # (R,) nearer than range_min: only -inf and NaN readings matter
     never: npt.NDArray[np.bool_]  # (N,)
     full: npt.NDArray[np.bool_]  # (M,) the sensor wedge's view reaches range_max
-    none: npt.NDArray[np.bool_]  # (M,) False: ``full`` for a cliff scan (placement.scan_to_base)
     range_max_m: float  # base range out to which +inf claims free (sensor's range_max - |t|)
     # the sensor's wedges (first centre bearing in the base frame, width) and its foot: where a
     # merged entry's arc crossing lies (which wedge it is in)
@@ -155,7 +154,6 @@ def ray_table(
             run=near_rm[lo] & near_rm[last],
             never=never,
             full=fr >= range_max_m,
-            none=np.zeros(m, np.bool_),
             range_max_m=rmax,
             wedges=(a0s + yaw_rad, incs),
             foot=(x_m, y_m),
