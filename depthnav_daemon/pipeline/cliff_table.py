@@ -13,7 +13,7 @@ import numpy as np
 import numpy.typing as npt
 
 from depthnav_daemon.errors import ConfigError
-from depthnav_daemon.pipeline.cliff_table_kernels import edge_table_kernel
+from depthnav_daemon.pipeline.cliff_table_kernels import band_mm_kernel, edge_table_kernel
 from depthnav_daemon.pipeline.coverage import floor_extent, seen_to
 from depthnav_daemon.pipeline.geometry import (
     F32,
@@ -366,17 +366,17 @@ def _reach_bounds(
 ) -> tuple[npt.NDArray[np.uint16], npt.NDArray[np.uint16]]:
     """(M,) uint16 each: the drop-off and standing bounds of every reach sample: its pixel's
     (px_band_mm: within the range limits) or, for a sample whose floor lies past range_max (the
-    pixel tables say NEVER there), the same formula (cliff_table_kernels.edge_table_kernel)."""
+    pixel tables say NEVER there), the pixel tables' own formula (cliff_table_kernels.band_mm)."""
     i, c = cov_code >> CODE_BITS, cov_code & CODE_MASK
     lo = px_band[0][rows[i] - row0, cols[c]].copy()
     ob = px_band[1][rows[i] - row0, cols[c]].copy()
-    h, m, nk = mount.height_m, params.ground_margin_m, params.noise_sigmas * params.depth_noise_k
+    h = mount.height_m
     t = t_floor[i, c]
     past = (lo == NEVER_MM) & np.isfinite(t)
-    tp = t[past]
-    lo[past] = _to_mm(np.maximum((h + m) / h * tp, tp + nk * tp * tp))
-    up = np.maximum(np.minimum((h - m) / h * tp, tp - nk * tp * tp), 0.0)
-    ob[past] = np.clip(np.ceil(up * 1000.0), 0, NEVER_MM).astype(np.uint16)
+    lo_p, ob_p = np.empty((2, int(past.sum())), np.uint16)
+    nk = params.noise_sigmas * params.depth_noise_k
+    band_mm_kernel(t[past] / h, h, params.ground_margin_m, nk, float(NEVER_MM), lo_p, ob_p)
+    lo[past], ob[past] = lo_p, ob_p
     return lo, ob
 
 

@@ -16,6 +16,32 @@ _ATAN_TERMS = tuple((-1.0) ** k / (2 * k + 1) for k in range(11))
 
 
 @inlined
+def band_mm(h, m, nk, per_m, never):
+    """The drop-off and standing bounds (mm, as floats) of a ray meeting the floor ``per_m``
+    metres of depth per metre of height below the camera (h m high): a reading beyond the first
+    lies below the floor by more than the margin m and nk t^2 (nk: sigmas x the noise's k), one
+    short of the second above it; clipped to [0, never]."""
+    t = h * per_m
+    lo = max((h + m) * per_m, t + nk * t * t)
+    up = max(min((h - m) * per_m, t - nk * t * t), 0.0)
+    # integer readings: d > lo <=> d > floor(lo); d < up <=> d < ceil(up)
+    return (
+        min(max(math.floor(lo * 1000.0), 0.0), never),
+        min(max(math.ceil(up * 1000.0), 0.0), never),
+    )
+
+
+@kernel
+def band_mm_kernel(per_m, h, m, nk, never, lo, up):
+    """``band_mm`` of every ray (N,) float64 into lo, up (N,) uint16 (the cliff table's reach
+    samples past range_max, which the pixel tables leave at ``never``)."""
+    for i in range(per_m.shape[0]):
+        a, b = band_mm(h, m, nk, per_m[i], never)
+        lo[i] = np.uint16(a)
+        up[i] = np.uint16(b)
+
+
+@inlined
 def _bearing(y, x):
     """atan2(y, x) within 5e-10 rad, radians: octant reduction, then atan's series on
     |z| <= tan(pi / 8) (~3x faster than libm's atan2, which took half the table's time)."""
@@ -84,11 +110,7 @@ def edge_table_kernel(x, y, xe, ye, rot, limits, max_span, band, xyt, bins):
                 xyt[v, u, 2] = np.float32(t)
                 r = math.sqrt(fx * fx + fy * fy)  # a grazing ray's overflows to +inf: out of range
                 if rmin <= r <= rmax:
-                    lo = max((h + m) * per_m, t + nk * t * t)
-                    up = max(min((h - m) * per_m, t - nk * t * t), 0.0)
-                    # integer readings: d > lo <=> d > floor(lo); d < up <=> d < ceil(up)
-                    lo_mm = min(max(math.floor(lo * 1000.0), 0.0), never)
-                    up_mm = min(max(math.ceil(up * 1000.0), 0.0), never)
+                    lo_mm, up_mm = band_mm(h, m, nk, per_m, never)
             else:
                 xyt[v, u, 0] = nan
                 xyt[v, u, 1] = nan
